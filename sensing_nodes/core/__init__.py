@@ -1,0 +1,1 @@
+"""Pure numpy/scipy algorithms; never imports rclpy or message types."""

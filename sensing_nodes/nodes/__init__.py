@@ -1,0 +1,1 @@
+"""One module per executable: parameters, topics, QoS, message <-> array conversion."""

@@ -1,0 +1,1 @@
+"""What every node shares: QoS profiles, message conversion, parameters, start-up, diagnostics."""

@@ -1,0 +1,121 @@
+"""Running node executables as processes and exchanging messages with them over real DDS."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import rclpy
+
+BIN = Path(sys.executable).parent
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _ros_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)):
+        return '[' + ','.join(_ros_value(v) for v in value) + ']'
+    if isinstance(value, str):
+        return value if value else "''"
+    return repr(value)
+
+
+class NodeProcess:
+    """An executable from the venv run as its own process, its output kept in a log file.
+
+    Use as a context manager; on exit it is stopped with SIGINT (then SIGKILL).
+    """
+
+    def __init__(
+        self,
+        executable: str,
+        params: dict[str, Any] | None = None,
+        remaps: dict[str, str] | None = None,
+        params_file: str | Path | None = None,
+        extra_args: list[str] | None = None,
+        env: dict[str, str] | None = None,
+    ) -> None:
+        self.cmd = [str(BIN / executable), *(extra_args or []), '--ros-args']
+        if params_file:
+            self.cmd += ['--params-file', str(params_file)]
+        for name, value in (params or {}).items():
+            self.cmd += ['-p', f'{name}:={_ros_value(value)}']
+        for src, dst in (remaps or {}).items():
+            self.cmd += ['-r', f'{src}:={dst}']
+        self.env = {**os.environ, **(env or {})}
+        self._log = tempfile.NamedTemporaryFile('w+', prefix=f'{executable}-', suffix='.log')
+        self.proc: subprocess.Popen | None = None
+
+    def start(self) -> NodeProcess:
+        self.proc = subprocess.Popen(
+            self.cmd, stdout=self._log, stderr=subprocess.STDOUT, env=self.env,
+            start_new_session=True)
+        return self
+
+    def __enter__(self) -> NodeProcess:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+    def wait(self, timeout: float) -> int:
+        assert self.proc is not None
+        return self.proc.wait(timeout)
+
+    def output(self) -> str:
+        self._log.flush()
+        return Path(self._log.name).read_text(errors='replace')
+
+
+def run_to_exit(executable: str, args: list[str], timeout: float = 60.0) -> subprocess.CompletedProcess:
+    """Run an executable to completion, capturing its output (for bad-parameter exits and tools)."""
+    return subprocess.run(
+        [str(BIN / executable), *args], capture_output=True, text=True, timeout=timeout)
+
+
+def spin_until(node, condition: Callable[[], bool], timeout: float) -> bool:
+    """Spin the probe node until condition() holds or timeout (wall s) passes."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        rclpy.spin_once(node, timeout_sec=0.05)
+    return condition()
+
+
+class Collector:
+    """Subscribes the probe to a topic and keeps every message received."""
+
+    def __init__(self, node, msg_type, topic: str, qos) -> None:
+        self.messages: list[Any] = []
+        self._node = node
+        self._sub = node.create_subscription(msg_type, topic, self.messages.append, qos)
+
+    def wait_for(self, count: int, timeout: float) -> list[Any]:
+        spin_until(self._node, lambda: len(self.messages) >= count, timeout)
+        return self.messages
+
+    def close(self) -> None:
+        self._node.destroy_subscription(self._sub)
