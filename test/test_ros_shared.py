@@ -1,0 +1,58 @@
+"""The shared ROS layer: conversions, parameters and bag round trips with real message types."""
+
+import math
+
+import numpy as np
+import pytest
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import LaserScan
+
+from sensing_nodes.bag import BagWriter, read_messages, topic_counts, type_name
+from sensing_nodes.ros import conversions as conv
+
+
+def test_stamp_round_trip_is_exact():
+    ns = 1_700_000_123_456_789_012
+    assert conv.stamp_to_ns(conv.ns_to_stamp(ns)) == ns
+
+
+@pytest.mark.parametrize('yaw', [0.0, 0.3, -2.0, math.pi - 1e-9])
+def test_yaw_quaternion_round_trip(yaw):
+    assert conv.quaternion_to_yaw(conv.yaw_to_quaternion(yaw)) == pytest.approx(yaw)
+
+
+def test_odometry_round_trip_places_planar_covariance():
+    cov = np.array([[0.1, 0.01, 0.02], [0.01, 0.2, 0.03], [0.02, 0.03, 0.3]])
+    msg = conv.make_odometry(5, 'odom', 'base_link', (1.0, 2.0, 0.5), cov, (0.3, 0.0, 0.1), cov * 2)
+    assert msg.pose.covariance[0] == 0.1 and msg.pose.covariance[35] == 0.3
+    assert msg.pose.covariance[5] == 0.02 and msg.pose.covariance[14] == 0.0
+    pose, back = conv.odometry_pose(msg)
+    assert pose == pytest.approx((1.0, 2.0, 0.5)) and back == pytest.approx(cov)
+    twist, twist_cov = conv.odometry_twist(msg)
+    assert twist == pytest.approx((0.3, 0.0, 0.1)) and twist_cov == pytest.approx(cov * 2)
+
+
+def test_scan_arrays_and_float32_fields():
+    msg = LaserScan(angle_min=-1.0, angle_increment=0.5)
+    msg.ranges = conv.float32_array(np.array([1.0, np.inf, np.nan]))
+    ranges, angles = conv.scan_arrays(msg)
+    assert ranges[0] == 1.0 and np.isinf(ranges[1]) and np.isnan(ranges[2])
+    assert angles == pytest.approx([-1.0, -0.5, 0.0])
+
+
+def test_bag_round_trip_with_both_readers(tmp_path):
+    from mcap_ros2.reader import read_ros2_messages
+
+    path = tmp_path / 'bag'
+    odom = conv.make_odometry(7, 'odom', 'base_link', (1.0, 2.0, 0.5), np.eye(3))
+    with BagWriter(path) as bag:
+        bag.write('/wheel/odom', odom, 7)
+        bag.write('/wheel/odom', odom, 9)
+    assert type_name(odom) == 'nav_msgs/msg/Odometry'
+    assert topic_counts(path) == {'/wheel/odom': ('nav_msgs/msg/Odometry', 2)}
+    ours = list(read_messages(path))
+    assert [t for _, t, _ in ours] == [7, 9]
+    assert isinstance(ours[0][2], Odometry) and ours[0][2].pose.pose.position.y == 2.0
+    theirs = list(read_ros2_messages(str(next(path.glob('*.mcap')))))
+    assert len(theirs) == 2 and theirs[1].ros_msg.pose.pose.position.x == 1.0
+    assert theirs[0].channel.topic == '/wheel/odom'
