@@ -1,0 +1,298 @@
+"""Complementary fusion of fast-but-drifting dead reckoning with slow-but-absolute scan matching.
+
+All poses are planar (x, y, yaw) in metres and radians; covariances are 3x3 over (x, y, yaw).
+The fused pose lives in its own `odom` frame, which starts where the first input starts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from sensing_nodes.core import se2
+from sensing_nodes.core.se2 import Pose2
+
+# Smallest variance an input may claim: keeps information matrices finite when a source
+# reports an exactly known (static, zero) covariance for an increment.
+VARIANCE_FLOOR = 1e-12
+
+
+def inverse_variance(m1: ArrayLike, var1: ArrayLike, m2: ArrayLike, var2: ArrayLike):
+    """Inverse-variance weighted mean of two independent estimates and its variance (elementwise)."""
+    m1, var1, m2, var2 = (np.asarray(v, dtype=float) for v in (m1, var1, m2, var2))
+    fused = (var2 * m1 + var1 * m2) / (var1 + var2)
+    variance = var1 * var2 / (var1 + var2)
+    return (float(fused), float(variance)) if fused.ndim == 0 else (fused, variance)
+
+
+def fuse_information(
+    m1: NDArray[np.float64], cov1: NDArray[np.float64], m2: NDArray[np.float64], cov2: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Inverse-variance fusion of two independent vector estimates with full covariances
+    (the matrix form of inverse_variance: information matrices add)."""
+    info1, info2 = np.linalg.inv(cov1), np.linalg.inv(cov2)
+    cov = np.linalg.inv(info1 + info2)
+    return cov @ (info1 @ m1 + info2 @ m2), 0.5 * (cov + cov.T)
+
+
+def complementary_heading(
+    heading_prev: float, rate: float, dt: float, heading_abs: float, alpha: float
+) -> float:
+    """θ̂ = α·(θ̂_prev + ω·dt) + (1 − α)·θ_abs, computed on the wrapped difference so that
+    headings on either side of ±π blend correctly (rad, rad/s, s)."""
+    predicted = heading_prev + rate * dt
+    return float(se2.wrap_angle(predicted + (1.0 - alpha) * se2.wrap_angle(heading_abs - predicted)))
+
+
+def auto_alpha(var_predicted: float, var_absolute: float) -> float:
+    """The α that weights prediction and absolute heading by inverse variance."""
+    return var_absolute / (var_predicted + var_absolute)
+
+
+def increment_covariance(
+    pose_prev: Pose2, cov_prev: NDArray[np.float64], pose_now: Pose2, cov_now: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Covariance of the body-frame increment between two cumulative odometry poses, recovered
+    from their covariances under first-order compounding (cov_now = Ja·cov_prev·Jaᵀ + Jb·Q·Jbᵀ).
+    Negative parts (a source that does not propagate this way) are clipped to zero."""
+    increment = se2.between(pose_prev, pose_now)
+    j_a, j_b = se2.compose_jacobians(pose_prev, increment)
+    added = cov_now - j_a @ cov_prev @ j_a.T
+    j_b_inv = j_b.T  # j_b is a rotation about z
+    q = j_b_inv @ added @ j_b_inv.T
+    q = 0.5 * (q + q.T)
+    values, vectors = np.linalg.eigh(q)
+    return (vectors * np.clip(values, 0.0, None)) @ vectors.T
+
+
+@dataclass
+class FusionSettings:
+    """What the filter uses from each input, and how it weights them."""
+
+    use_wheel: bool = True            # position increments (and heading when no gyro) from wheels
+    use_gyro: bool = True             # heading increments from the integrated gyro
+    use_scan_position: bool = True    # position increments from scan matching
+    use_scan_heading: bool = True     # absolute heading from scan matching
+    alpha: float | None = 0.98        # None: derive α each update from the two variances
+    max_gap_s: float = 1.0            # an input silent for longer restarts its increments
+
+
+@dataclass
+class _Source:
+    """The last message of one odometry-like input, for forming increments."""
+
+    stamp_ns: int | None = None
+    pose: Pose2 = (0.0, 0.0, 0.0)
+    cov: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
+
+
+@dataclass
+class FusionState:
+    stamp_ns: int
+    pose: Pose2
+    covariance: NDArray[np.float64]
+
+
+class ComplementaryFusion:
+    """Stamp-ordered complementary filter. Feed it messages in stamp order; read `state`.
+
+    Between scan matches the pose is propagated by wheel increments with heading from the gyro.
+    At each scan match the motion since the previous one is fused: wheel and scan increments by
+    inverse variance (x, y), heading by the complementary filter against the scan heading.
+    """
+
+    def __init__(self, settings: FusionSettings) -> None:
+        self.settings = settings
+        self.reset()
+
+    def reset(self) -> None:
+        self.state: FusionState | None = None
+        self._wheel = _Source()
+        self._gyro_stamp: int | None = None
+        self._gyro_yaw = 0.0
+        self._gyro_var = 0.0
+        self._scan = _Source()
+        # Anchor: fused state at the last scan match, and what each source said since then.
+        self._anchor: FusionState | None = None
+        self._wheel_since = self._zero_increment()
+        self._gyro_since = (0.0, 0.0)  # (yaw change, its variance)
+        self._scan_offset: Pose2 | None = None  # scan frame -> fused frame
+        self.updates = 0
+
+    @staticmethod
+    def _zero_increment() -> tuple[Pose2, NDArray[np.float64]]:
+        return (0.0, 0.0, 0.0), np.zeros((3, 3))
+
+    def _ensure_started(self, stamp_ns: int) -> None:
+        if self.state is None:
+            self.state = FusionState(stamp_ns, (0.0, 0.0, 0.0), np.zeros((3, 3)))
+            self._anchor = FusionState(stamp_ns, self.state.pose, self.state.covariance.copy())
+
+    def _propagated(self) -> tuple[Pose2, NDArray[np.float64]]:
+        """Anchor ⊕ wheel motion since, with the gyro's heading change when it is used."""
+        assert self._anchor is not None
+        motion, motion_cov = self._wheel_since
+        if self.settings.use_gyro and self._gyro_stamp is not None:
+            motion = (motion[0], motion[1], self._gyro_since[0])
+            motion_cov = motion_cov.copy()
+            motion_cov[2, :] = motion_cov[:, 2] = 0.0
+            motion_cov[2, 2] = self._gyro_since[1]
+        return se2.compose_with_covariance(
+            self._anchor.pose, self._anchor.covariance, motion, motion_cov)
+
+    def _publishable(self, stamp_ns: int) -> None:
+        pose, cov = self._propagated()
+        assert self.state is not None
+        self.state = FusionState(max(stamp_ns, self.state.stamp_ns), pose, cov)
+
+    def add_wheel(self, stamp_ns: int, pose: Pose2, cov: NDArray[np.float64]) -> None:
+        """A wheel-odometry pose (its own odom frame) with its cumulative covariance."""
+        if not self.settings.use_wheel:
+            return
+        self._ensure_started(stamp_ns)
+        src = self._wheel
+        if src.stamp_ns is not None and 0 < stamp_ns - src.stamp_ns <= self.settings.max_gap_s * 1e9:
+            step = se2.between(src.pose, pose)
+            step_cov = increment_covariance(src.pose, src.cov, pose, cov)
+            self._wheel_since = se2.compose_with_covariance(*self._wheel_since, step, step_cov)
+        src.stamp_ns, src.pose, src.cov = stamp_ns, pose, np.asarray(cov, dtype=float)
+        self._publishable(stamp_ns)
+
+    def add_gyro(self, stamp_ns: int, yaw: float, yaw_variance: float) -> None:
+        """An integrated gyro heading (rad) with its cumulative variance."""
+        if not self.settings.use_gyro:
+            return
+        self._ensure_started(stamp_ns)
+        if self._gyro_stamp is not None and \
+                0 < stamp_ns - self._gyro_stamp <= self.settings.max_gap_s * 1e9:
+            change, var = self._gyro_since
+            self._gyro_since = (
+                change + float(se2.wrap_angle(yaw - self._gyro_yaw)),
+                var + max(yaw_variance - self._gyro_var, 0.0),
+            )
+        self._gyro_stamp, self._gyro_yaw, self._gyro_var = stamp_ns, yaw, yaw_variance
+
+    def add_scan_match(self, stamp_ns: int, pose: Pose2, cov: NDArray[np.float64],
+                       increment_cov: NDArray[np.float64] | None = None) -> None:
+        """A scan-matching pose (its own frame) with cumulative covariance; `increment_cov`, when
+        the source provides it, is the covariance of the motion since its previous pose."""
+        if not (self.settings.use_scan_position or self.settings.use_scan_heading):
+            return
+        self._ensure_started(stamp_ns)
+        src = self._scan
+        fresh = src.stamp_ns is None or not (
+            0 < stamp_ns - src.stamp_ns <= self.settings.max_gap_s * 1e9)
+        predicted, predicted_cov = self._propagated()
+        if fresh or self._scan_offset is None:
+            # First match, or the matcher restarted: tie its frame to ours, fuse nothing yet.
+            self._scan_offset = se2.compose(predicted, se2.inverse(pose))
+            fused, fused_cov = predicted, predicted_cov
+        else:
+            fused, fused_cov = self._fuse(
+                stamp_ns, pose, cov, increment_cov, predicted, predicted_cov)
+        src.stamp_ns, src.pose, src.cov = stamp_ns, pose, np.asarray(cov, dtype=float)
+        self._anchor = FusionState(stamp_ns, fused, fused_cov)
+        self.state = FusionState(stamp_ns, fused, fused_cov)
+        self._wheel_since = self._zero_increment()
+        self._gyro_since = (0.0, 0.0)
+        self.updates += 1
+
+    def _fuse(self, stamp_ns, pose, cov, increment_cov, predicted, predicted_cov):
+        assert self._anchor is not None and self._scan_offset is not None
+        anchor = self._anchor
+        scan_step = se2.between(self._scan.pose, pose)
+        if increment_cov is None or not np.any(increment_cov):
+            increment_cov = increment_covariance(self._scan.pose, self._scan.cov, pose, cov)
+        scan_step_cov = increment_cov + np.eye(3) * VARIANCE_FLOOR
+
+        # Dead-reckoned motion over the same interval, in the anchor frame.
+        dr_step = se2.between(anchor.pose, predicted)
+        _, motion_cov = self._wheel_since
+        dr_cov = motion_cov + np.eye(3) * VARIANCE_FLOOR
+        if self.settings.use_gyro and self._gyro_stamp is not None:
+            dr_cov = dr_cov.copy()
+            dr_cov[2, :] = dr_cov[:, 2] = 0.0
+            dr_cov[2, 2] = self._gyro_since[1] + VARIANCE_FLOOR
+
+        step = np.array(dr_step, dtype=float)
+        step_cov = dr_cov.copy()
+        if self.settings.use_scan_position and self.settings.use_wheel:
+            xy, xy_cov = fuse_information(
+                step[:2], dr_cov[:2, :2], np.array(scan_step[:2]), scan_step_cov[:2, :2])
+            step[:2], step_cov[:2, :2] = xy, xy_cov
+            step_cov[:2, 2] = step_cov[2, :2] = 0.0
+        elif self.settings.use_scan_position:
+            step[:2], step_cov[:2, :2] = scan_step[:2], scan_step_cov[:2, :2]
+        fused, fused_cov = se2.compose_with_covariance(
+            anchor.pose, anchor.covariance, tuple(step), step_cov)
+
+        if self.settings.use_scan_heading:
+            heading_abs = se2.compose(self._scan_offset, pose)[2]
+            var_pred = float(predicted_cov[2, 2])
+            var_abs = float(anchor.covariance[2, 2] + scan_step_cov[2, 2])
+            alpha = self.settings.alpha
+            if alpha is None:
+                alpha = auto_alpha(var_pred, var_abs)
+            heading = complementary_heading(predicted[2], 0.0, 0.0, heading_abs, alpha)
+            fused = (fused[0], fused[1], heading)
+            fused_cov = fused_cov.copy()
+            var_heading = alpha ** 2 * var_pred + (1.0 - alpha) ** 2 * var_abs
+            scale = math.sqrt(var_heading / fused_cov[2, 2]) if fused_cov[2, 2] > 0 else 0.0
+            fused_cov[2, :2] *= scale
+            fused_cov[:2, 2] *= scale
+            fused_cov[2, 2] = var_heading
+        return fused, fused_cov
+
+
+class StampOrderedBuffer:
+    """Releases items in stamp order once they are `window_ns` older than the newest stamp seen,
+    so the order of processing depends on stamps only, not on arrival timing.
+
+    Ties are broken by `rank` (an input's fixed priority), then by arrival. An item whose stamp is
+    older than what was already released is late: refused (push returns False) and counted.
+    """
+
+    def __init__(self, window_ns: int) -> None:
+        self.window_ns = int(window_ns)
+        self.clear()
+        self.late = 0
+
+    def clear(self) -> None:
+        self._items: list[tuple[int, int, int, object]] = []
+        self._arrivals = 0
+        self.newest_ns: int | None = None
+        self.released_ns: int | None = None
+
+    def push(self, stamp_ns: int, rank: int, item: object) -> bool:
+        if self.released_ns is not None and stamp_ns < self.released_ns:
+            self.late += 1
+            return False
+        self._arrivals += 1
+        self._items.append((stamp_ns, rank, self._arrivals, item))
+        self.newest_ns = stamp_ns if self.newest_ns is None else max(self.newest_ns, stamp_ns)
+        return True
+
+    def pop_ready(self) -> list[tuple[int, object]]:
+        """(stamp, item) of every item at least window_ns older than the newest, in order."""
+        if self.newest_ns is None:
+            return []
+        return self._release(self.newest_ns - self.window_ns)
+
+    def flush(self) -> list[tuple[int, object]]:
+        """Everything still held, in order (end of a stream)."""
+        return self._release(None)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def _release(self, up_to_ns: int | None) -> list[tuple[int, object]]:
+        self._items.sort(key=lambda entry: entry[:3])
+        count = len(self._items) if up_to_ns is None else \
+            sum(1 for entry in self._items if entry[0] <= up_to_ns)
+        ready, self._items = self._items[:count], self._items[count:]
+        if ready:
+            self.released_ns = ready[-1][0]
+        return [(stamp, item) for stamp, _, _, item in ready]
