@@ -1,0 +1,353 @@
+"""sensor_sim: the simulated robot as a ROS 2 node, and its offline recorder.
+
+Live:    sensor_sim --ros-args --params-file config/sensor_sim.yaml [-p real_time_factor:=5.0]
+Record:  sensor_sim --record DIR --duration S [--seed N] [--params-file F]
+         (a rosbag2 MCAP bag of every topic, no DDS, as fast as the CPU allows)
+
+Both run the same engine (sensing_nodes.core.sim.SensorSim) and the same message conversion,
+so a recorded bag holds exactly the messages the live node publishes for the same seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+from geometry_msgs.msg import Twist
+from nav_msgs.msg import Odometry
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, JointState, LaserScan
+
+from sensing_nodes.core import sim as core
+from sensing_nodes.core.world import World, load_world
+from sensing_nodes.paths import config_file
+from sensing_nodes.ros.conversions import float32_array
+from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.params import ParameterError, declare
+from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.ros.run import run_node
+
+NODE_NAME = 'sensor_sim'
+EXIT_BAD_PARAMETER = 2
+_WALL_PERIOD_S = 0.005          # how often the node checks which samples have come due
+
+TOPICS = {
+    core.CLOCK: ('/clock', 'rosgraph_msgs/msg/Clock'),
+    core.TRUTH: ('/ground_truth/odom', 'nav_msgs/msg/Odometry'),
+    core.IMU: ('/imu/data_raw', 'sensor_msgs/msg/Imu'),
+    core.JOINTS: ('/joint_states', 'sensor_msgs/msg/JointState'),
+    core.SCAN: ('/scan', 'sensor_msgs/msg/LaserScan'),
+}
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """The node's own parameters (everything that is not a number of the simulation)."""
+
+    seed: int = 0
+    world_file: str = ''
+    real_time_factor: float = 1.0
+    duration_s: float = 0.0
+    use_cmd_vel: bool = False
+    publish_clock: bool = True
+    map_frame: str = 'map'
+    base_frame: str = 'base_link'
+    laser_frame: str = 'laser'
+    imu_frame: str = 'imu_link'
+    left_joint_name: str = 'left_wheel_joint'
+    right_joint_name: str = 'right_wheel_joint'
+
+
+NODE_DOCS = {
+    'seed': 'random seed; same seed and parameters give the same messages',
+    'world_file': "world YAML (walls/polygons); '' = the shipped config/default_world.yaml",
+    'real_time_factor': 'simulated seconds per wall second (1.0 live, > 1 faster)',
+    'duration_s': 'stop publishing and exit after this much simulated time; 0 = run on',
+    'use_cmd_vel': 'follow /cmd_vel (geometry_msgs/Twist) instead of the scripted route',
+    'publish_clock': 'publish simulated time on /clock',
+    'map_frame': 'frame of the ground truth pose',
+    'base_frame': 'child frame of the ground truth (the robot body)',
+    'laser_frame': 'frame of /scan',
+    'imu_frame': 'frame of /imu/data_raw (coincides with base_frame)',
+    'left_joint_name': 'name of the left wheel joint in /joint_states',
+    'right_joint_name': 'name of the right wheel joint in /joint_states',
+}
+NODE_RANGES = {'real_time_factor': (1e-3, 1e6), 'duration_s': (0.0, None), 'seed': (0, 2**63 - 1)}
+
+
+def settings_from_values(values: dict[str, Any]) -> tuple[core.SimParams, NodeSettings, World]:
+    """Parameters, node settings and world from a dict of parameter values; SimParameterError
+    names the first parameter that is missing its type, out of range, or unusable."""
+    params = core.params_from_dict(values)
+    core.validate(params)
+    fields = {}
+    for name, default in NodeSettings.__dataclass_fields__.items():
+        value = values.get(name, default.default)
+        expected = type(default.default)
+        if expected is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+            raise core.SimParameterError(name, f'must be of type {expected.__name__}', value)
+        fields[name] = value
+    settings = NodeSettings(**fields)
+    for name, (lo, hi) in NODE_RANGES.items():
+        value = getattr(settings, name)
+        if not math.isfinite(value) or value < lo or (hi is not None and value > hi):
+            raise core.SimParameterError(name, f'must be in [{lo}, {hi if hi is not None else "inf"}]',
+                                         value)
+    for name in ('map_frame', 'base_frame', 'laser_frame', 'imu_frame',
+                 'left_joint_name', 'right_joint_name'):
+        if not getattr(settings, name).strip():
+            raise core.SimParameterError(name, 'must not be empty')
+    if settings.left_joint_name == settings.right_joint_name:
+        raise core.SimParameterError('right_joint_name', 'must differ from left_joint_name',
+                                     settings.right_joint_name)
+    path = settings.world_file or str(config_file('default_world.yaml'))
+    try:
+        world = load_world(path)
+    except ValueError as exc:
+        raise core.SimParameterError('world_file', str(exc), path) from None
+    return params, settings, world
+
+
+class SimMessages:
+    """Turns a block's samples into rclpy messages (one reused message object per topic: both
+    publishing and bag writing serialise a message at once)."""
+
+    def __init__(self, params: core.SimParams, settings: NodeSettings) -> None:
+        p = params
+        self._clock = Clock()
+        self._odom = Odometry()
+        self._odom.header.frame_id = settings.map_frame
+        self._odom.child_frame_id = settings.base_frame
+        self._imu = Imu()
+        self._imu.header.frame_id = settings.imu_frame
+        self._imu.orientation_covariance[0] = -1.0          # no orientation (REP 145)
+        gyro_var, accel_var = p.gyro_noise_std_rad_s ** 2, p.accel_noise_std_m_s2 ** 2
+        self._imu.angular_velocity_covariance = [gyro_var, 0.0, 0.0, 0.0, gyro_var, 0.0, 0.0, 0.0, gyro_var]
+        self._imu.linear_acceleration_covariance = [accel_var, 0.0, 0.0, 0.0, accel_var, 0.0, 0.0, 0.0,
+                                                    accel_var]
+        self._joints = JointState()
+        self._joints.name = [settings.left_joint_name, settings.right_joint_name]
+        self._scan = LaserScan()
+        self._scan.header.frame_id = settings.laser_frame
+        self._scan.angle_min = p.scan_angle_min_rad
+        self._scan.angle_increment = p.scan_angle_increment_rad
+        self._scan.angle_max = p.scan_angle_min_rad + (p.scan_beams - 1) * p.scan_angle_increment_rad
+        self._scan.time_increment = 0.0                    # every beam at the scan's stamp
+        self._scan.scan_time = 1.0 / p.scan_rate_hz
+        self._scan.range_min = p.range_min_m
+        self._scan.range_max = p.range_max_m
+
+    def messages(self, block: core.SimBlock) -> Iterator[tuple[int, int, Any]]:
+        """(time ns, kind, message) for every sample of the block, in publishing order."""
+        times, kinds, indices = core.block_events(block)
+        for t, kind, i in zip(times.tolist(), kinds.tolist(), indices.tolist()):
+            yield t, kind, self.message(block, kind, i, t)
+
+    def message(self, block: core.SimBlock, kind: int, i: int, t: int) -> Any:
+        """The message of sample i of the given kind, stamped t (ns)."""
+        sec, nanosec = divmod(t, core.NS_PER_S)
+        if kind == core.CLOCK:
+            msg = self._clock
+            msg.clock.sec, msg.clock.nanosec = sec, nanosec
+            return msg
+        if kind == core.TRUTH:
+            msg = self._odom
+            x, y, yaw = block.truth_pose[i].tolist()
+            msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
+            msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+            msg.twist.twist.linear.x, msg.twist.twist.angular.z = block.truth_twist[i].tolist()
+        elif kind == core.IMU:
+            msg = self._imu
+            g, a = msg.angular_velocity, msg.linear_acceleration
+            g.x, g.y, g.z = block.imu_gyro[i].tolist()
+            a.x, a.y, a.z = block.imu_accel[i].tolist()
+        elif kind == core.JOINTS:
+            msg = self._joints
+            msg.position = block.joint_position[i].tolist()
+            msg.velocity = block.joint_velocity[i].tolist()
+        else:
+            msg = self._scan
+            msg.ranges = float32_array(block.scan_ranges[i])
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+        return msg
+
+
+def record(out_dir: str | Path, duration_s: float, params: core.SimParams, settings: NodeSettings,
+           world: World, progress: bool = False) -> dict[str, int]:
+    """Write a rosbag2 MCAP bag of every topic for duration_s simulated seconds; topic -> count."""
+    from sensing_nodes.bag import BagWriter
+
+    sim = core.SensorSim(params, world, settings.seed)
+    convert = SimMessages(params, settings)
+    end_ns = params.start_ns + int(round(duration_s * core.NS_PER_S))
+    skip = set() if settings.publish_clock else {core.CLOCK}
+    next_report = params.start_ns
+    with BagWriter(out_dir) as bag:
+        for kind, (topic, msg_type) in TOPICS.items():
+            if kind not in skip:
+                bag.add_topic(topic, msg_type)
+        while True:
+            block = sim.advance()
+            for t, kind, msg in convert.messages(block):
+                if t > end_ns:
+                    break
+                if kind not in skip:
+                    bag.write(TOPICS[kind][0], msg, t)
+            if sim.time_ns >= end_ns:
+                break
+            if progress and sim.time_ns >= next_report:
+                print(f'\rsensor_sim: recorded {(sim.time_ns - params.start_ns) / 1e9:6.1f} / '
+                      f'{duration_s:.1f} s', end='', file=sys.stderr, flush=True)
+                next_report += 10 * core.NS_PER_S
+        if progress:
+            print(file=sys.stderr)
+        return dict(bag.counts)
+
+
+def _record_main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog='sensor_sim', description='Record the simulated robot into a rosbag2 MCAP bag '
+        '(no DDS). Without --record, sensor_sim runs as a ROS 2 node (--ros-args ...).')
+    parser.add_argument('--record', required=True, metavar='DIR', help='bag directory to create')
+    parser.add_argument('--duration', required=True, type=float, metavar='S',
+                        help='simulated seconds to record')
+    parser.add_argument('--seed', type=int, help='random seed (overrides the params file)')
+    parser.add_argument('--params-file', metavar='F',
+                        help='ROS 2 parameter YAML (sensor_sim: ros__parameters: ...)')
+    parser.add_argument('--quiet', action='store_true', help='no progress output')
+    args = parser.parse_args(argv)
+    try:
+        values = core.load_params_file(args.params_file) if args.params_file else {}
+        if args.seed is not None:
+            values['seed'] = args.seed
+        params, settings, world = settings_from_values(values)
+        if not (math.isfinite(args.duration) and args.duration > 0.0):
+            raise core.SimParameterError('duration', 'must be a positive number of seconds',
+                                         args.duration)
+        if Path(args.record).exists():
+            raise core.SimParameterError('record', 'must name a directory that does not exist yet',
+                                         args.record)
+    except core.SimParameterError as exc:
+        print(f'[sensor_sim] invalid parameter: {exc}', file=sys.stderr, flush=True)
+        return EXIT_BAD_PARAMETER
+    started = time.perf_counter()
+    counts = record(args.record, args.duration, params, settings, world, progress=not args.quiet)
+    wall = time.perf_counter() - started
+    print(f'sensor_sim: recorded {args.duration:g} s of simulated time in {wall:.2f} s wall '
+          f'({args.duration / wall:.1f}x real time) into {args.record}')
+    for topic, count in counts.items():
+        print(f'  {topic:<20} {count:7d} messages  {count / args.duration:7.1f} Hz')
+    return 0
+
+
+class SensorSimNode(Node):
+    """Publishes the simulation's samples as their simulated time comes due: simulated time
+    runs at real_time_factor x the wall clock (steady clock, so /clock never drives it)."""
+
+    def __init__(self) -> None:
+        super().__init__(NODE_NAME)
+        values: dict[str, Any] = {}
+        for f in core.param_fields():
+            default = list(f.default) if f.name == 'route' else f.default
+            values[f.name] = declare(self, f.name, default, f.metadata['doc'],
+                                     minimum=f.metadata['min'], maximum=f.metadata['max'])
+        for name, default in NodeSettings.__dataclass_fields__.items():
+            lo, hi = NODE_RANGES.get(name, (None, None))
+            values[name] = declare(self, name, default.default, NODE_DOCS[name],
+                                   minimum=lo, maximum=hi)
+        try:
+            params, settings, world = settings_from_values(values)
+        except core.SimParameterError as exc:
+            raise ParameterError(exc.name, exc.problem, exc.value) from None
+        self.params, self.settings = params, settings
+        self._commands = core.CommandedMotion(params) if settings.use_cmd_vel else None
+        self.sim = core.SensorSim(params, world, settings.seed, self._commands)
+        self._convert = SimMessages(params, settings)
+        self._outputs = {
+            core.TRUTH: self.create_publisher(Odometry, TOPICS[core.TRUTH][0], ESTIMATE_QOS),
+            core.IMU: self.create_publisher(Imu, TOPICS[core.IMU][0], SENSOR_QOS),
+            core.JOINTS: self.create_publisher(JointState, TOPICS[core.JOINTS][0], SENSOR_QOS),
+            core.SCAN: self.create_publisher(LaserScan, TOPICS[core.SCAN][0], SENSOR_QOS),
+        }
+        if settings.publish_clock:
+            self._outputs[core.CLOCK] = self.create_publisher(Clock, TOPICS[core.CLOCK][0], CLOCK_QOS)
+        if self._commands is not None:
+            self.create_subscription(Twist, '/cmd_vel', self._on_cmd_vel, 10)
+        self.diagnostics = Diagnostics(self)
+        self._end_ns = (params.start_ns + int(round(settings.duration_s * core.NS_PER_S))
+                        if settings.duration_s > 0.0 else None)
+        self._stream = self._events()
+        self._upcoming = next(self._stream)
+        self._sim_now_ns = params.start_ns
+        self._wall_start = time.monotonic()
+        self._finished = False
+        self.create_timer(_WALL_PERIOD_S, self._on_timer,
+                          clock=RosClock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(
+            f'simulating {"/cmd_vel" if self._commands else "the scripted route"} in world '
+            f"'{world.name}' at {settings.real_time_factor:g}x real time, seed {settings.seed}")
+
+    def _on_cmd_vel(self, msg: Twist) -> None:
+        speed, yaw_rate = float(msg.linear.x), float(msg.angular.z)
+        time_s = (self._sim_now_ns - self.params.start_ns) / core.NS_PER_S
+        try:
+            self._commands.command(speed, yaw_rate, time_s)
+        except ValueError:
+            self.diagnostics.count('cmd_vel_rejected')
+            self.get_logger().warning(
+                f'ignoring /cmd_vel with non-finite values (linear.x={speed}, angular.z={yaw_rate})',
+                throttle_duration_sec=2.0)
+            return
+        self.diagnostics.count('cmd_vel')
+
+    def _events(self) -> Iterator[tuple[int, int, core.SimBlock, int]]:
+        """Every sample in time order, advancing the engine a block at a time."""
+        while True:
+            block = self.sim.advance()
+            times, kinds, indices = core.block_events(block)
+            for t, kind, i in zip(times.tolist(), kinds.tolist(), indices.tolist()):
+                yield t, kind, block, i
+
+    def _on_timer(self) -> None:
+        if self._finished:
+            return
+        elapsed_ns = int((time.monotonic() - self._wall_start) * self.settings.real_time_factor
+                         * core.NS_PER_S)
+        due_ns = self.params.start_ns + elapsed_ns
+        while self._upcoming[0] <= due_ns:
+            t, kind, block, i = self._upcoming
+            if self._end_ns is not None and t > self._end_ns:
+                self._finish()
+                return
+            publisher = self._outputs.get(kind)
+            if publisher is not None:
+                publisher.publish(self._convert.message(block, kind, i, t))
+                self.diagnostics.count(TOPICS[kind][0])
+            self._sim_now_ns = t
+            self.diagnostics.last_stamp_ns = t
+            self._upcoming = next(self._stream)
+
+    def _finish(self) -> None:
+        self._finished = True
+        self.get_logger().info(
+            f'simulated {self.settings.duration_s:g} s: done, shutting down')
+        self.context.try_shutdown()
+
+
+def main(args: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if args is None else list(args)
+    ros_index = argv.index('--ros-args') if '--ros-args' in argv else len(argv)
+    if '--record' in argv[:ros_index] or '-h' in argv[:ros_index] or '--help' in argv[:ros_index]:
+        sys.exit(_record_main(argv[:ros_index]))
+    sys.exit(run_node(SensorSimNode, args))
