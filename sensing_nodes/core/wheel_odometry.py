@@ -1,0 +1,448 @@
+"""Differential-drive dead reckoning from wheel encoder angles, with propagated covariance.
+
+Poses are (x, y, yaw) of base_link in the odom frame (m, rad); twists are (vx, vy, wz) in
+base_link (m/s, rad/s). Wheel order is always [left, right]. Covariance follows the classic
+per-wheel model: each wheel's travelled distance has variance k * |ds_wheel| (k in m^2 per m),
+independent between wheels and between steps, so the uncertainty grows with distance driven.
+Optionally a systematic part is added: each wheel's effective radius is off by a constant
+relative error of standard deviation `radius_multiplier_std` (what calibration leaves); its effect
+is carried as the Jacobian of the pose w.r.t. the two radius errors, so it correlates over the path.
+
+Encoder wrap: some drivers publish positions wrapped into (-pi, pi]. An increment whose size is
+impossible for the wheel in dt (|dphi| > max_wheel_speed * dt) but becomes possible after wrapping
+into (-pi, pi] is taken as a wrapped reading and folded back. This is only unambiguous while the
+wheel turns less than pi per sample, which holds at usual rates (50 rad/s at 100 Hz is 0.5 rad).
+An increment that is implausible even after folding is rejected by WheelOdometry.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from sensing_nodes.core.se2 import Pose2, wrap_angle
+from sensing_nodes.core.timing import StampStep, classify_step
+
+METHODS = ('exact_arc', 'euler')
+
+# Variance of the base-frame lateral velocity: zero for a non-holonomic base, kept tiny but
+# positive so that consumers which invert the twist covariance do not meet a singular matrix.
+LATERAL_VELOCITY_VARIANCE = 1e-9
+
+
+def unwrap_increments(delta_rad: ArrayLike, max_step_rad: ArrayLike) -> NDArray[np.float64]:
+    """Encoder angle increments (rad) with wrap jumps folded back into (-pi, pi].
+
+    Folds only where |delta| > max_step_rad and the wrapped value is within max_step_rad.
+    """
+    delta = np.asarray(delta_rad, dtype=float)
+    wrapped = np.asarray(wrap_angle(delta), dtype=float)
+    limit = np.asarray(max_step_rad, dtype=float)
+    fold = (np.abs(delta) > limit) & (np.abs(wrapped) <= limit)
+    return np.where(fold, wrapped, delta)
+
+
+def wheel_increments(
+    positions_prev: ArrayLike,
+    positions_now: ArrayLike,
+    radii: ArrayLike,
+    max_step_rad: ArrayLike = np.inf,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Distances (m) rolled by the left and right wheels between two (..., 2) angle readings (rad).
+
+    radii: effective (2,) wheel radii (m), multipliers already applied. max_step_rad: largest
+    plausible angle change per wheel (rad), used only to fold encoder wrap jumps.
+    """
+    delta = np.asarray(positions_now, dtype=float) - np.asarray(positions_prev, dtype=float)
+    delta = unwrap_increments(delta, np.asarray(max_step_rad, dtype=float)[..., None])
+    ds = delta * np.asarray(radii, dtype=float)
+    return ds[..., 0], ds[..., 1]
+
+
+def body_increments(
+    ds_left: ArrayLike, ds_right: ArrayLike, wheel_separation_m: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Wheel distances (m) -> base travel ds = (dsR + dsL)/2 (m) and heading change (dsR - dsL)/L (rad)."""
+    left = np.asarray(ds_left, dtype=float)
+    right = np.asarray(ds_right, dtype=float)
+    return 0.5 * (right + left), (right - left) / wheel_separation_m
+
+
+def _sincos(angle):
+    if isinstance(angle, float):
+        return math.sin(angle), math.cos(angle)
+    return np.sin(angle), np.cos(angle)
+
+
+def _arc_factors(half_turn):
+    """sin(a)/a and its derivative, with their series near a = 0 (the straight-line limit)."""
+    if isinstance(half_turn, float):
+        if abs(half_turn) < 1e-4:
+            a2 = half_turn * half_turn
+            return 1.0 - a2 / 6.0, -half_turn / 3.0 + half_turn * a2 / 30.0
+        s, c = math.sin(half_turn), math.cos(half_turn)
+        return s / half_turn, (half_turn * c - s) / (half_turn * half_turn)
+    a = np.asarray(half_turn, dtype=float)
+    small = np.abs(a) < 1e-4
+    safe = np.where(small, 1.0, a)
+    a2 = a * a
+    f = np.where(small, 1.0 - a2 / 6.0, np.sin(safe) / safe)
+    df = np.where(small, -a / 3.0 + a * a2 / 30.0, (safe * np.cos(safe) - np.sin(safe)) / (safe * safe))
+    return f, df
+
+
+def _displacement(yaw, ds, dtheta, method: str):
+    """Odom-frame step (dx, dy) and d(dx, dy)/d(ds, dtheta) for a step starting at heading yaw."""
+    if method == 'exact_arc':
+        # Exact arc: (dx, dy) = ds * sin(a)/a * (cos, sin)(yaw + a), a = dtheta/2; at a -> 0 this
+        # is the midpoint straight-line form.
+        half = 0.5 * dtheta
+        f, df = _arc_factors(half)
+        s, c = _sincos(yaw + half)
+        dx, dy = ds * f * c, ds * f * s
+        return dx, dy, (f * c, f * s), (ds * (0.5 * df * c - 0.5 * f * s), ds * (0.5 * df * s + 0.5 * f * c))
+    if method == 'euler':
+        s, c = _sincos(yaw)
+        return ds * c, ds * s, (c, s), (0.0 * c, 0.0 * s)
+    raise ValueError(f"unknown integration method {method!r}; expected one of {METHODS}")
+
+
+def integrate_step(pose: ArrayLike, ds: ArrayLike, dtheta: ArrayLike, method: str = 'exact_arc'):
+    """Pose(s) (x, y, yaw) in odom after travelling ds (m) and turning dtheta (rad) in one step.
+
+    pose (3,) or (..., 3) with matching ds/dtheta; a tuple of floats returns a Pose2 tuple.
+    """
+    if isinstance(pose, tuple) and isinstance(ds, float) and isinstance(dtheta, float):
+        dx, dy, _, _ = _displacement(float(pose[2]), ds, dtheta, method)
+        return (pose[0] + dx, pose[1] + dy, float(wrap_angle(pose[2] + dtheta)))
+    p = np.asarray(pose, dtype=float)
+    dx, dy, _, _ = _displacement(p[..., 2], np.asarray(ds, float), np.asarray(dtheta, float), method)
+    return np.stack([p[..., 0] + dx, p[..., 1] + dy, wrap_angle(p[..., 2] + dtheta)], axis=-1)
+
+
+def step_jacobians(
+    yaw: float, ds: float, dtheta: float, wheel_separation_m: float, method: str = 'exact_arc'
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Jacobians of one step w.r.t. the pose (3x3) and the wheel distances [dsL, dsR] (3x2)."""
+    dx, dy, d_ds, d_dth = _displacement(float(yaw), float(ds), float(dtheta), method)
+    j_pose = np.array([[1.0, 0.0, -dy], [0.0, 1.0, dx], [0.0, 0.0, 1.0]])
+    j_body = np.array([[d_ds[0], d_dth[0]], [d_ds[1], d_dth[1]], [0.0, 1.0]])
+    to_body = np.array([[0.5, 0.5], [-1.0 / wheel_separation_m, 1.0 / wheel_separation_m]])
+    return j_pose, j_body @ to_body
+
+
+def propagate_covariance(
+    covariance: ArrayLike,
+    yaw: float,
+    ds_left: float,
+    ds_right: float,
+    wheel_separation_m: float,
+    variance_per_m: tuple[float, float],
+    method: str = 'exact_arc',
+) -> NDArray[np.float64]:
+    """Pose covariance (3x3, x/y/yaw in odom) after one step from heading yaw with wheel distances (m).
+
+    Wheel distance variance is variance_per_m[i] * |ds_i| (m^2), independent per wheel.
+    """
+    ds, dtheta = 0.5 * (ds_right + ds_left), (ds_right - ds_left) / wheel_separation_m
+    j_pose, j_wheels = step_jacobians(yaw, ds, dtheta, wheel_separation_m, method)
+    wheel_var = np.diag([variance_per_m[0] * abs(ds_left), variance_per_m[1] * abs(ds_right)])
+    cov = j_pose @ np.asarray(covariance, float) @ j_pose.T + j_wheels @ wheel_var @ j_wheels.T
+    return 0.5 * (cov + cov.T)
+
+
+def _step_noise(yaw, ds_left, ds_right, wheel_separation_m, variance_per_m, method):
+    """Per-step (dx, dy, dtheta) and Q = G diag(k|ds|) G^T as arrays (..., 3, 3) (vectorised)."""
+    ds, dtheta = body_increments(ds_left, ds_right, wheel_separation_m)
+    dx, dy, d_ds, d_dth = _displacement(yaw, ds, dtheta, method)
+    inv_l = 1.0 / wheel_separation_m
+    # G = d(dx, dy, dtheta)/d(dsL, dsR), columns for left and right.
+    g_left = np.stack([0.5 * d_ds[0] - inv_l * d_dth[0], 0.5 * d_ds[1] - inv_l * d_dth[1],
+                       np.full_like(ds, -inv_l)], axis=-1)
+    g_right = np.stack([0.5 * d_ds[0] + inv_l * d_dth[0], 0.5 * d_ds[1] + inv_l * d_dth[1],
+                        np.full_like(ds, inv_l)], axis=-1)
+    var_l = variance_per_m[0] * np.abs(ds_left)
+    var_r = variance_per_m[1] * np.abs(ds_right)
+    q = (var_l[..., None, None] * g_left[..., :, None] * g_left[..., None, :]
+         + var_r[..., None, None] * g_right[..., :, None] * g_right[..., None, :])
+    # d(step)/d(relative radius errors): a radius error e scales that wheel's distance by (1 + e).
+    h = np.stack([g_left * np.asarray(ds_left)[..., None], g_right * np.asarray(ds_right)[..., None]],
+                 axis=-1)
+    return dx, dy, dtheta, q, h
+
+
+def integrate_path(
+    pose0: Pose2,
+    ds_left: ArrayLike,
+    ds_right: ArrayLike,
+    wheel_separation_m: float,
+    variance_per_m: tuple[float, float] = (0.0, 0.0),
+    covariance0: ArrayLike | None = None,
+    method: str = 'exact_arc',
+    radius_multiplier_std: float = 0.0,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Batch dead reckoning: poses (N, 3) in odom and covariances (N, 3, 3) after each of N steps.
+
+    Same numbers as N calls of integrate_step/propagate_covariance, without a Python loop: every
+    step Jacobian is a shear I + u e3^T with u = (-dy, dx, 0), so the products telescope into
+    differences of positions and the covariance is a sum of cumulative sums.
+    """
+    ds_l = np.asarray(ds_left, dtype=float).ravel()
+    ds_r = np.asarray(ds_right, dtype=float).ravel()
+    if ds_l.shape != ds_r.shape:
+        raise ValueError(f'ds_left and ds_right differ in length ({ds_l.size} vs {ds_r.size})')
+    n = ds_l.size
+    _, dtheta = body_increments(ds_l, ds_r, wheel_separation_m)
+    yaw_before = pose0[2] + np.concatenate([[0.0], np.cumsum(dtheta)[:-1]])
+    dx, dy, _, q, h = _step_noise(yaw_before, ds_l, ds_r, wheel_separation_m, variance_per_m, method)
+    x = pose0[0] + np.cumsum(dx)
+    y = pose0[1] + np.cumsum(dy)
+    poses = np.stack([x, y, wrap_angle(yaw_before + dtheta) if n else np.zeros(0)], axis=-1)
+
+    cov0 = np.zeros((3, 3)) if covariance0 is None else np.asarray(covariance0, float)
+    # Term k (k = 0 is the initial covariance) enters P_N as Phi Q_k Phi^T, Phi = I + (w_N - w_k) e3^T,
+    # w = (-y, x, 0).
+    w = np.zeros((n + 1, 3))
+    w[0, :2] = (-pose0[1], pose0[0])
+    w[1:, 0], w[1:, 1] = -y, x
+    qs = np.concatenate([cov0[None], q], axis=0)
+    qcol = qs[:, :, 2]
+    s = qs[:, 2, 2]
+    a = np.cumsum(qs, axis=0)[1:]
+    b = np.cumsum(qcol, axis=0)[1:]
+    c = np.cumsum(w[:, :, None] * qcol[:, None, :], axis=0)[1:]
+    s_sum = np.cumsum(s)[1:]
+    d = np.cumsum(s[:, None] * w, axis=0)[1:]
+    e = np.cumsum(s[:, None, None] * w[:, :, None] * w[:, None, :], axis=0)[1:]
+    wn = w[1:]
+    wb = wn[:, :, None] * b[:, None, :]
+    wd = wn[:, :, None] * d[:, None, :]
+    covs = (a + wb - c + np.swapaxes(wb - c, 1, 2)
+            + s_sum[:, None, None] * wn[:, :, None] * wn[:, None, :]
+            - wd - np.swapaxes(wd, 1, 2) + e)
+    if radius_multiplier_std > 0.0 and n:
+        # Pose Jacobian w.r.t. the radius errors: J_N = sum_k Phi(N, k) H_k, telescoped likewise.
+        hrow = h[:, 2, :]
+        j = (np.cumsum(h, axis=0) + wn[:, :, None] * np.cumsum(hrow, axis=0)[:, None, :]
+             - np.cumsum(w[1:, :, None] * hrow[:, None, :], axis=0))
+        covs = covs + radius_multiplier_std ** 2 * j @ np.swapaxes(j, 1, 2)
+    return poses, 0.5 * (covs + np.swapaxes(covs, 1, 2))
+
+
+class Rejection(enum.Enum):
+    """Why a JointState sample was not integrated (None when it was)."""
+    MISSING_JOINT = 'missing_joint'
+    LENGTH_MISMATCH = 'length_mismatch'
+    NON_FINITE = 'non_finite'
+    NO_DATA = 'no_position_or_velocity'
+    REPEATED_STAMP = 'repeated_stamp'
+    IMPLAUSIBLE = 'implausible_increment'
+
+
+@dataclass
+class WheelOdometryConfig:
+    """Robot geometry and error model; lengths in m, angles in rad."""
+    wheel_radius_m: float = 0.05
+    wheel_separation_m: float = 0.30
+    left_radius_multiplier: float = 1.0
+    right_radius_multiplier: float = 1.0
+    method: str = 'exact_arc'
+    variance_per_m: tuple[float, float] = (4e-6, 4e-6)
+    max_gap_s: float = 0.5
+    max_wheel_speed_rad_s: float = 50.0
+    radius_multiplier_std: float = 0.0
+
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for every value the odometry cannot run with."""
+        out: list[tuple[str, str, object]] = []
+        for name in ('wheel_radius_m', 'wheel_separation_m', 'left_radius_multiplier',
+                     'right_radius_multiplier', 'max_gap_s', 'max_wheel_speed_rad_s'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                out.append((name, 'must be a finite number > 0', value))
+        if self.method not in METHODS:
+            out.append(('method', f'must be one of {list(METHODS)}', self.method))
+        if any(not (math.isfinite(k) and k >= 0) for k in self.variance_per_m):
+            out.append(('variance_per_m', 'must be finite and >= 0', self.variance_per_m))
+        if not (math.isfinite(self.radius_multiplier_std) and 0 <= self.radius_multiplier_std < 0.5):
+            out.append(('radius_multiplier_std', 'must be in [0, 0.5)', self.radius_multiplier_std))
+        return out
+
+    @property
+    def radii(self) -> tuple[float, float]:
+        return (self.wheel_radius_m * self.left_radius_multiplier,
+                self.wheel_radius_m * self.right_radius_multiplier)
+
+
+@dataclass
+class OdometryUpdate:
+    """Outcome of one JointState sample: what to publish (if anything) and what to report."""
+    publish: bool
+    step: StampStep | None = None
+    rejection: Rejection | None = None
+    note: str = ''
+    wrapped: bool = False
+
+
+@dataclass
+class WheelOdometry:
+    """Dead reckoning over JointState samples, one at a time, with every bad-input rule.
+
+    A rejected sample leaves the state untouched: positions are absolute, so the next good sample
+    integrates the whole increment from the last accepted reading and no distance is lost.
+    """
+    config: WheelOdometryConfig
+    pose: Pose2 = (0.0, 0.0, 0.0)
+    random_covariance: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
+    radius_jacobian: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 2)))
+    twist: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    twist_covariance: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
+    stamp_ns: int | None = None
+    _positions: tuple[float, float] | None = None
+    _velocities: tuple[float, float] | None = None
+
+    @property
+    def covariance(self) -> NDArray[np.float64]:
+        """Pose covariance (3x3, x/y/yaw in odom): random wheel errors plus radius errors."""
+        std = self.config.radius_multiplier_std
+        if std == 0.0:
+            return self.random_covariance
+        j = self.radius_jacobian
+        return self.random_covariance + (std * std) * (j @ j.T)
+
+    def reset(self, pose: Pose2 = (0.0, 0.0, 0.0)) -> None:
+        """Put the robot at pose with zero covariance; keep the encoder reference."""
+        self.pose = (float(pose[0]), float(pose[1]), float(wrap_angle(pose[2])))
+        self.random_covariance = np.zeros((3, 3))
+        self.radius_jacobian = np.zeros((3, 2))
+        self.twist = (0.0, 0.0, 0.0)
+        self.twist_covariance = np.zeros((3, 3))
+
+    def _restart(self, stamp_ns: int, positions, velocities) -> None:
+        self.stamp_ns = stamp_ns
+        self._positions = positions
+        self._velocities = velocities
+
+    def update(
+        self,
+        stamp_ns: int,
+        names: Sequence[str],
+        positions: Sequence[float],
+        velocities: Sequence[float],
+        joints: tuple[str, str],
+    ) -> OdometryUpdate:
+        """Take one JointState sample (stamp ns, names, positions rad, velocities rad/s)."""
+        try:
+            il, ir = names.index(joints[0]), names.index(joints[1])
+        except ValueError:
+            missing = [j for j in joints if j not in names]
+            return OdometryUpdate(False, rejection=Rejection.MISSING_JOINT,
+                                  note=f'wheel joint(s) {missing} not in {list(names)}')
+        pos = vel = None
+        if len(positions):
+            if len(positions) != len(names):
+                return OdometryUpdate(False, rejection=Rejection.LENGTH_MISMATCH,
+                                      note=f'{len(names)} names but {len(positions)} positions')
+            pos = (float(positions[il]), float(positions[ir]))
+            if not (math.isfinite(pos[0]) and math.isfinite(pos[1])):
+                return OdometryUpdate(False, rejection=Rejection.NON_FINITE,
+                                      note=f'wheel positions {pos}')
+        elif len(velocities):
+            if len(velocities) != len(names):
+                return OdometryUpdate(False, rejection=Rejection.LENGTH_MISMATCH,
+                                      note=f'{len(names)} names but {len(velocities)} velocities')
+            vel = (float(velocities[il]), float(velocities[ir]))
+            if not (math.isfinite(vel[0]) and math.isfinite(vel[1])):
+                return OdometryUpdate(False, rejection=Rejection.NON_FINITE,
+                                      note=f'wheel velocities {vel}')
+        else:
+            return OdometryUpdate(False, rejection=Rejection.NO_DATA,
+                                  note='no positions and no velocities')
+
+        step = classify_step(self.stamp_ns, stamp_ns, self.config.max_gap_s)
+        if step is StampStep.REPEATED:
+            return OdometryUpdate(False, step, Rejection.REPEATED_STAMP,
+                                  note=f'duplicate stamp {stamp_ns} ns; waiting for the next sample')
+        if step is StampStep.FIRST:
+            self._restart(stamp_ns, pos, vel)
+            return OdometryUpdate(True, step)
+        if step is StampStep.BACKWARDS:
+            note = (f'time went backwards by {(self.stamp_ns - stamp_ns) / 1e9:.3f} s '
+                    '(looping bag?): pose reset to the origin')
+            self.reset()
+            self._restart(stamp_ns, pos, vel)
+            return OdometryUpdate(True, step, note=note)
+
+        dt = (stamp_ns - self.stamp_ns) * 1e-9
+        radii = self.config.radii
+        wrapped = False
+        if pos is not None and self._positions is not None:
+            max_step = self.config.max_wheel_speed_rad_s * dt
+            dphi = []
+            for now, prev in zip(pos, self._positions):
+                d = now - prev
+                if abs(d) > max_step and step is StampStep.OK:
+                    folded = float(wrap_angle(d))
+                    if abs(folded) > max_step:
+                        self._restart(stamp_ns, pos, vel)
+                        return OdometryUpdate(False, step, Rejection.IMPLAUSIBLE, note=(
+                            f'wheel angle jumped {d:.3f} rad in {dt:.4f} s (max '
+                            f'{max_step:.3f} rad); restarted from this reading'))
+                    d, wrapped = folded, True
+                dphi.append(d)
+            ds_l, ds_r = dphi[0] * radii[0], dphi[1] * radii[1]
+        elif vel is not None and self._velocities is not None:
+            # Velocity-only drivers: trapezoidal rule over the interval.
+            ds_l = 0.5 * (vel[0] + self._velocities[0]) * dt * radii[0]
+            ds_r = 0.5 * (vel[1] + self._velocities[1]) * dt * radii[1]
+        elif vel is not None:
+            ds_l, ds_r = vel[0] * dt * radii[0], vel[1] * dt * radii[1]
+        else:
+            # Positions appear after velocity-only samples: anchor on them.
+            self._restart(stamp_ns, pos, vel)
+            return OdometryUpdate(True, step, note='positions appeared; anchored on them')
+
+        if step is StampStep.GAP:
+            self._inflate_for_gap(ds_l, ds_r)
+            note = (f'{dt:.3f} s gap (> max_gap_s {self.config.max_gap_s}): not integrated across; '
+                    f'wheels rolled {ds_l:.3f} / {ds_r:.3f} m, pose covariance widened')
+            self.twist = (0.0, 0.0, 0.0)
+            self._restart(stamp_ns, pos, vel)
+            return OdometryUpdate(True, step, note=note, wrapped=wrapped)
+
+        self._integrate(ds_l, ds_r, dt)
+        self._restart(stamp_ns, pos, vel)
+        return OdometryUpdate(True, step, wrapped=wrapped,
+                              note='encoder position wrapped; unwrapped' if wrapped else '')
+
+    def _integrate(self, ds_l: float, ds_r: float, dt: float) -> None:
+        cfg = self.config
+        ds, dtheta = 0.5 * (ds_r + ds_l), (ds_r - ds_l) / cfg.wheel_separation_m
+        j_pose, j_wheels = step_jacobians(self.pose[2], ds, dtheta, cfg.wheel_separation_m, cfg.method)
+        wheel_var = np.diag([cfg.variance_per_m[0] * abs(ds_l), cfg.variance_per_m[1] * abs(ds_r)])
+        cov = j_pose @ self.random_covariance @ j_pose.T + j_wheels @ wheel_var @ j_wheels.T
+        self.random_covariance = 0.5 * (cov + cov.T)
+        if cfg.radius_multiplier_std > 0.0:
+            self.radius_jacobian = j_pose @ self.radius_jacobian + j_wheels * np.array([ds_l, ds_r])
+        self.pose = integrate_step(self.pose, ds, dtheta, cfg.method)
+        self.twist = (ds / dt, 0.0, dtheta / dt)
+        var_l = cfg.variance_per_m[0] * abs(ds_l)
+        var_r = cfg.variance_per_m[1] * abs(ds_r)
+        inv_l = 1.0 / cfg.wheel_separation_m
+        var_v = 0.25 * (var_l + var_r) / (dt * dt)
+        var_w = inv_l * inv_l * (var_l + var_r) / (dt * dt)
+        cov_vw = 0.5 * inv_l * (var_r - var_l) / (dt * dt)
+        self.twist_covariance = np.array([
+            [var_v, 0.0, cov_vw], [0.0, LATERAL_VELOCITY_VARIANCE, 0.0], [cov_vw, 0.0, var_w]])
+
+    def _inflate_for_gap(self, ds_l: float, ds_r: float) -> None:
+        # The path across a gap is unknown, but its length bounds the displacement and the wheel
+        # difference bounds the turn; add both as variance rather than pretend to know the pose.
+        path = 0.5 * (abs(ds_l) + abs(ds_r))
+        turn = (abs(ds_l) + abs(ds_r)) / self.config.wheel_separation_m
+        self.random_covariance = self.random_covariance + np.diag([path * path, path * path, turn * turn])

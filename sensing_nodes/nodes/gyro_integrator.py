@@ -1,0 +1,143 @@
+"""gyro_integrator: /imu/data_raw -> /imu/data (integrated heading, bias-corrected rates)."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import Imu
+from std_srvs.srv import Trigger
+
+from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
+from sensing_nodes.core.timing import StampStep
+from sensing_nodes.ros.conversions import stamp_to_ns, yaw_to_quaternion
+from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.logging import ThrottledWarnings
+from sensing_nodes.ros.params import declare, require
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.ros.run import run_node
+
+
+class GyroIntegratorNode(Node):
+    def __init__(self) -> None:
+        super().__init__('gyro_integrator')
+        d = GyroConfig()
+        config = GyroConfig(
+            bias_estimation=declare(self, 'bias_estimation', d.bias_estimation,
+                                    'estimate the gyro bias whenever the robot stands still'),
+            stillness_window_s=declare(self, 'stillness_window_s', d.stillness_window_s,
+                                       'stillness is decided over this trailing window (s)'),
+            gyro_std_threshold_rad_s=declare(
+                self, 'gyro_std_threshold_rad_s', d.gyro_std_threshold_rad_s,
+                'still only if every gyro axis std over the window is below this (rad/s)'),
+            accel_std_threshold_m_s2=declare(
+                self, 'accel_std_threshold_m_s2', d.accel_std_threshold_m_s2,
+                'still only if every accelerometer axis std over the window is below this (m/s^2)'),
+            max_gyro_bias_rad_s=declare(
+                self, 'max_gyro_bias_rad_s', d.max_gyro_bias_rad_s,
+                'still only if every gyro axis mean over the window is within this (rad/s)'),
+            noise_density=declare(self, 'gyro_noise_density', d.noise_density,
+                                  'white rate noise density (rad/s/sqrt(Hz)): sample std * sqrt(dt)'),
+            bias_random_walk=declare(self, 'bias_random_walk', d.bias_random_walk,
+                                     'bias random walk density (rad/s/sqrt(s))'),
+            initial_bias_sigma_rad_s=declare(
+                self, 'initial_bias_sigma_rad_s', d.initial_bias_sigma_rad_s,
+                'std of the bias before any calibration (rad/s)'),
+            max_gap_s=declare(self, 'max_gap_s', d.max_gap_s,
+                              'a stamp gap longer than this (s) is not integrated across'),
+            wheel_timeout_s=declare(
+                self, 'wheel_timeout_s', d.wheel_timeout_s,
+                '/wheel/odom counts as available while its newest stamp is this close (s)'),
+            wheel_still_linear_m_s=declare(
+                self, 'wheel_still_linear_m_s', d.wheel_still_linear_m_s,
+                '/wheel/odom reports zero motion when |vx| is at most this (m/s)'),
+            wheel_still_angular_rad_s=declare(
+                self, 'wheel_still_angular_rad_s', d.wheel_still_angular_rad_s,
+                '/wheel/odom reports zero motion when |wz| is at most this (rad/s)'),
+        )
+        use_wheels = declare(self, 'use_wheel_odom', True,
+                             'veto stillness while /wheel/odom reports motion (slow turns)')
+        self._frame_id = declare(self, 'frame_id', '',
+                                 'frame of the output; empty: keep the input frame')
+        for name, problem, value in config.problems():
+            require(False, {'noise_density': 'gyro_noise_density'}.get(name, name), problem, value)
+
+        self._integrator = GyroIntegrator(config)
+        self._warnings = ThrottledWarnings(self)
+        self.diagnostics = Diagnostics(self)
+        self._was_still = False
+        self._publisher = self.create_publisher(Imu, '/imu/data', ESTIMATE_QOS)
+        self.create_subscription(Imu, '/imu/data_raw', self._on_imu, SENSOR_QOS)
+        if use_wheels:
+            self.create_subscription(Odometry, '/wheel/odom', self._on_wheel_odom, ESTIMATE_QOS)
+        self.create_service(Trigger, '~/calibrate', self._on_calibrate)
+        self.get_logger().info(
+            f'bias estimation {"on" if config.bias_estimation else "off"}, stillness window '
+            f'{config.stillness_window_s} s, wheel odometry veto {"on" if use_wheels else "off"}')
+
+    def _on_wheel_odom(self, msg: Odometry) -> None:
+        twist = msg.twist.twist
+        self._integrator.observe_wheels(stamp_to_ns(msg.header.stamp), twist.linear.x, twist.angular.z)
+
+    def _on_imu(self, msg: Imu) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        w, a = msg.angular_velocity, msg.linear_acceleration
+        gi = self._integrator
+        result = gi.update(stamp, (w.x, w.y, w.z), (a.x, a.y, a.z))
+        diag = self.diagnostics
+        if result.rejection is not None:
+            key = result.rejection.value
+            diag.count(key)
+            self._warnings.warn(key, f'Imu at {stamp * 1e-9:.3f} s not integrated ({key}): '
+                                     f'{result.note}')
+            return
+        if result.step in (StampStep.BACKWARDS, StampStep.GAP):
+            diag.count(result.step.value)
+            self._warnings.warn(result.step.value, f'Imu at {stamp * 1e-9:.3f} s: {result.note}')
+        if result.still != self._was_still:
+            self._was_still = result.still
+            if not result.still:
+                self.get_logger().info(
+                    f'moving at {stamp * 1e-9:.3f} s; gyro bias z = {gi.bias[2]:.6f} rad/s '
+                    f'(std {math.sqrt(gi.p_bias):.2e})')
+        self._publish(msg, stamp)
+
+    def _publish(self, raw: Imu, stamp: int) -> None:
+        gi = self._integrator
+        out = Imu()
+        out.header.stamp = raw.header.stamp
+        out.header.frame_id = self._frame_id or raw.header.frame_id
+        # Planar: roll and pitch are taken as zero (level IMU), so only yaw carries variance.
+        out.orientation = yaw_to_quaternion(gi.heading)
+        out.orientation_covariance[8] = gi.heading_variance
+        out.angular_velocity.x, out.angular_velocity.y, out.angular_velocity.z = (
+            float(gi.rate[0]), float(gi.rate[1]), float(gi.rate[2]))
+        rate_var = gi.rate_variance()
+        for i in (0, 4, 8):
+            out.angular_velocity_covariance[i] = rate_var
+        out.linear_acceleration = raw.linear_acceleration
+        out.linear_acceleration_covariance = raw.linear_acceleration_covariance
+        self._publisher.publish(out)
+        diag = self.diagnostics
+        diag.count('published')
+        diag.last_stamp_ns = max(diag.last_stamp_ns, stamp)
+        diag.values['bias_z_rad_s'] = f'{gi.bias[2]:.6f}'
+        diag.values['still'] = str(gi.still)
+
+    def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        gi = self._integrator
+        before = gi.bias[2]
+        gi.request_calibration()
+        self.diagnostics.count('calibrations_requested')
+        response.success = True
+        response.message = (f'calibration armed: the bias (now z = {before:.6f} rad/s) is '
+                            're-estimated over the next still window; keep the robot still for '
+                            f'{gi.config.stillness_window_s} s')
+        self.get_logger().info(response.message)
+        return response
+
+
+def main(args: list[str] | None = None) -> None:
+    sys.exit(run_node(GyroIntegratorNode, args))

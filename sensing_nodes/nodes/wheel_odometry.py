@@ -1,0 +1,136 @@
+"""wheel_odometry: /joint_states (wheel encoder angles) -> /wheel/odom (odom -> base_link)."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+from sensing_nodes.core.timing import StampStep
+from sensing_nodes.core.wheel_odometry import METHODS, WheelOdometry, WheelOdometryConfig
+from sensing_nodes.ros.conversions import make_odometry, stamp_to_ns
+from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.logging import ThrottledWarnings
+from sensing_nodes.ros.params import declare, require
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.ros.run import run_node
+
+
+class WheelOdometryNode(Node):
+    def __init__(self) -> None:
+        super().__init__('wheel_odometry')
+        left = declare(self, 'left_wheel_joint', 'left_wheel_joint', 'name of the left wheel joint')
+        right = declare(self, 'right_wheel_joint', 'right_wheel_joint',
+                        'name of the right wheel joint')
+        radius = declare(self, 'wheel_radius_m', 0.05, 'nominal wheel radius (m)')
+        separation = declare(self, 'wheel_separation_m', 0.30,
+                             'distance between the wheel contact points (m)')
+        left_mult = declare(self, 'left_radius_multiplier', 1.0,
+                            'calibration: left radius = wheel_radius_m * this', minimum=0.5, maximum=1.5)
+        right_mult = declare(self, 'right_radius_multiplier', 1.0,
+                             'calibration: right radius = wheel_radius_m * this', minimum=0.5, maximum=1.5)
+        method = declare(self, 'integration_method', 'exact_arc',
+                         "'exact_arc' (default) or 'euler' (the textbook update, for teaching)")
+        variance = declare(self, 'wheel_variance_per_m', 4e-6,
+                           'random error model: variance (m^2) of a wheel distance is this * |distance (m)|',
+                           minimum=0.0)
+        radius_std = declare(self, 'radius_multiplier_std', 0.0,
+                             'systematic error model: std of each wheel\'s relative radius error '
+                             '(what calibration leaves)', minimum=0.0, maximum=0.49)
+        max_gap = declare(self, 'max_gap_s', 0.5,
+                          'a stamp gap longer than this (s) is not integrated across')
+        max_speed = declare(self, 'max_wheel_speed_rad_s', 50.0,
+                            'fastest plausible wheel rate (rad/s): larger increments are wrapped '
+                            'encoder readings, or rejected')
+        self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the published pose')
+        self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame (robot base)')
+        mode = declare(self, 'covariance_mode', 'propagated',
+                       "'propagated' (from the wheel error model) or 'static' (the two lists below)")
+        static_pose = declare(self, 'static_pose_variances', [1e-3, 1e-3, 1e-3],
+                              "with covariance_mode 'static': variances of x (m^2), y (m^2), yaw (rad^2)")
+        static_twist = declare(self, 'static_twist_variances', [1e-3, 1e-9, 1e-3],
+                               "with covariance_mode 'static': variances of vx, vy, wz")
+
+        require(bool(left), 'left_wheel_joint', 'must not be empty', left)
+        require(bool(right), 'right_wheel_joint', 'must not be empty', right)
+        require(left != right, 'right_wheel_joint', 'must differ from left_wheel_joint', right)
+        require(method in METHODS, 'integration_method', f'must be one of {list(METHODS)}', method)
+        require(mode in ('propagated', 'static'), 'covariance_mode',
+                "must be 'propagated' or 'static'", mode)
+        for name, values in (('static_pose_variances', static_pose),
+                             ('static_twist_variances', static_twist)):
+            require(len(values) == 3 and all(np.isfinite(values)) and min(values) >= 0.0, name,
+                    'must be three finite variances >= 0', list(values))
+        require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
+                'must not be empty')
+        config = WheelOdometryConfig(
+            wheel_radius_m=radius, wheel_separation_m=separation,
+            left_radius_multiplier=left_mult, right_radius_multiplier=right_mult,
+            method=method, variance_per_m=(variance, variance), max_gap_s=max_gap,
+            max_wheel_speed_rad_s=max_speed, radius_multiplier_std=radius_std)
+        names = {'wheel_radius_m': 'wheel_radius_m', 'wheel_separation_m': 'wheel_separation_m',
+                 'method': 'integration_method', 'variance_per_m': 'wheel_variance_per_m'}
+        for field_name, problem, value in config.problems():
+            require(False, names.get(field_name, field_name), problem, value)
+
+        self._joints = (left, right)
+        self._static = None if mode == 'propagated' else (np.diag(static_pose), np.diag(static_twist))
+        self._odometry = WheelOdometry(config)
+        self._warnings = ThrottledWarnings(self)
+        self.diagnostics = Diagnostics(self)
+        self._publisher = self.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS)
+        self.create_subscription(JointState, '/joint_states', self._on_joint_state, SENSOR_QOS)
+        self.create_service(Trigger, '~/reset', self._on_reset)
+        self.get_logger().info(
+            f'wheels {left!r} / {right!r}: radius {radius} m (x {left_mult}, x {right_mult}), '
+            f'separation {separation} m, {method}, covariance {mode}')
+
+    def _on_joint_state(self, msg: JointState) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        result = self._odometry.update(stamp, list(msg.name), msg.position, msg.velocity, self._joints)
+        diag = self.diagnostics
+        if result.rejection is not None:
+            key = result.rejection.value
+            diag.count(key)
+            self._warnings.warn(key, f'JointState at {stamp * 1e-9:.3f} s not integrated '
+                                     f'({key}): {result.note}')
+        elif result.step in (StampStep.BACKWARDS, StampStep.GAP):
+            diag.count(result.step.value)
+            self._warnings.warn(result.step.value, f'JointState at {stamp * 1e-9:.3f} s: {result.note}')
+        elif result.wrapped:
+            diag.count('encoder_wraps')
+            self._warnings.warn('wrap', f'JointState at {stamp * 1e-9:.3f} s: {result.note}')
+        elif result.note:
+            self.get_logger().info(result.note)
+        if result.publish:
+            self._publish(stamp)
+
+    def _publish(self, stamp: int) -> None:
+        odo = self._odometry
+        if self._static is None:
+            pose_cov, twist_cov = odo.covariance, odo.twist_covariance
+        else:
+            pose_cov, twist_cov = self._static
+        self._publisher.publish(make_odometry(
+            stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov))
+        self.diagnostics.count('published')
+        self.diagnostics.last_stamp_ns = max(self.diagnostics.last_stamp_ns, stamp)
+        self.diagnostics.values['pose'] = '%.4f %.4f %.4f' % odo.pose
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        before = self._odometry.pose
+        self._odometry.reset()
+        self.diagnostics.count('resets')
+        response.success = True
+        response.message = (f'pose reset to the origin (was x={before[0]:.4f} m, '
+                            f'y={before[1]:.4f} m, yaw={before[2]:.4f} rad)')
+        self.get_logger().info(response.message)
+        return response
+
+
+def main(args: list[str] | None = None) -> None:
+    sys.exit(run_node(WheelOdometryNode, args))
