@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import Counter
+from typing import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
@@ -16,8 +17,12 @@ class Diagnostics:
     The stamp is the newest input stamp seen, so a replayed bag yields the same diagnostics.
     """
 
-    def __init__(self, node: Node, period_s: float = 1.0) -> None:
+    def __init__(
+        self, node: Node, period_s: float = 1.0,
+        update: Callable[[Diagnostics], None] | None = None,
+    ) -> None:
         self._node = node
+        self._update = update  # refreshes values, level and message just before each publish
         self.counts: Counter[str] = Counter()
         self.values: dict[str, str] = {}
         self.level = DiagnosticStatus.OK
@@ -30,6 +35,8 @@ class Diagnostics:
         self.counts[key] += amount
 
     def publish(self) -> None:
+        if self._update is not None:
+            self._update(self)
         status = DiagnosticStatus(
             level=self.level,
             name=f'{self._node.get_name()}',

@@ -1,0 +1,170 @@
+"""complementary_fusion over real DDS: stamp-ordered determinism, bad input, bad parameters."""
+
+import math
+import random
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from harness import Collector, NodeProcess, run_to_exit, spin_until
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu
+
+from sensing_nodes.core.fusion import ComplementaryFusion, FusionSettings
+from sensing_nodes.ros.conversions import make_odometry, ns_to_stamp, odometry_pose, yaw_to_quaternion
+from sensing_nodes.ros.qos import ESTIMATE_QOS
+
+STEP_NS = 20_000_000  # 50 Hz wheel and gyro; scan match every 5th step (10 Hz)
+
+
+def _inputs(count=60, start_ns=1_000_000_000):
+    """A gently turning robot: wheel odometry drifting outwards, gyro and scan matching near truth."""
+    events = []
+    for k in range(count):
+        t = start_ns + k * STEP_NS
+        yaw = 0.01 * k
+        wheel_cov = np.diag([1e-4, 1e-4, 1e-5]) * (k + 1)
+        events.append(('wheel', t, (0.021 * k, 0.001 * k * k / 60, yaw * 1.05), wheel_cov))
+        events.append(('imu', t, yaw + 0.0005 * k, 1e-6 * (k + 1)))
+        if k % 5 == 0:
+            events.append(('scan', t, (0.02 * k, 0.001 * k * k / 60, yaw), np.diag([4e-5, 4e-5, 4e-6]) * (k + 1)))
+    return events
+
+
+def _message(kind, t, value, cov):
+    if kind == 'imu':
+        msg = Imu()
+        msg.header.stamp = ns_to_stamp(t)
+        msg.header.frame_id = 'imu_link'
+        msg.orientation = yaw_to_quaternion(value)
+        msg.orientation_covariance = [0.0] * 8 + [float(cov)]
+        return msg
+    return make_odometry(t, 'odom', 'base_link', value, cov)
+
+
+def _expected(events):
+    """The core fed in stamp order (wheel, imu, scan at equal stamps), published as the node does."""
+    fusion = ComplementaryFusion(FusionSettings())
+    out = []
+    rank = {'wheel': 0, 'imu': 1, 'scan': 2}
+    for kind, t, value, cov in sorted(events, key=lambda e: (e[1], rank[e[0]])):
+        if kind == 'wheel':
+            fusion.add_wheel(t, value, cov)
+        elif kind == 'imu':
+            fusion.add_gyro(t, value, cov)
+            continue
+        else:
+            fusion.add_scan_match(t, value, cov)
+        out.append((t, fusion.state.pose, fusion.state.covariance))
+    return out
+
+
+@pytest.fixture
+def publishers(probe):
+    pubs = {
+        'wheel': probe.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS),
+        'imu': probe.create_publisher(Imu, '/imu/data', ESTIMATE_QOS),
+        'scan': probe.create_publisher(Odometry, '/scan_match/odom', ESTIMATE_QOS),
+    }
+    yield pubs
+    for pub in pubs.values():
+        probe.destroy_publisher(pub)
+
+
+def _send(probe, publishers, events):
+    assert spin_until(probe, lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), 20)
+    for kind, t, value, cov in events:
+        publishers[kind].publish(_message(kind, t, value, cov))
+        # Paced like a live source: a burst of hundreds of reliable samples makes DDS
+        # retransmit some of them late, and late inputs are (correctly) dropped.
+        time.sleep(0.002)
+        rclpy.spin_once(probe, timeout_sec=0)
+
+
+def _run(probe, publishers, events, params=None):
+    out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
+    with NodeProcess('complementary_fusion', params=params or {'reorder_window_s': 0.5}) as node:
+        assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 20)
+        _send(probe, publishers, events)
+        expected_count = sum(1 for e in events if e[0] != 'imu')
+        out.wait_for(expected_count, timeout=20)
+        log = node.output()
+        assert node.alive(), log
+    out.close()
+    return out.messages, log
+
+
+def test_output_is_the_stamp_ordered_fusion_whatever_the_arrival_order(probe, publishers):
+    events = _inputs()
+    shuffled = list(events)
+    # Shuffle within 0.2 s blocks: late by less than the 0.5 s reorder window.
+    blocks = [shuffled[i:i + 25] for i in range(0, len(shuffled), 25)]
+    rng = random.Random(7)
+    for block in blocks:
+        rng.shuffle(block)
+    shuffled = [e for block in blocks for e in block]
+    assert shuffled != events
+    messages, _ = _run(probe, publishers, shuffled)
+    expected = _expected(events)
+    assert len(messages) == len(expected)
+    for msg, (t, pose, cov) in zip(messages, expected):
+        got_pose, got_cov = odometry_pose(msg)
+        assert msg.header.stamp == ns_to_stamp(t)
+        assert got_pose == pytest.approx(pose, abs=1e-12)
+        assert got_cov == pytest.approx(cov, abs=1e-15)
+    assert msg.header.frame_id == 'odom' and msg.child_frame_id == 'base_link'
+
+
+def test_bad_covariances_are_rejected_and_fusion_carries_on(probe, publishers):
+    events = _inputs(30)
+    bad = [('wheel', events[20][1] + 1, (0.0, 0.0, 0.0), np.diag([-1.0, 1.0, 1.0])),
+           ('scan', events[20][1] + 2, (0.0, 0.0, 0.0), np.diag([math.nan, 1.0, 1.0])),
+           ('imu', events[20][1] + 3, 0.0, 0.0)]
+    messages, log = _run(probe, publishers, events[:20] + bad + events[20:])
+    assert 'wheel_odom: rejected' in log and 'scan_match: rejected' in log and 'imu: rejected' in log
+    expected = _expected(events)
+    assert len(messages) == len(expected)
+    assert odometry_pose(messages[-1])[0] == pytest.approx(expected[-1][1], abs=1e-12)
+
+
+def test_time_going_backwards_resets_and_reproduces(probe, publishers):
+    events = _inputs(80)  # 1.6 s: the replay jumps back further than reset_on_backwards_jump_s
+    messages, log = _run(probe, publishers, events + events)
+    assert 'time went backwards' in log
+    half = len(messages) // 2
+    first = np.array([odometry_pose(m)[0] for m in messages[:half]])
+    second = np.array([odometry_pose(m)[0] for m in messages[half:]])
+    assert len(messages) == 2 * len(_expected(events))
+    assert second == pytest.approx(first, abs=1e-12)
+
+
+def test_missing_input_is_reported_in_diagnostics(probe, publishers):
+    diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 10)
+    events = [e for e in _inputs(100) if e[0] != 'scan']
+    messages, _ = _run(probe, publishers, events, params={'reorder_window_s': 0.05})
+    assert len(messages) == 100
+    spin_until(probe, lambda: any(
+        s.name == 'complementary_fusion' for m in diagnostics.messages for s in m.status), 5)
+    statuses = [s for m in diagnostics.messages for s in m.status if s.name == 'complementary_fusion']
+    diagnostics.close()
+    assert statuses, 'no diagnostics received'
+    assert 'missing: scan_match' in statuses[-1].message
+    values = {kv.key: kv.value for kv in statuses[-1].values}
+    assert float(values['wheel_odom_rate_hz']) == pytest.approx(50.0, rel=1e-6)
+
+
+@pytest.mark.parametrize('param, value', [('alpha', '1.5'), ('alpha', 'fast'),
+                                           ('reorder_window_s', '-1.0')])
+def test_bad_parameters_exit_with_an_error_naming_them(param, value):
+    result = run_to_exit('complementary_fusion', ['--ros-args', '-p', f'{param}:={value}'], timeout=30)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert param in result.stderr
+
+
+def test_no_input_enabled_is_a_parameter_error():
+    args = ['--ros-args'] + [a for name in ('use_wheel_odom', 'use_imu', 'use_scan_match_position',
+                                            'use_scan_match_heading') for a in ('-p', f'{name}:=false')]
+    result = run_to_exit('complementary_fusion', args, timeout=30)
+    assert result.returncode == 2 and 'at least one input' in result.stderr
