@@ -1,0 +1,166 @@
+"""The sensor_sim node over real DDS: topics at their rates (counted over simulated time), the
+same numbers as the batch simulation, /cmd_vel following, bad input and bad parameters."""
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+from harness import REPO, Collector, NodeProcess, run_to_exit, spin_until
+
+from sensing_nodes.core import sim
+from sensing_nodes.core.world import load_world
+from sensing_nodes.nodes.sensor_sim import NodeSettings
+
+SECOND = 10**9
+START = sim.SimParams().start_ns
+
+
+def stamp_ns(msg) -> int:
+    t = msg.header.stamp if hasattr(msg, 'header') else msg.clock
+    return t.sec * SECOND + t.nanosec
+
+
+def test_node_settings_defaults_equal_config_file():
+    values = yaml.safe_load((REPO / 'config' / 'sensor_sim.yaml').read_text())['sensor_sim']['ros__parameters']
+    for name, f in NodeSettings.__dataclass_fields__.items():
+        assert values[name] == f.default, name
+
+
+@pytest.fixture(scope='module')
+def live_run(probe):
+    """Messages of a 6 s (simulated) run at 3x real time with seed 9; the node exits by itself."""
+    from nav_msgs.msg import Odometry
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import Imu, JointState, LaserScan
+
+    from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
+
+    collectors = {
+        '/scan': Collector(probe, LaserScan, '/scan', SENSOR_QOS),
+        '/imu/data_raw': Collector(probe, Imu, '/imu/data_raw', SENSOR_QOS),
+        '/joint_states': Collector(probe, JointState, '/joint_states', SENSOR_QOS),
+        '/ground_truth/odom': Collector(probe, Odometry, '/ground_truth/odom', ESTIMATE_QOS),
+        '/clock': Collector(probe, Clock, '/clock', CLOCK_QOS),
+    }
+    # The node publishes from its first moment, possibly before discovery matched the probe:
+    # the rate test counts a window well after the start.
+    node = NodeProcess('sensor_sim', params={'real_time_factor': 3.0, 'seed': 9, 'duration_s': 6.0})
+    with node:
+        assert spin_until(probe, lambda: not node.alive(), timeout=60), node.output()
+        spin_until(probe, lambda: False, timeout=0.5)
+        code = node.proc.returncode
+    for c in collectors.values():
+        c.close()
+    return {k: c.messages for k, c in collectors.items()}, code, node.output()
+
+
+RATES = {'/scan': 10, '/imu/data_raw': 200, '/joint_states': 50, '/ground_truth/odom': 100,
+         '/clock': 100}
+
+
+def test_each_topic_at_its_configured_rate_over_simulated_time(live_run):
+    messages, code, output = live_run
+    assert code == 0, output
+    for topic, rate in RATES.items():
+        stamps = np.array(sorted(stamp_ns(m) for m in messages[topic]))
+        period = SECOND // rate
+        assert stamps.size, topic
+        assert np.all((stamps - START) % period == 0), f'{topic}: stamps off the {rate} Hz grid'
+        assert stamps.max() <= START + 6 * SECOND, topic           # stopped at duration_s
+        window = stamps[(stamps >= START + 2 * SECOND) & (stamps < START + 5 * SECOND)]
+        print(f'{topic}: {window.size} of {3 * rate} in the 3 s window')
+        # exactly rate x 3 s when nothing is lost; best-effort delivery may lose a few under load
+        assert 0.9 * 3 * rate <= window.size <= 3 * rate, (topic, window.size)
+        assert len(np.unique(window)) == window.size, f'{topic}: duplicate stamps'
+
+
+def test_live_messages_are_the_batch_simulation_numbers(live_run):
+    messages, _, _ = live_run
+    run = sim.simulate(sim.SimParams(), load_world(REPO / 'config' / 'default_world.yaml'), 6.0, seed=9)
+    scan_index = {t: i for i, t in enumerate(run.scan_t.tolist())}
+    scans = messages['/scan']
+    assert len(scans) >= 40
+    for msg in scans:
+        np.testing.assert_array_equal(np.asarray(msg.ranges, dtype=np.float32),
+                                      run.scan_ranges[scan_index[stamp_ns(msg)]])
+    assert scans[0].header.frame_id == 'laser'
+    imu_index = {t: i for i, t in enumerate(run.imu_t.tolist())}
+    for msg in messages['/imu/data_raw']:
+        i = imu_index[stamp_ns(msg)]
+        assert (msg.angular_velocity.z, msg.linear_acceleration.z) == (run.imu_gyro[i, 2], run.imu_accel[i, 2])
+    imu = messages['/imu/data_raw'][0]
+    assert imu.header.frame_id == 'imu_link' and imu.orientation_covariance[0] == -1.0
+    joint_index = {t: i for i, t in enumerate(run.joint_t.tolist())}
+    for msg in messages['/joint_states']:
+        assert list(msg.position) == run.joint_position[joint_index[stamp_ns(msg)]].tolist()
+    truth_index = {t: i for i, t in enumerate(run.truth_t.tolist())}
+    for msg in messages['/ground_truth/odom']:
+        i = truth_index[stamp_ns(msg)]
+        assert (msg.pose.pose.position.x, msg.pose.pose.position.y) == tuple(run.truth_pose[i, :2])
+    assert (msg.header.frame_id, msg.child_frame_id) == ('map', 'base_link')
+
+
+def test_cmd_vel_is_followed_and_non_finite_commands_are_ignored_with_a_warning(probe):
+    from geometry_msgs.msg import Twist
+    from nav_msgs.msg import Odometry
+
+    from sensing_nodes.ros.qos import ESTIMATE_QOS
+
+    truth = Collector(probe, Odometry, '/ground_truth/odom', ESTIMATE_QOS)
+    cmd = probe.create_publisher(Twist, '/cmd_vel', 10)
+    forward = Twist()
+    forward.linear.x, forward.angular.z = 0.3, 0.2
+    bad = Twist()
+    bad.linear.x = math.nan
+    bad.angular.z = math.inf
+
+    def drive(msg, until, timeout):
+        def step():
+            cmd.publish(msg)
+            return until()
+        return spin_until(probe, step, timeout)
+
+    try:
+        with NodeProcess('sensor_sim', params={'use_cmd_vel': True, 'real_time_factor': 2.0}) as node:
+            assert spin_until(probe, lambda: len(truth.messages) > 10, 30), node.output()
+            assert truth.messages[-1].twist.twist.linear.x == 0.0     # no command: standing
+            reached = drive(forward, lambda: truth.messages[-1].twist.twist.linear.x >= 0.3 - 1e-9, 30)
+            assert reached, node.output()
+            last = truth.messages[-1]
+            assert last.twist.twist.angular.z == pytest.approx(0.2)
+            assert last.pose.pose.position.x > -2.5 + 0.05            # it moved from the start
+            assert drive(bad, lambda: 'ignoring /cmd_vel' in node.output(), 20), node.output()
+            assert node.alive()
+            # the bad commands changed nothing; without commands it stops after the timeout
+            assert spin_until(probe, lambda: truth.messages[-1].twist.twist.linear.x == 0.0, 20)
+            assert all(math.isfinite(m.pose.pose.position.x) for m in truth.messages)
+    finally:
+        truth.close()
+        probe.destroy_publisher(cmd)
+
+
+def test_bad_parameters_exit_2_naming_the_parameter_before_publishing(probe, tmp_path):
+    from rosgraph_msgs.msg import Clock
+
+    from sensing_nodes.ros.qos import CLOCK_QOS
+
+    malformed = tmp_path / 'world.yaml'
+    malformed.write_text('polygons: [[[0, 0], [1, 1]]]\n')
+    clock = Collector(probe, Clock, '/clock', CLOCK_QOS)
+    cases = [
+        (['-p', 'wheel_radius_m:=-0.05'], 'wheel_radius_m'),
+        (['-p', 'scan_beams:=0'], 'scan_beams'),
+        (['-p', 'range_min_m:=8.0', '-p', 'range_max_m:=8.0'], 'range_min_m'),
+        (['-p', 'world_file:=/nonexistent/world.yaml'], 'world_file'),
+        (['-p', f'world_file:={malformed}'], 'world_file'),
+    ]
+    try:
+        for args, name in cases:
+            result = run_to_exit('sensor_sim', ['--ros-args', *args])
+            assert result.returncode == 2, (args, result.stdout, result.stderr)
+            assert name in result.stderr, (args, result.stderr)
+        spin_until(probe, lambda: False, 0.5)
+        assert clock.messages == []
+    finally:
+        clock.close()
