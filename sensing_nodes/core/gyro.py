@@ -38,12 +38,23 @@ def integrate_rate(stamps_ns: ArrayLike, rate: ArrayLike, bias: float = 0.0, yaw
     return yaw0 + np.concatenate([[0.0], np.cumsum(0.5 * (r[1:] + r[:-1]) * dt)])
 
 
+def _window_ns(window_s: float) -> int:
+    return int(round(window_s * 1e9))
+
+
+def window_starts(stamps_ns: NDArray[np.int64], window_s: float) -> NDArray[np.intp]:
+    """Index of the first sample of the trailing window at each sample (see window_statistics)."""
+    start = np.searchsorted(stamps_ns, stamps_ns - _window_ns(window_s), side='right') - 1
+    return np.maximum(start, 0)
+
+
 def window_statistics(stamps_ns: ArrayLike, values: ArrayLike, window_s: float
                       ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """Mean and standard deviation of (N, D) values over the trailing window_s at each sample.
 
     Returns (mean (N, D), std (N, D), full (N,)): full is True where the window already spans
-    window_s of data. The window at sample i holds samples j <= i with t_i - t_j <= window_s.
+    window_s of data. The window at sample i runs from the newest sample at least window_s older
+    than t_i (or the first sample) to sample i, as in GyroIntegrator.
     """
     t = np.asarray(stamps_ns, dtype=np.int64)
     v = np.asarray(values, dtype=float).reshape(t.size, -1)
@@ -51,14 +62,14 @@ def window_statistics(stamps_ns: ArrayLike, values: ArrayLike, window_s: float
     v = v - v[:1]
     c1 = np.concatenate([np.zeros((1, v.shape[1])), np.cumsum(v, axis=0)])
     c2 = np.concatenate([np.zeros((1, v.shape[1])), np.cumsum(v * v, axis=0)])
-    start = np.searchsorted(t, t - int(round(window_s * 1e9)), side='left')
+    start = window_starts(t, window_s)
     idx = np.arange(t.size)
     n = (idx + 1 - start)[:, None].astype(float)
     s1 = c1[idx + 1] - c1[start]
     s2 = c2[idx + 1] - c2[start]
     mean = s1 / n
     var = np.maximum(s2 / n - mean * mean, 0.0)
-    full = (t - t[start]) >= int(round(window_s * 1e9)) - 1
+    full = (t - t[start]) >= _window_ns(window_s)
     first = np.asarray(values, dtype=float).reshape(t.size, -1)[:1]
     return mean + first, np.sqrt(var), full
 
@@ -79,7 +90,7 @@ def still_mask(stamps_ns: ArrayLike, gyro: ArrayLike, accel: ArrayLike, config: 
     if wheel_moving is not None:
         moving = np.asarray(wheel_moving, dtype=bool)
         motion_count = np.concatenate([[0], np.cumsum(moving)])
-        start = np.searchsorted(t, t - int(round(config.stillness_window_s * 1e9)), side='left')
+        start = window_starts(t, config.stillness_window_s)
         still &= (motion_count[np.arange(t.size) + 1] - motion_count[start]) == 0
     return still
 
@@ -149,7 +160,7 @@ class _Window:
     """Samples of the trailing stillness window with running sums for their mean and variance."""
 
     def __init__(self, window_s: float) -> None:
-        self.window_ns = window_s * 1e9
+        self.window_ns = _window_ns(window_s)
         self.samples: deque[_Sample] = deque()
         self._ref = (0.0,) * 6
         self._s1 = [0.0] * 6
@@ -177,7 +188,7 @@ class _Window:
 
     def full(self) -> bool:
         return bool(self.samples) and (
-            self.samples[-1].stamp_ns - self.samples[0].stamp_ns >= self.window_ns - 1)
+            self.samples[-1].stamp_ns - self.samples[0].stamp_ns >= self.window_ns)
 
     def stats(self) -> tuple[list[float], list[float]]:
         """Mean and variance of gx, gy, gz, ax, ay, az over the window."""
