@@ -93,7 +93,8 @@ class _PolarFits:
         r = xm * c + ym * s
         flip = r < 0.0
         # Turning the normal by pi keeps the line and makes r positive.
-        self.alpha = np.where(flip, np.where(alpha > 0.0, alpha - np.pi, alpha + np.pi), alpha)
+        alpha = np.where(flip, np.where(alpha > 0.0, alpha - np.pi, alpha + np.pi), alpha)
+        self.alpha = np.where(alpha <= -np.pi, alpha + 2.0 * np.pi, alpha)   # -pi rounds to pi
         self.c, self.s = np.where(flip, -c, c), np.where(flip, -s, s)
         self.r = np.abs(r)
 
@@ -101,7 +102,8 @@ class _PolarFits:
         """(var r, cov r-alpha, var alpha), each (k,): the inverse information of the fit."""
         c, s = self.c, self.s
         # Along-line coordinate t = p·(-sin, cos): its weighted spread and the centroid's t.
-        stt = np.maximum(s * s * self.sxx + c * c * self.syy - 2.0 * s * c * self.sxy, 1e-300)
+        # Floored so that a degenerate fit (one point) gives a huge but finite covariance.
+        stt = np.maximum(s * s * self.sxx + c * c * self.syy - 2.0 * s * c * self.sxy, 1e-12)
         tm = c * self.ym - s * self.xm
         return 1.0 / self.w + tm * tm / stt, tm / stt, 1.0 / stt
 
@@ -195,10 +197,11 @@ def _split(scan: _Scan, s: NDArray[np.intp], e: NDArray[np.intp], split_distance
 
 
 def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: float,
-           max_gap: float):
+           max_gap: float, min_points: int):
     """Merge neighbouring ranges whose lines agree within their summed covariance (chi-square on
     (dr, dalpha), 2 dof) when the gap between them is at most max_gap and the merged fit still has
-    every point within split_distance. Also returns the fits (cos, sin, r) of the ranges when
+    every point within split_distance. A range of fewer than min_points points (a piece of wall
+    between invalid beams, or an outlier) needs only the gap and the merged fit to pass. Also returns the fits (cos, sin, r) of the ranges when
     they were computed and nothing merged, else None."""
     if len(s) < 2:
         return s, e, None
@@ -214,7 +217,17 @@ def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: 
     da = fit.alpha[1:] - fit.alpha[:-1]
     da = np.where(da > np.pi, da - 2.0 * np.pi, np.where(da <= -np.pi, da + 2.0 * np.pi, da))
     chi2 = (aa * dr * dr - 2.0 * ra * dr * da + rr * da * da) / (rr * aa - ra * ra)
-    candidate = near & (chi2 <= merge_chi2)
+    small = e - s + 1 < min_points
+    small_l, small_r = small[:-1], small[1:]
+    # A small range joins a neighbour only when its far end is within split_distance of the
+    # neighbour's line (the merged fit is checked below); two small ones are checked directly.
+    x, y, c, sn, r = scan.x, scan.y, fit.c, fit.s, fit.r
+    right_fits_left = np.abs(x[e[1:]] * c[:-1] + y[e[1:]] * sn[:-1] - r[:-1]) <= split_distance
+    left_fits_right = np.abs(x[s[:-1]] * c[1:] + y[s[:-1]] * sn[1:] - r[1:]) <= split_distance
+    candidate = near & np.where(
+        small_l | small_r,
+        (small_l & small_r) | (small_r & right_fits_left) | (small_l & left_fits_right),
+        chi2 <= merge_chi2)
     if not candidate.any():
         return s, e, (fit.c, fit.s, fit.r)
     out_s, out_e = [int(s[0])], [int(e[0])]
@@ -305,10 +318,11 @@ def extract_lines(
     ends = np.flatnonzero(brk)
     starts = np.concatenate(([0], ends[:-1] + 1))
     s, e = _split(scan, starts, ends, split_distance, min_points)
-    keep = e - s + 1 >= min_points
-    s, e = s[keep], e[keep]
     sigma2 = range_sigma * range_sigma
-    s, e, fits = _merge(scan, s, e, sigma2, merge_chi2, split_distance, max_line_gap)
+    s, e, fits = _merge(scan, s, e, sigma2, merge_chi2, split_distance, max_line_gap, min_points)
+    keep = e - s + 1 >= min_points
+    if not keep.all():
+        s, e, fits = s[keep], e[keep], None
     s, e, c, sn = _trim_ends(scan, s, e, range_sigma, min_points, fits)
     return _final_lines(scan, s, e, c, sn, sigma2, min_line_length)
 

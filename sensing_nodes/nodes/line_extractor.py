@@ -1,0 +1,209 @@
+"""line_extractor: /scan (LaserScan) -> /scan/lines (MarkerArray) and /scan/lines/table (PointCloud2).
+
+The table is one PointCloud2 "point" per line with named fields (TABLE_FIELDS), so a consumer
+reads it with numpy alone; header = the scan's stamp and frame. Layout documented in README.md.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import Point
+from rclpy.node import Node
+from sensor_msgs.msg import LaserScan, PointCloud2, PointField
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from sensing_nodes.core.lines import Line, extract_lines
+from sensing_nodes.core.timing import StampStep, classify_step
+from sensing_nodes.ros.conversions import scan_arrays, stamp_to_ns
+from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.logging import ThrottledWarnings
+from sensing_nodes.ros.params import ParameterError, declare, require
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.ros.run import run_node
+
+# (name, PointField datatype, numpy type) of each table column, in order, little endian.
+TABLE_FIELDS = (
+    ('r', PointField.FLOAT64, '<f8'),
+    ('alpha', PointField.FLOAT64, '<f8'),
+    ('cov_rr', PointField.FLOAT64, '<f8'),
+    ('cov_ra', PointField.FLOAT64, '<f8'),
+    ('cov_aa', PointField.FLOAT64, '<f8'),
+    ('x0', PointField.FLOAT64, '<f8'),
+    ('y0', PointField.FLOAT64, '<f8'),
+    ('x1', PointField.FLOAT64, '<f8'),
+    ('y1', PointField.FLOAT64, '<f8'),
+    ('first', PointField.UINT32, '<u4'),
+    ('last', PointField.UINT32, '<u4'),
+    ('point_count', PointField.UINT32, '<u4'),
+)
+TABLE_DTYPE = np.dtype([(name, np_type) for name, _, np_type in TABLE_FIELDS])
+MARKER_NS = 'lines'
+
+
+def lines_table(lines: list[Line], header: Header) -> PointCloud2:
+    """The lines as a PointCloud2 with one point per line and the TABLE_FIELDS columns."""
+    rows = np.zeros(len(lines), dtype=TABLE_DTYPE)
+    for i, line in enumerate(lines):
+        rows[i] = (line.r, line.alpha, line.covariance[0, 0], line.covariance[0, 1],
+                   line.covariance[1, 1], line.start[0], line.start[1], line.end[0], line.end[1],
+                   line.first, line.last, line.point_count)
+    msg = PointCloud2(header=header, height=1, width=len(lines), is_bigendian=False,
+                      point_step=TABLE_DTYPE.itemsize, row_step=TABLE_DTYPE.itemsize * len(lines),
+                      is_dense=True)
+    msg.fields = [PointField(name=name, offset=TABLE_DTYPE.fields[name][1], datatype=datatype,
+                             count=1) for name, datatype, _ in TABLE_FIELDS]
+    msg.data = rows.tobytes()
+    return msg
+
+
+def lines_markers(lines: list[Line], header: Header, width_m: float) -> MarkerArray:
+    """DELETEALL (removes every earlier marker), then, if there are lines, one LINE_LIST."""
+    clear = Marker(header=header, ns=MARKER_NS, id=0, action=Marker.DELETEALL)
+    if not lines:
+        return MarkerArray(markers=[clear])
+    marker = Marker(header=header, ns=MARKER_NS, id=0, type=Marker.LINE_LIST, action=Marker.ADD)
+    marker.pose.orientation.w = 1.0
+    marker.scale.x = width_m
+    marker.color = ColorRGBA(r=1.0, g=0.45, b=0.0, a=1.0)
+    marker.points = [Point(x=x, y=y, z=0.0) for line in lines for x, y in (line.start, line.end)]
+    return MarkerArray(markers=[clear, marker])
+
+
+class LineExtractorNode(Node):
+    def __init__(self) -> None:
+        super().__init__('line_extractor')
+        self._options = dict(
+            split_distance=declare(
+                self, 'split_distance', 0.05,
+                'a segment is split while one of its points is farther than this from its '
+                'least-squares line (m)', minimum=1e-6, maximum=100.0),
+            max_line_gap=declare(
+                self, 'max_line_gap', 0.5,
+                'no line spans two consecutive valid points farther apart than this (m)',
+                minimum=1e-6, maximum=1000.0),
+            min_line_points=declare(
+                self, 'min_line_points', 6, 'lines fitted to fewer beams are dropped',
+                minimum=2, maximum=100000),
+            min_line_length=declare(
+                self, 'min_line_length', 0.2, 'shorter lines (endpoint distance) are dropped (m)',
+                minimum=0.0, maximum=1000.0),
+            min_range=declare(
+                self, 'min_range', 0.0,
+                'shorter ranges are invalid (m); the scan\'s range_min also applies',
+                minimum=0.0, maximum=1000.0),
+            max_range=declare(
+                self, 'max_range', 100.0,
+                'longer ranges are invalid (m); the scan\'s range_max also applies',
+                minimum=1e-3, maximum=1e6),
+            range_sigma=declare(
+                self, 'range_sigma', 0.01,
+                'standard deviation of the range noise (m): weights the fit, scales covariances',
+                minimum=1e-6, maximum=10.0),
+            merge_chi2=declare(
+                self, 'merge_chi2', 9.21,
+                'neighbouring segments merge when chi-square of (dr, dalpha) over their summed '
+                'covariance is at most this (2 dof; 9.21 = 99 %)', minimum=1e-6, maximum=1e6),
+        )
+        self._marker_width_m = declare(self, 'marker_width', 0.03,
+                                       'line width of the LINE_LIST marker (m)',
+                                       minimum=1e-4, maximum=10.0)
+        self._max_gap_s = declare(self, 'max_gap_s', 1.0,
+                                  'scans further apart (stamp time) are reported as a gap',
+                                  minimum=1e-3, maximum=3600.0)
+        require(self._options['max_range'] > self._options['min_range'], 'max_range',
+                'must be greater than min_range', self._options['max_range'])
+        try:
+            extract_lines(np.zeros(0), np.zeros(0), **self._options)
+        except ValueError as exc:
+            raise ParameterError('line extraction options', str(exc)) from exc
+        self._warnings = ThrottledWarnings(self, period_s=5.0)
+        self._diagnostics = Diagnostics(self)
+        self._last_stamp_ns: int | None = None
+        self._markers = self.create_publisher(MarkerArray, '/scan/lines', ESTIMATE_QOS)
+        self._table = self.create_publisher(PointCloud2, '/scan/lines/table', ESTIMATE_QOS)
+        self.create_subscription(LaserScan, '/scan', self._on_scan, SENSOR_QOS)
+        self.get_logger().info(
+            'extracting lines from /scan with ' + ', '.join(f'{k}={v}' for k, v in self._options.items()))
+
+    def _on_scan(self, msg: LaserScan) -> None:
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        self._diagnostics.count('scans')
+        self._diagnostics.last_stamp_ns = stamp_ns
+        self._check_stamp(stamp_ns)
+        lines = self._lines(msg)
+        self._diagnostics.count('lines', len(lines))
+        if not lines:
+            self._diagnostics.count('empty_results')
+        header = Header(stamp=msg.header.stamp, frame_id=msg.header.frame_id)
+        self._markers.publish(lines_markers(lines, header, self._marker_width_m))
+        self._table.publish(lines_table(lines, header))
+
+    def _check_stamp(self, stamp_ns: int) -> None:
+        # Extraction keeps no state, so an odd step is only reported, nothing is reset.
+        step = classify_step(self._last_stamp_ns, stamp_ns, self._max_gap_s)
+        self._last_stamp_ns = stamp_ns
+        if step is StampStep.BACKWARDS:
+            self._diagnostics.count('stamp_backwards')
+            self._warnings.warn('backwards', 'scan stamp went backwards (looping bag or clock '
+                                             'reset?); lines keep being extracted per scan')
+        elif step is StampStep.REPEATED:
+            self._diagnostics.count('stamp_repeated')
+
+    def _reject(self, key: str, message: str) -> list[Line]:
+        self._diagnostics.count(f'rejected_{key}')
+        self._diagnostics.level = DiagnosticStatus.WARN
+        self._diagnostics.message = message
+        self._warnings.warn(key, f'{message}; publishing no lines for this scan')
+        return []
+
+    def _lines(self, msg: LaserScan) -> list[Line]:
+        """Lines of one scan, or [] (with a throttled warning) when the scan is unusable."""
+        n = len(msg.ranges)
+        if len(msg.intensities) not in (0, n):
+            return self._reject('length_mismatch', f'scan has {n} ranges but '
+                                f'{len(msg.intensities)} intensities')
+        if not (math.isfinite(msg.angle_increment) and msg.angle_increment > 0.0
+                and math.isfinite(msg.angle_min)):
+            return self._reject('bad_angles', f'scan has angle_min={msg.angle_min}, '
+                                f'angle_increment={msg.angle_increment} (need finite, increment > 0)')
+        if n == 0:
+            return self._reject('empty', 'scan has no ranges')
+        min_range, max_range = self._options['min_range'], self._options['max_range']
+        if math.isfinite(msg.range_min) and math.isfinite(msg.range_max) \
+                and 0.0 <= msg.range_min < msg.range_max:
+            min_range, max_range = max(min_range, msg.range_min), min(max_range, msg.range_max)
+        else:
+            self._diagnostics.count('bad_range_limits')
+            self._warnings.warn('range_limits', f'scan has range_min={msg.range_min}, '
+                                f'range_max={msg.range_max}; using only the parameters '
+                                f'min_range={min_range}, max_range={max_range}')
+        if max_range <= min_range:
+            return self._reject('range_limits', f'no range can be valid: limits '
+                                f'[{min_range}, {max_range}] m')
+        ranges, angles = scan_arrays(msg)
+        nan_count = int(np.isnan(ranges).sum())
+        if nan_count:
+            # NaN is an invalid measurement (REP 117), unlike +-inf (no return / too close).
+            self._diagnostics.count('nan_ranges', nan_count)
+            self._warnings.warn('nan', f'scan has {nan_count} NaN ranges; they are ignored')
+        with np.errstate(invalid='ignore'):
+            valid = int((np.isfinite(ranges) & (ranges >= min_range) & (ranges <= max_range)).sum())
+        if valid == 0:
+            return self._reject('no_valid_ranges', f'none of the {n} ranges is valid '
+                                f'(finite, within [{min_range}, {max_range}] m)')
+        if valid < self._options['min_line_points']:
+            return self._reject('too_few_points', f'only {valid} valid ranges, fewer than '
+                                f"min_line_points={self._options['min_line_points']}")
+        options = {**self._options, 'min_range': min_range, 'max_range': max_range}
+        self._diagnostics.level = DiagnosticStatus.OK
+        self._diagnostics.message = 'ok'
+        return extract_lines(ranges, angles, **options)
+
+
+def main(args=None) -> None:
+    sys.exit(run_node(LineExtractorNode, args))
