@@ -15,9 +15,13 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 
-# Variance (m², rad²) put on the diagonal of a failed match's covariance, and added along an
-# unconstrained direction: large enough that any fusion ignores it, finite so arithmetic stays sane.
+# Variance (m², rad²) put on the diagonal of a failed match's covariance: large enough that any
+# fusion ignores it, finite so arithmetic stays sane.
 FAILED_VARIANCE = 1.0e6
+# Variance (m², yaw as arc length at the scan radius) added along an unconstrained direction:
+# far above any motion between scans, yet small enough that the slight tilt of that direction
+# does not leak into the constrained ones.
+DEGENERATE_VARIANCE = 100.0
 
 _METHODS = ('point_to_line', 'point_to_point')
 _ROBUST = ('trim', 'adaptive', 'none')
@@ -89,23 +93,33 @@ def _as_points(points: ArrayLike, name: str) -> tuple[NDArray[np.float64], int]:
     return array[finite], int(array.shape[0] - finite.sum())
 
 
-def align_paired(
+def cross_covariance(
     source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Closed-form least-squares rigid transform (R 2x2, t 2) with target_i ≈ R·source_i + t for
-    points paired by index: centroids, H = Σ p'·q'ᵀ, SVD H = U·S·Vᵀ, R = V·Uᵀ, with the sign of the
-    last singular vector flipped when det(V·Uᵀ) < 0 so a reflection is never returned."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Centroids p̄, q̄ (m) of index-paired source and target points and H = Σ wᵢ·p'ᵢ·q'ᵢᵀ over
+    the centred points p' = p - p̄, q' = q - q̄."""
     p = np.asarray(source, dtype=float).reshape(-1, 2)
     q = np.asarray(target, dtype=float).reshape(-1, 2)
     if p.shape != q.shape or p.shape[0] == 0:
         raise ValueError(f'paired point sets must be non-empty and equal in shape: {p.shape} vs {q.shape}')
     w = np.ones(p.shape[0]) if weights is None else np.asarray(weights, dtype=float).ravel()
-    w_sum = w.sum()
-    p_mean = w @ p / w_sum
-    q_mean = w @ q / w_sum
-    h = (p - p_mean).T @ ((q - q_mean) * w[:, None])
+    if w.shape != (p.shape[0],) or not np.all(w >= 0) or w.sum() <= 0:
+        raise ValueError('weights must be one non-negative number per pair, not all zero')
+    p_mean = w @ p / w.sum()
+    q_mean = w @ q / w.sum()
+    return p_mean, q_mean, (p - p_mean).T @ ((q - q_mean) * w[:, None])
+
+
+def align_paired(
+    source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Closed-form least-squares rigid transform (R 2x2, t 2) with target_i ≈ R·source_i + t for
+    points paired by index: centroids, H = Σ p'·q'ᵀ, SVD H = U·S·Vᵀ, R = V·Uᵀ, with the sign of the
+    last singular vector flipped when det(V·Uᵀ) < 0 so a reflection is never returned;
+    t = q̄ - R·p̄."""
+    p_mean, q_mean, h = cross_covariance(source, target, weights)
     u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
     r = vt.T @ np.diag([1.0, d]) @ u.T
     return r, q_mean - r @ p_mean
 
@@ -139,8 +153,8 @@ def _line_normals(points: NDArray[np.float64], tree: cKDTree, neighbours: int,
     return normals, np.clip(planarity, 0.0, 1.0)
 
 
-def prepare_target(points: ArrayLike, normal_neighbours: int = 5, normal_radius: float = 0.5,
-                   min_planarity: float = 0.5, tangent_weight: float = 0.01) -> Target:
+def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius: float = 1.0,
+                   min_planarity: float = 0.5, tangent_weight: float = 0.0) -> Target:
     """Build the k-d tree, normals and per-point information of a target point set (N, 2), m,
     in its own frame; a point is line-like when its planarity >= min_planarity. Non-finite rows
     are dropped (counted in `dropped`); ValueError on a wrong shape or bad settings."""
@@ -209,7 +223,7 @@ def _median(values: NDArray[np.float64]) -> float:
 def _icp_loop(src, tgt: Target, pose, *, point_to_line: bool, max_iterations: int, gate: float,
               min_gate: float, tolerance: float, robust: str, trim_fraction: float,
               adaptive_factor: float, min_inliers: int, radius: float,
-              solve_ratio: float) -> _Loop:
+              solve_ratio: float, error_tolerance: float) -> _Loop:
     """Iterate correspondences and closed-form / Gauss-Newton steps from pose (x, y, yaw)."""
     state = _Loop(*pose, reason=f'max_iterations ({max_iterations}) reached')
     x, y, yaw = pose
@@ -274,7 +288,9 @@ def _icp_loop(src, tgt: Target, pose, *, point_to_line: bool, max_iterations: in
             and np.array_equal(previous, matched)
         previous = matched
         step = math.hypot(dx, dy) + abs(dyaw) * radius
-        if step < tolerance or (same_pairs and step < 10.0 * tolerance):
+        settled = len(state.history) >= 2 and \
+            abs(state.history[-2] - state.history[-1]) <= error_tolerance * state.history[-1]
+        if step < tolerance or (same_pairs and step < 10.0 * tolerance) or settled:
             state.converged = True
             state.reason = ''
             break
@@ -312,6 +328,7 @@ def match(
     max_correspondence_distance: float = 1.0,
     min_correspondence_distance: float = 0.1,
     tolerance: float = 1e-4,
+    error_tolerance: float = 0.001,
     robust: str = 'adaptive',
     trim_fraction: float = 0.9,
     adaptive_factor: float = 3.0,
@@ -320,10 +337,10 @@ def match(
     coarse_voxel_size: float = 0.25,
     coarse_iterations: int = 10,
     score_distance: float = 0.1,
+    hypothesis_margin: float = 0.05,
     min_points: int = 3,
     min_inlier_fraction: float = 0.2,
     min_planarity: float = 0.5,
-    solve_ratio: float = 1e-6,
     degeneracy_ratio: float = 1e-3,
     min_residual_std: float = 0.005,
 ) -> MatchResult:
@@ -375,7 +392,7 @@ def match(
                                                   max_correspondence_distance),
         tolerance=tolerance, robust=robust, trim_fraction=trim_fraction,
         adaptive_factor=adaptive_factor, radius=radius,
-        solve_ratio=solve_ratio)
+        solve_ratio=degeneracy_ratio, error_tolerance=error_tolerance)
     start = (float(guess[0]), float(guess[1]), float(guess[2]))
     if yaw_hypotheses:
         coarse = voxel_downsample(src, coarse_voxel_size)
@@ -389,7 +406,8 @@ def match(
                               gate=max_correspondence_distance, min_inliers=coarse_min, **settings)
             candidate = (state.x, state.y, state.yaw)
             score = _score(coarse, tgt, candidate, score_distance)
-            if score > best_score + 1e-9:
+            # The guess's own result wins unless a hypothesis explains clearly more points.
+            if score > best_score + (hypothesis_margin if offset else 0.0):
                 best, best_score = candidate, score
         start = best
     state = _icp_loop(src, tgt, start, max_iterations=max_iterations,
@@ -446,7 +464,7 @@ def _solve(info, gradient, radius, solve_ratio) -> NDArray[np.float64]:
 
 
 def _covariance(info, variance, radius, degeneracy_ratio):
-    """variance · info⁻¹ over (x, y, yaw); an unconstrained direction gets FAILED_VARIANCE."""
+    """variance · info⁻¹ over (x, y, yaw); an unconstrained direction gets DEGENERATE_VARIANCE."""
     scaled = _scaled(info, radius)
     values, vectors = np.linalg.eigh(scaled)
     top = max(values[-1], 1e-300)
@@ -454,7 +472,7 @@ def _covariance(info, variance, radius, degeneracy_ratio):
     weak = values <= degeneracy_ratio * top
     inverse_values = np.where(weak, 0.0, 1.0 / np.where(weak, 1.0, values))
     cov_scaled = variance * (vectors * inverse_values) @ vectors.T
-    cov_scaled += FAILED_VARIANCE * (vectors[:, weak] @ vectors[:, weak].T)
+    cov_scaled += DEGENERATE_VARIANCE * (vectors[:, weak] @ vectors[:, weak].T)
     scale = np.array([1.0, 1.0, 1.0 / radius])
     cov = cov_scaled * scale[:, None] * scale[None, :]
     direction = vectors[:, 0].copy() if weak.any() else None
