@@ -223,11 +223,12 @@ def _median(values: NDArray[np.float64]) -> float:
 def _icp_loop(src, tgt: Target, pose, *, point_to_line: bool, max_iterations: int, gate: float,
               min_gate: float, tolerance: float, robust: str, trim_fraction: float,
               adaptive_factor: float, min_inliers: int, radius: float,
-              solve_ratio: float, error_tolerance: float) -> _Loop:
+              solve_ratio: float, error_tolerance: float, stall_iterations: int) -> _Loop:
     """Iterate correspondences and closed-form / Gauss-Newton steps from pose (x, y, yaw)."""
     state = _Loop(*pose, reason=f'max_iterations ({max_iterations}) reached')
     x, y, yaw = pose
     previous: NDArray[np.intp] | None = None
+    best_error, stalled = math.inf, 0
     for iteration in range(1, max_iterations + 1):
         state.iterations = iteration
         c, s = math.cos(yaw), math.sin(yaw)
@@ -290,7 +291,14 @@ def _icp_loop(src, tgt: Target, pose, *, point_to_line: bool, max_iterations: in
         step = math.hypot(dx, dy) + abs(dyaw) * radius
         settled = len(state.history) >= 2 and \
             abs(state.history[-2] - state.history[-1]) <= error_tolerance * state.history[-1]
-        if step < tolerance or (same_pairs and step < 10.0 * tolerance) or settled:
+        # Correspondences that flip back and forth keep the step from vanishing; when the error
+        # has not improved on its best for `stall_iterations`, it has stopped changing.
+        if state.error < best_error * (1.0 - error_tolerance):
+            best_error, stalled = state.error, 0
+        else:
+            stalled += 1
+        if step < tolerance or (same_pairs and step < 10.0 * tolerance) or settled \
+                or stalled >= stall_iterations:
             state.converged = True
             state.reason = ''
             break
@@ -329,6 +337,7 @@ def match(
     min_correspondence_distance: float = 0.1,
     tolerance: float = 1e-4,
     error_tolerance: float = 0.001,
+    stall_iterations: int = 5,
     robust: str = 'adaptive',
     trim_fraction: float = 0.9,
     adaptive_factor: float = 3.0,
@@ -392,7 +401,8 @@ def match(
                                                   max_correspondence_distance),
         tolerance=tolerance, robust=robust, trim_fraction=trim_fraction,
         adaptive_factor=adaptive_factor, radius=radius,
-        solve_ratio=degeneracy_ratio, error_tolerance=error_tolerance)
+        solve_ratio=degeneracy_ratio, error_tolerance=error_tolerance,
+        stall_iterations=stall_iterations)
     start = (float(guess[0]), float(guess[1]), float(guess[2]))
     if yaw_hypotheses:
         coarse = voxel_downsample(src, coarse_voxel_size)
