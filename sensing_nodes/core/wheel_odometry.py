@@ -421,22 +421,42 @@ class WheelOdometry:
                               note='encoder position wrapped; unwrapped' if wrapped else '')
 
     def _integrate(self, ds_l: float, ds_r: float, dt: float) -> None:
+        # The same numbers as propagate_covariance, written out in scalars: this runs once per
+        # message and 3x3 numpy products cost more than the arithmetic.
         cfg = self.config
-        ds, dtheta = 0.5 * (ds_r + ds_l), (ds_r - ds_l) / cfg.wheel_separation_m
-        j_pose, j_wheels = step_jacobians(self.pose[2], ds, dtheta, cfg.wheel_separation_m, cfg.method)
-        wheel_var = np.diag([cfg.variance_per_m[0] * abs(ds_l), cfg.variance_per_m[1] * abs(ds_r)])
-        cov = j_pose @ self.random_covariance @ j_pose.T + j_wheels @ wheel_var @ j_wheels.T
-        self.random_covariance = 0.5 * (cov + cov.T)
-        if cfg.radius_multiplier_std > 0.0:
-            self.radius_jacobian = j_pose @ self.radius_jacobian + j_wheels * np.array([ds_l, ds_r])
-        self.pose = integrate_step(self.pose, ds, dtheta, cfg.method)
-        self.twist = (ds / dt, 0.0, dtheta / dt)
+        inv_l = 1.0 / cfg.wheel_separation_m
+        ds, dtheta = 0.5 * (ds_r + ds_l), (ds_r - ds_l) * inv_l
+        x, y, yaw = self.pose
+        dx, dy, (fx, fy), (gx, gy) = _displacement(yaw, ds, dtheta, cfg.method)
+        # F = I + u e3^T with u = (-dy, dx, 0); G = [g_left g_right] w.r.t. the wheel distances.
+        a, b = -dy, dx
+        lx, ly, rx, ry = 0.5 * fx - inv_l * gx, 0.5 * fy - inv_l * gy, 0.5 * fx + inv_l * gx, 0.5 * fy + inv_l * gy
         var_l = cfg.variance_per_m[0] * abs(ds_l)
         var_r = cfg.variance_per_m[1] * abs(ds_r)
-        inv_l = 1.0 / cfg.wheel_separation_m
-        var_v = 0.25 * (var_l + var_r) / (dt * dt)
-        var_w = inv_l * inv_l * (var_l + var_r) / (dt * dt)
-        cov_vw = 0.5 * inv_l * (var_r - var_l) / (dt * dt)
+        p = self.random_covariance
+        xx, xy, xt, yy, yt, tt = p[0, 0], p[0, 1], p[0, 2], p[1, 1], p[1, 2], p[2, 2]
+        xx2 = xx + 2.0 * a * xt + a * a * tt + var_l * lx * lx + var_r * rx * rx
+        xy2 = xy + a * yt + b * xt + a * b * tt + var_l * lx * ly + var_r * rx * ry
+        xt2 = xt + a * tt + inv_l * (var_r * rx - var_l * lx)
+        yy2 = yy + 2.0 * b * yt + b * b * tt + var_l * ly * ly + var_r * ry * ry
+        yt2 = yt + b * tt + inv_l * (var_r * ry - var_l * ly)
+        tt2 = tt + inv_l * inv_l * (var_l + var_r)
+        self.random_covariance = np.array([[xx2, xy2, xt2], [xy2, yy2, yt2], [xt2, yt2, tt2]])
+        if cfg.radius_multiplier_std > 0.0:
+            j = self.radius_jacobian
+            self.radius_jacobian = np.array([
+                [j[0, 0] + a * j[2, 0] + lx * ds_l, j[0, 1] + a * j[2, 1] + rx * ds_r],
+                [j[1, 0] + b * j[2, 0] + ly * ds_l, j[1, 1] + b * j[2, 1] + ry * ds_r],
+                [j[2, 0] - inv_l * ds_l, j[2, 1] + inv_l * ds_r]])
+        yaw2 = yaw + dtheta
+        if yaw2 > math.pi or yaw2 <= -math.pi:
+            yaw2 = float(wrap_angle(yaw2))
+        self.pose = (x + dx, y + dy, yaw2)
+        self.twist = (ds / dt, 0.0, dtheta / dt)
+        inv_dt2 = 1.0 / (dt * dt)
+        var_v = 0.25 * (var_l + var_r) * inv_dt2
+        var_w = inv_l * inv_l * (var_l + var_r) * inv_dt2
+        cov_vw = 0.5 * inv_l * (var_r - var_l) * inv_dt2
         self.twist_covariance = np.array([
             [var_v, 0.0, cov_vw], [0.0, LATERAL_VELOCITY_VARIANCE, 0.0], [cov_vw, 0.0, var_w]])
 

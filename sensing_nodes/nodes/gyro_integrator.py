@@ -12,12 +12,14 @@ from std_srvs.srv import Trigger
 
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
 from sensing_nodes.core.timing import StampStep
-from sensing_nodes.ros.conversions import stamp_to_ns, yaw_to_quaternion
+from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+
+_DIAGONAL = [0, 4, 8]
 
 
 class GyroIntegratorNode(Node):
@@ -66,8 +68,9 @@ class GyroIntegratorNode(Node):
 
         self._integrator = GyroIntegrator(config)
         self._warnings = ThrottledWarnings(self)
-        self.diagnostics = Diagnostics(self)
+        self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self._was_still = False
+        self._message = Imu()
         self._publisher = self.create_publisher(Imu, '/imu/data', ESTIMATE_QOS)
         self.create_subscription(Imu, '/imu/data_raw', self._on_imu, SENSOR_QOS)
         if use_wheels:
@@ -106,25 +109,32 @@ class GyroIntegratorNode(Node):
 
     def _publish(self, raw: Imu, stamp: int) -> None:
         gi = self._integrator
-        out = Imu()
+        # One Imu refilled in place: publish serialises it at once, and building a message per
+        # sample costs more than the integration.
+        out = self._message
         out.header.stamp = raw.header.stamp
         out.header.frame_id = self._frame_id or raw.header.frame_id
         # Planar: roll and pitch are taken as zero (level IMU), so only yaw carries variance.
-        out.orientation = yaw_to_quaternion(gi.heading)
+        half = 0.5 * gi.heading
+        out.orientation.z, out.orientation.w = math.sin(half), math.cos(half)
         out.orientation_covariance[8] = gi.heading_variance
+        rate = gi.rate
         out.angular_velocity.x, out.angular_velocity.y, out.angular_velocity.z = (
-            float(gi.rate[0]), float(gi.rate[1]), float(gi.rate[2]))
-        rate_var = gi.rate_variance()
-        for i in (0, 4, 8):
-            out.angular_velocity_covariance[i] = rate_var
+            float(rate[0]), float(rate[1]), float(rate[2]))
+        out.angular_velocity_covariance[_DIAGONAL] = gi.rate_variance()
         out.linear_acceleration = raw.linear_acceleration
         out.linear_acceleration_covariance = raw.linear_acceleration_covariance
         self._publisher.publish(out)
         diag = self.diagnostics
         diag.count('published')
-        diag.last_stamp_ns = max(diag.last_stamp_ns, stamp)
+        diag.last_stamp_ns = stamp
+
+    def _refresh_diagnostics(self, diag: Diagnostics) -> None:
+        gi = self._integrator
         diag.values['bias_z_rad_s'] = f'{gi.bias[2]:.6f}'
+        diag.values['bias_z_std_rad_s'] = f'{math.sqrt(gi.p_bias):.2e}'
         diag.values['still'] = str(gi.still)
+        diag.values['heading_std_rad'] = f'{math.sqrt(max(gi.heading_variance, 0.0)):.2e}'
 
     def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         gi = self._integrator

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 
 import numpy as np
@@ -18,6 +19,9 @@ from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+
+# Row-major indices of x, y, yaw rows/columns in a 6x6 ROS covariance.
+_PLANAR_36 = np.array([6 * r + c for r in (0, 1, 5) for c in (0, 1, 5)])
 
 
 class WheelOdometryNode(Node):
@@ -80,8 +84,9 @@ class WheelOdometryNode(Node):
         self._joints = (left, right)
         self._static = None if mode == 'propagated' else (np.diag(static_pose), np.diag(static_twist))
         self._odometry = WheelOdometry(config)
+        self._message: Odometry | None = None
         self._warnings = ThrottledWarnings(self)
-        self.diagnostics = Diagnostics(self)
+        self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self._publisher = self.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS)
         self.create_subscription(JointState, '/joint_states', self._on_joint_state, SENSOR_QOS)
         self.create_service(Trigger, '~/reset', self._on_reset)
@@ -115,14 +120,33 @@ class WheelOdometryNode(Node):
             pose_cov, twist_cov = odo.covariance, odo.twist_covariance
         else:
             pose_cov, twist_cov = self._static
-        self._publisher.publish(make_odometry(
-            stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov))
+        msg = self._message
+        if msg is None:
+            msg = self._message = make_odometry(
+                stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov)
+        else:
+            # Building an Odometry costs more than the odometry itself: refill one in place
+            # (publish serialises it at once, so reuse is safe).
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+            position, q = msg.pose.pose.position, msg.pose.pose.orientation
+            position.x, position.y = odo.pose[0], odo.pose[1]
+            q.z, q.w = math.sin(0.5 * odo.pose[2]), math.cos(0.5 * odo.pose[2])
+            msg.pose.covariance[_PLANAR_36] = np.ravel(pose_cov)
+            twist = msg.twist.twist
+            twist.linear.x, twist.linear.y, twist.angular.z = odo.twist
+            msg.twist.covariance[_PLANAR_36] = np.ravel(twist_cov)
+        self._publisher.publish(msg)
         self.diagnostics.count('published')
-        self.diagnostics.last_stamp_ns = max(self.diagnostics.last_stamp_ns, stamp)
-        self.diagnostics.values['pose'] = '%.4f %.4f %.4f' % odo.pose
+        self.diagnostics.last_stamp_ns = stamp
+
+    def _refresh_diagnostics(self, diag: Diagnostics) -> None:
+        odo = self._odometry
+        diag.values['pose'] = '%.4f %.4f %.4f' % odo.pose
+        diag.values['pose_std'] = '%.2e %.2e %.2e' % tuple(np.sqrt(np.maximum(np.diag(odo.covariance), 0.0)))
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         before = self._odometry.pose
+        self.diagnostics.values['pose_before_reset'] = '%.4f %.4f %.4f' % before
         self._odometry.reset()
         self.diagnostics.count('resets')
         response.success = True

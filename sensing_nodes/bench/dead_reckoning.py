@@ -1,0 +1,204 @@
+"""Throughput of the dead-reckoning cores (wheel odometry, gyro integrator), and whether the two
+nodes keep up with 1 kHz input over DDS.
+
+Inputs are the default simulated run (124 s: 50 Hz joint states, 200 Hz IMU), tiled for the batch
+paths. Figures are messages per second on one core, measured in one run.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator, integrate_rate, still_mask
+from sensing_nodes.core.sim import SimParams, simulate
+from sensing_nodes.core.wheel_odometry import (
+    WheelOdometry,
+    WheelOdometryConfig,
+    integrate_path,
+    wheel_increments,
+)
+from sensing_nodes.core.world import load_world
+from sensing_nodes.paths import config_file
+
+JOINTS = ('left_wheel_joint', 'right_wheel_joint')
+
+
+def _best_rate(count: int, fn, repeats: int) -> float:
+    """Items per second of fn() over count items: the best of `repeats` runs (least disturbed)."""
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return count / best
+
+
+def _wheel_rates(run, quick: bool) -> dict:
+    cfg = WheelOdometryConfig(right_radius_multiplier=1.01)
+    tiles = 20 if quick else 200
+    positions = run.joint_position
+    steps = np.diff(positions, axis=0)
+    tiled = np.concatenate([[positions[0]], positions[0] + np.cumsum(np.tile(steps, (tiles, 1)), axis=0)])
+    n = tiled.shape[0] - 1
+
+    def batch():
+        ds_l, ds_r = wheel_increments(tiled[:-1], tiled[1:], cfg.radii)
+        integrate_path((0.0, 0.0, 0.0), ds_l, ds_r, cfg.wheel_separation_m, cfg.variance_per_m)
+
+    names = list(JOINTS)
+    samples = [(int(t), p.tolist()) for t, p in zip(run.joint_t, positions)]
+    if quick:
+        samples = samples[:2000]
+
+    def per_message():
+        odo = WheelOdometry(cfg)
+        for t, p in samples:
+            odo.update(t, names, p, (), JOINTS)
+
+    batch_rate = _best_rate(n, batch, 3)
+    message_rate = _best_rate(len(samples), per_message, 2)
+    return {'wheel_batch_msgs_per_s': batch_rate, 'wheel_per_message_msgs_per_s': message_rate,
+            'wheel_batch_over_per_message': batch_rate / message_rate, 'wheel_batch_n': n}
+
+
+def _gyro_rates(run, quick: bool) -> dict:
+    cfg = GyroConfig()
+    tiles = 10 if quick else 50
+    period = int(run.imu_t[1] - run.imu_t[0])
+    n = run.imu_t.size * tiles
+    t = run.imu_t[0] + np.arange(n, dtype=np.int64) * period
+    gyro = np.tile(run.imu_gyro, (tiles, 1))
+    accel = np.tile(run.imu_accel, (tiles, 1))
+
+    def batch():
+        still = still_mask(t, gyro, accel, cfg)
+        integrate_rate(t, np.where(still, 0.0, gyro[:, 2]))
+
+    samples = list(zip(run.imu_t.tolist(), run.imu_gyro.tolist(), run.imu_accel.tolist()))
+    if quick:
+        samples = samples[:5000]
+
+    def per_message():
+        gi = GyroIntegrator(cfg)
+        for ti, g, a in samples:
+            gi.update(ti, g, a)
+
+    batch_rate = _best_rate(n, batch, 3)
+    message_rate = _best_rate(len(samples), per_message, 2)
+    return {'gyro_batch_samples_per_s': batch_rate, 'gyro_per_message_samples_per_s': message_rate,
+            'gyro_batch_over_per_message': batch_rate / message_rate, 'gyro_batch_n': n}
+
+
+def _dds_check(executable: str, seconds: float, rate_hz: float) -> dict:
+    """Run the node as a process, publish rate_hz input paced by wall time, count outputs.
+
+    Returns the numbers sent and received (by stamp); a node that keeps up answers every one.
+    """
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from rclpy.node import Node
+    from sensor_msgs.msg import Imu, JointState
+
+    from sensing_nodes.ros.conversions import ns_to_stamp, stamp_to_ns
+    from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+
+    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    env.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 200))
+    os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    exe = Path(sys.executable).parent / executable
+    log = tempfile.NamedTemporaryFile('w+', suffix='.log')
+    proc = subprocess.Popen([str(exe), '--ros-args', '-p', 'max_gap_s:=0.5'], stdout=log,
+                            stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = Node('dead_reckoning_bench', context=context)
+    received: set[int] = set()
+    try:
+        if executable == 'wheel_odometry':
+            pub = node.create_publisher(JointState, '/joint_states', SENSOR_QOS)
+            node.create_subscription(Odometry, '/wheel/odom',
+                                     lambda m: received.add(stamp_to_ns(m.header.stamp)), ESTIMATE_QOS)
+
+            def message(k, t):
+                msg = JointState()
+                msg.header.stamp = ns_to_stamp(t)
+                msg.name = list(JOINTS)
+                msg.position = [0.01 * k, 0.011 * k]
+                return msg
+        else:
+            pub = node.create_publisher(Imu, '/imu/data_raw', SENSOR_QOS)
+            node.create_subscription(Imu, '/imu/data',
+                                     lambda m: received.add(stamp_to_ns(m.header.stamp)), ESTIMATE_QOS)
+
+            def message(k, t):
+                msg = Imu()
+                msg.header.stamp = ns_to_stamp(t)
+                msg.angular_velocity.z = 0.1
+                msg.linear_acceleration.z = 9.81
+                return msg
+
+        from rclpy.executors import SingleThreadedExecutor
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not (pub.get_subscription_count() > 0 and received):
+            pub.publish(message(0, 1_000_000_000))
+            executor.spin_once(timeout_sec=0.1)
+        if not received:
+            return {'sent': 0, 'received': 0, 'error': 'node never answered: ' + Path(log.name).read_text()[-500:]}
+        received.clear()
+        count = int(seconds * rate_hz)
+        period_ns = int(1e9 / rate_hz)
+        t_start = time.monotonic()
+        stamps = []
+        for k in range(1, count + 1):
+            target = t_start + k / rate_hz
+            while time.monotonic() < target:
+                executor.spin_once(timeout_sec=max(0.0, min(target - time.monotonic(), 0.0005)))
+            stamp = 1_000_000_000 + k * period_ns
+            pub.publish(message(k, stamp))
+            stamps.append(stamp)
+        achieved = count / (time.monotonic() - t_start)
+        end = time.monotonic() + 5
+        while time.monotonic() < end and len(received & set(stamps)) < count:
+            executor.spin_once(timeout_sec=0.05)
+        got = len(received & set(stamps))
+        return {'sent': count, 'received': got, 'send_rate_hz': achieved}
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def run(quick: bool = False, dds: bool = True) -> dict:
+    """Measured figures: core throughput (batch and per message) and the 1 kHz DDS check."""
+    params = SimParams()
+    sim = simulate(params, load_world(config_file('default_world.yaml')), 20.0 if quick else 124.0, seed=1)
+    out = {}
+    out.update(_wheel_rates(sim, quick))
+    out.update(_gyro_rates(sim, quick))
+    if dds:
+        seconds = 2.0 if quick else 5.0
+        for exe in ('wheel_odometry', 'gyro_integrator'):
+            result = _dds_check(exe, seconds, 1000.0)
+            for key, value in result.items():
+                out[f'{exe}_1khz_{key}'] = value
+    return out
+
+
+if __name__ == '__main__':
+    print(json.dumps(run(quick='--quick' in sys.argv, dds='--no-dds' not in sys.argv), indent=2))
