@@ -153,6 +153,8 @@ class LineExtractorNode(Node):
                                              'reset?); lines keep being extracted per scan')
         elif step is StampStep.REPEATED:
             self._diagnostics.count('stamp_repeated')
+        elif step is StampStep.GAP:
+            self._diagnostics.count('stamp_gaps')
 
     def _reject(self, key: str, message: str) -> list[Line]:
         self._diagnostics.count(f'rejected_{key}')
@@ -167,10 +169,11 @@ class LineExtractorNode(Node):
         if len(msg.intensities) not in (0, n):
             return self._reject('length_mismatch', f'scan has {n} ranges but '
                                 f'{len(msg.intensities)} intensities')
-        if not (math.isfinite(msg.angle_increment) and msg.angle_increment > 0.0
-                and math.isfinite(msg.angle_min)):
-            return self._reject('bad_angles', f'scan has angle_min={msg.angle_min}, '
-                                f'angle_increment={msg.angle_increment} (need finite, increment > 0)')
+        if not (math.isfinite(msg.angle_increment) and msg.angle_increment > 0.0):
+            return self._reject('bad_increment', f'scan has angle_increment={msg.angle_increment} '
+                                '(need a finite increment > 0)')
+        if not math.isfinite(msg.angle_min):
+            return self._reject('bad_angle_min', f'scan has angle_min={msg.angle_min}')
         if n == 0:
             return self._reject('empty', 'scan has no ranges')
         min_range, max_range = self._options['min_range'], self._options['max_range']
