@@ -83,13 +83,15 @@ def _send(probe, publishers, events):
         rclpy.spin_once(probe, timeout_sec=0)
 
 
-def _run(probe, publishers, events, params=None):
+def _run(probe, publishers, events, params=None, before_stop=None):
     out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
     with NodeProcess('complementary_fusion', params=params or {'reorder_window_s': 0.5}) as node:
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 20)
         _send(probe, publishers, events)
         expected_count = sum(1 for e in events if e[0] != 'imu')
         out.wait_for(expected_count, timeout=20)
+        if before_stop is not None:
+            before_stop()
         log = node.output()
         assert node.alive(), log
     out.close()
@@ -98,14 +100,18 @@ def _run(probe, publishers, events, params=None):
 
 def test_output_is_the_stamp_ordered_fusion_whatever_the_arrival_order(probe, publishers):
     events = _inputs()
-    shuffled = list(events)
-    # Shuffle within 0.2 s blocks: late by less than the 0.5 s reorder window.
-    blocks = [shuffled[i:i + 25] for i in range(0, len(shuffled), 25)]
+    # Each input arrives in its own order (as DDS delivers one publisher's messages), but the
+    # inputs interleave at random, up to 0.3 s apart in stamps.
     rng = random.Random(7)
-    for block in blocks:
-        rng.shuffle(block)
-    shuffled = [e for block in blocks for e in block]
-    assert shuffled != events
+    queues = {kind: [e for e in events if e[0] == kind] for kind in ('wheel', 'imu', 'scan')}
+    lag = {'wheel': 0, 'imu': 15 * STEP_NS, 'scan': 0}
+    shuffled = []
+    while any(queues.values()):
+        kind = rng.choice([k for k, q in queues.items() if q])
+        shuffled.append(queues[kind].pop(0))
+    shuffled.sort(key=lambda e: e[1] + lag[e[0]] + rng.randrange(0, 5) * STEP_NS)
+    shuffled = sorted(shuffled, key=lambda e: (e[1] + lag[e[0]]))
+    assert shuffled != sorted(events, key=lambda e: e[1])
     messages, _ = _run(probe, publishers, shuffled)
     expected = _expected(events)
     assert len(messages) == len(expected)
@@ -143,10 +149,13 @@ def test_time_going_backwards_resets_and_reproduces(probe, publishers):
 def test_missing_input_is_reported_in_diagnostics(probe, publishers):
     diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 10)
     events = [e for e in _inputs(100) if e[0] != 'scan']
-    messages, _ = _run(probe, publishers, events, params={'reorder_window_s': 0.05})
+    def wait_for_diagnostics():
+        spin_until(probe, lambda: any(
+            s.name == 'complementary_fusion' for m in diagnostics.messages for s in m.status), 5)
+
+    messages, _ = _run(probe, publishers, events, params={'reorder_window_s': 0.05},
+                       before_stop=wait_for_diagnostics)
     assert len(messages) == 100
-    spin_until(probe, lambda: any(
-        s.name == 'complementary_fusion' for m in diagnostics.messages for s in m.status), 5)
     statuses = [s for m in diagnostics.messages for s in m.status if s.name == 'complementary_fusion']
     diagnostics.close()
     assert statuses, 'no diagnostics received'

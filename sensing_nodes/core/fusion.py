@@ -248,8 +248,9 @@ class ComplementaryFusion:
 
 
 class StampOrderedBuffer:
-    """Releases items in stamp order once they are `window_ns` older than the newest stamp seen,
-    so the order of processing depends on stamps only, not on arrival timing.
+    """Releases items in stamp order once they are `window_ns` older than the newest stamp seen
+    (or once every live input is past them), so the order of processing depends on stamps only,
+    not on arrival timing.
 
     Ties are broken by `rank` (an input's fixed priority), then by arrival. An item whose stamp is
     older than what was already released is late: refused (push returns False) and counted.
@@ -275,11 +276,15 @@ class StampOrderedBuffer:
         self.newest_ns = stamp_ns if self.newest_ns is None else max(self.newest_ns, stamp_ns)
         return True
 
-    def pop_ready(self) -> list[tuple[int, object]]:
-        """(stamp, item) of every item at least window_ns older than the newest, in order."""
+    def pop_ready(self, watermark_ns: int | None = None) -> list[tuple[int, object]]:
+        """(stamp, item) of every item at least window_ns older than the newest, or not newer
+        than `watermark_ns` (a stamp every live input has already reached), in order."""
         if self.newest_ns is None:
             return []
-        return self._release(self.newest_ns - self.window_ns)
+        up_to = self.newest_ns - self.window_ns
+        if watermark_ns is not None:
+            up_to = max(up_to, watermark_ns)
+        return self._release(up_to)
 
     def flush(self) -> list[tuple[int, object]]:
         """Everything still held, in order (end of a stream)."""

@@ -46,8 +46,9 @@ class ComplementaryFusionNode(Node):
                 description="complementary filter weight of the gyro-propagated heading, in "
                             "[0, 1], or 'auto' to derive it each update from the two variances",
                 dynamic_typing=True, read_only=True)).value
-        window_s = declare(self, 'reorder_window_s', 0.05,
-                           'inputs are held this long (stamp time) and processed in stamp order',
+        window_s = declare(self, 'reorder_window_s', 0.5,
+                           'longest an input may lag the newest (stamp time) and still be fused '
+                           'in stamp order; later messages are dropped and counted',
                            minimum=0.0, maximum=10.0)
         self._flush_after_s = declare(self, 'flush_after_s', 0.5,
                                       'wall time without input after which held inputs are processed',
@@ -82,6 +83,8 @@ class ComplementaryFusionNode(Node):
         self._enabled = {WHEEL: use_wheel, GYRO: use_gyro, SCAN: use_scan_pos or use_scan_heading}
         self._last_stamp = {k: None for k in INPUT_NAMES}
         self._received = {k: 0 for k in INPUT_NAMES}
+        self._arrived = {k: None for k in INPUT_NAMES}
+        self._start_ns: int | None = None
         self._processed = {k: 0 for k in INPUT_NAMES}
         self._first_stamp = {k: None for k in INPUT_NAMES}
         self._accepted_first = {k: False for k in INPUT_NAMES}
@@ -126,7 +129,29 @@ class ComplementaryFusionNode(Node):
                 f'{self._buffer.released_ns * 1e-9:.3f} s were fused: dropped '
                 f'({self._buffer.late} so far)')
             return
-        self._process(self._buffer.pop_ready())
+        if self._start_ns is None:
+            self._start_ns = stamp
+        self._arrived[source] = stamp if self._arrived[source] is None else max(self._arrived[source], stamp)
+        self._process(self._buffer.pop_ready(self._watermark()))
+
+    def _watermark(self) -> int | None:
+        """The stamp every live input has reached: nothing at or before it can still arrive
+        (each input arrives in order), so it can be processed without waiting for the window.
+        An enabled input not heard from for input_timeout_s (stamp time) is not waited for."""
+        newest = self._buffer.newest_ns
+        timeout_ns = self._input_timeout_s * 1e9
+        reached = []
+        for source, enabled in self._enabled.items():
+            if not enabled:
+                continue
+            last = self._arrived[source]
+            if last is None:
+                if newest - self._start_ns <= timeout_ns:
+                    return None  # not heard from yet, but may still be starting up
+                continue
+            if newest - last <= timeout_ns:
+                reached.append(last)
+        return min(reached) if reached else None
 
     def _reading(self, source: int, msg):
         """Validated (pose or yaw, covariance) from a message, or None after a warning."""
@@ -161,6 +186,8 @@ class ComplementaryFusionNode(Node):
         self._buffer.clear()
         self._last_stamp = {k: None for k in INPUT_NAMES}
         self._first_stamp = {k: None for k in INPUT_NAMES}
+        self._arrived = {k: None for k in INPUT_NAMES}
+        self._start_ns = None
         self._processed = {k: 0 for k in INPUT_NAMES}
         self._accepted_first = {k: False for k in INPUT_NAMES}
 

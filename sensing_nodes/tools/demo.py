@@ -1,0 +1,386 @@
+"""sensing_demo: the whole graph on the simulated robot, recorded and scored against ground truth.
+
+Starts sensor_sim and the five processing nodes as separate processes over DDS (each from its
+executable with its parameter file in config/), records every topic into an MCAP bag, stops
+everything cleanly, and writes report.json, a table and PNG plots into the output folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from sensing_nodes.core import se2
+from sensing_nodes.core.evaluation import path_length, sigma_consistency, trajectory_errors
+from sensing_nodes.paths import config_file
+
+PROCESSING_NODES = ['wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
+                    'complementary_fusion']
+
+# Estimate name -> (topic, what it estimates)
+ESTIMATES = {
+    'wheel_odometry': ('/wheel/odom', 'pose'),
+    'gyro': ('/imu/data', 'heading'),
+    'scan_matching': ('/scan_match/odom', 'pose'),
+    'fused': ('/odometry/filtered', 'pose'),
+}
+# Node -> (input topic it processes one output per message of, its output topics)
+NODE_TOPICS = {
+    'sensor_sim': (None, ['/scan', '/imu/data_raw', '/joint_states', '/ground_truth/odom', '/clock']),
+    'wheel_odometry': ('/joint_states', ['/wheel/odom']),
+    'gyro_integrator': ('/imu/data_raw', ['/imu/data']),
+    'line_extractor': ('/scan', ['/scan/lines']),
+    'icp_matcher': ('/scan', ['/scan_match/odom']),
+    'complementary_fusion': (None, ['/odometry/filtered']),
+}
+
+
+def executable(name: str) -> str:
+    """Path of a sibling executable: venv bin/ or a colcon install's lib/sensing_nodes/."""
+    here = Path(sys.argv[0]).resolve().parent / name
+    if here.is_file():
+        return str(here)
+    found = shutil.which(name)
+    if found is None:
+        raise SystemExit(f'sensing_demo: executable {name!r} not found next to {sys.argv[0]} or on PATH')
+    return found
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog='sensing_demo', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--out', type=Path, default=None,
+                        help='output folder (default: demo_out/run-<date-time>)')
+    parser.add_argument('--duration', type=float, default=130.0,
+                        help='simulated seconds to drive (default 130: one lap of the default route)')
+    parser.add_argument('--seed', type=int, default=0, help='simulation seed (default 0)')
+    parser.add_argument('--rate', type=float, default=5.0,
+                        help='simulated seconds per wall second (default 5)')
+    parser.add_argument('--domain-id', type=int, default=None,
+                        help='ROS_DOMAIN_ID for the graph (default: one of this run\'s own, so the '
+                             'demo never talks to a robot on your network)')
+    parser.add_argument('--quiet', action='store_true', help='no progress lines')
+    args = parser.parse_args(argv)
+    if args.duration <= 0 or args.rate <= 0:
+        parser.error('--duration and --rate must be > 0')
+    return args
+
+
+class Graph:
+    """The node processes, started with their parameter files, stopped with SIGINT."""
+
+    def __init__(self, out: Path, env: dict[str, str]) -> None:
+        self.out, self.env = out, env
+        self.processes: dict[str, subprocess.Popen] = {}
+        self._logs = {}
+
+    def start(self, name: str, extra: list[str]) -> None:
+        log = open(self.out / 'logs' / f'{name}.log', 'w')
+        self._logs[name] = log
+        cmd = [executable(name), '--ros-args', '--params-file', str(config_file(f'{name}.yaml')),
+               *extra]
+        self.processes[name] = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
+
+    def failed(self) -> list[str]:
+        return [n for n, p in self.processes.items() if p.poll() not in (None, 0)]
+
+    def stop(self, timeout: float = 10.0) -> dict[str, int]:
+        for proc in self.processes.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        codes = {}
+        for name, proc in self.processes.items():
+            try:
+                codes[name] = proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                codes[name] = proc.wait()
+        for log in self._logs.values():
+            log.close()
+        return codes
+
+
+class Collected:
+    """What the demo keeps of the recorded topics for scoring."""
+
+    def __init__(self) -> None:
+        self.poses: dict[str, list] = defaultdict(list)       # topic -> [(stamp, x, y, yaw)]
+        self.covariances: dict[str, list] = defaultdict(list)  # topic -> [3x3]
+        self.wall: dict[str, dict[int, int]] = defaultdict(dict)  # topic -> stamp -> wall ns
+        self.diagnostics: dict[str, dict[str, str]] = {}
+
+    def listeners(self):
+        from sensing_nodes.ros.conversions import odometry_pose, quaternion_to_yaw
+
+        def odometry(topic):
+            def on(msg, stamp, wall):
+                pose, cov = odometry_pose(msg)
+                self.poses[topic].append((stamp, *pose))
+                self.covariances[topic].append(cov)
+                self.wall[topic].setdefault(stamp, wall)
+            return on
+
+        def imu(msg, stamp, wall):
+            yaw = quaternion_to_yaw(msg.orientation)
+            self.poses['/imu/data'].append((stamp, 0.0, 0.0, yaw))
+            self.covariances['/imu/data'].append(np.diag([0.0, 0.0, msg.orientation_covariance[8]]))
+
+        def scan(msg, stamp, wall):
+            self.wall['/scan'].setdefault(stamp, wall)
+
+        def diagnostics(msg, stamp, wall):
+            for status in msg.status:
+                self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+
+        handlers = {topic: odometry(topic) for topic in
+                    ['/ground_truth/odom', '/wheel/odom', '/scan_match/odom', '/odometry/filtered']}
+        handlers.update({'/imu/data': imu, '/scan': scan, '/diagnostics': diagnostics})
+        return handlers
+
+    def arrays(self, topic: str):
+        rows = sorted(self.poses.get(topic, []), key=lambda r: r[0])
+        if not rows:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        data = np.array([r[1:] for r in rows], dtype=float)
+        return np.array([r[0] for r in rows], dtype=np.int64), data
+
+
+def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, float, float]:
+    """Run the graph to the end of the simulated duration; returns what was collected, the
+    recorder's counts, the wall time taken and the simulated time covered."""
+    import rclpy
+    from rclpy.node import Node
+
+    from sensing_nodes.bag import BagWriter
+    from sensing_nodes.recorder import TopicRecorder
+
+    env = dict(os.environ)
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    env['ROS_DOMAIN_ID'] = str(args.domain_id if args.domain_id is not None
+                               else 100 + os.getpid() % 100)
+    os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    (out / 'logs').mkdir(parents=True, exist_ok=True)
+    collected = Collected()
+    graph = Graph(out, env)
+    rclpy.init()
+    node = Node('sensing_demo_recorder')
+    try:
+        with BagWriter(out / 'bag') as bag:
+            recorder = TopicRecorder(node, bag, collected.listeners())
+            for name in PROCESSING_NODES:
+                graph.start(name, [])
+            _wait_for_nodes(node, PROCESSING_NODES, graph, recorder)
+            sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
+                        '-p', f'real_time_factor:={args.rate}']
+            wall_start = time.monotonic()
+            graph.start('sensor_sim', sim_args)
+            sim = graph.processes['sensor_sim']
+            next_progress = wall_start
+            start_stamp = None
+            while sim.poll() is None:
+                rclpy.spin_once(node, timeout_sec=0.01)
+                now = time.monotonic()
+                if now >= next_progress:
+                    recorder.discover()
+                    if start_stamp is None and recorder.newest_stamp_ns:
+                        start_stamp = recorder.newest_stamp_ns
+                    if not args.quiet and start_stamp is not None:
+                        sim_s = (recorder.newest_stamp_ns - start_stamp) * 1e-9
+                        print(f'  simulated {sim_s:6.1f} / {args.duration:.0f} s  '
+                              f'({sim_s / max(now - wall_start, 1e-9):4.1f}x real time)  '
+                              f'scans {recorder.counts.get("/scan", 0):5d}  '
+                              f'fused {recorder.counts.get("/odometry/filtered", 0):6d}', flush=True)
+                    next_progress = now + 2.0
+                    if graph.failed():
+                        raise SystemExit(f'sensing_demo: node(s) exited early: {graph.failed()}; '
+                                         f'see {out / "logs"}')
+            wall_s = time.monotonic() - wall_start
+            # Let the last scans work through matching and fusion (and fusion's idle flush).
+            drain_until = time.monotonic() + 2.0
+            while time.monotonic() < drain_until:
+                rclpy.spin_once(node, timeout_sec=0.01)
+            counts = dict(recorder.counts)
+    finally:
+        codes = graph.stop()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGINT)}
+    if bad:
+        print(f'sensing_demo: warning: exit codes {bad}; see {out / "logs"}', file=sys.stderr)
+    return collected, counts, wall_s, args.duration
+
+
+def _wait_for_nodes(node, names, graph, recorder, timeout=30.0) -> None:
+    """Until every processing node is discovered (so no early message is missed)."""
+    import rclpy
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        recorder.discover()
+        if graph.failed():
+            raise SystemExit(f'sensing_demo: node(s) failed at start-up: {graph.failed()}')
+        if set(names) <= set(node.get_node_names()):
+            return
+    missing = set(names) - set(node.get_node_names())
+    raise SystemExit(f'sensing_demo: nodes not discovered within {timeout:.0f} s: {sorted(missing)}')
+
+
+def score(collected: Collected, counts: dict, wall_s: float, duration_s: float) -> dict:
+    """report.json's content from what was collected."""
+    t_ref, truth = collected.arrays('/ground_truth/odom')
+    if len(t_ref) < 2:
+        raise SystemExit('sensing_demo: no ground truth was recorded')
+    report = {
+        'distance_m': path_length(truth),
+        'duration_s': (t_ref[-1] - t_ref[0]) * 1e-9,
+        'real_time_factor': duration_s / wall_s if wall_s > 0 else None,
+        'estimates': {},
+    }
+    errors_by_name = {}
+    for name, (topic, kind) in ESTIMATES.items():
+        t_est, est = collected.arrays(topic)
+        if len(t_est) == 0:
+            report['estimates'][name] = {'missing': True}
+            continue
+        errors = trajectory_errors(t_ref, truth, t_est, est)
+        errors_by_name[name] = errors
+        entry = errors.summary(with_position=(kind == 'pose'))
+        entry['samples'] = int(len(errors.t))
+        if kind == 'pose':
+            cov = np.array(collected.covariances[topic])[np.argsort(
+                [r[0] for r in collected.poses[topic]], kind='stable')][errors.kept]
+            entry.update(sigma_consistency(errors.xy_in_estimate_frame[1:], cov[1:]))
+        report['estimates'][name] = entry
+
+    report['nodes'] = {}
+    for name, (input_topic, outputs) in NODE_TOPICS.items():
+        published = int(sum(counts.get(t, 0) for t in outputs))
+        processed = published if input_topic is None else int(counts.get(outputs[0], 0))
+        report['nodes'][name] = {'published': published, 'processed': processed}
+    sim_diag = collected.diagnostics.get('sensor_sim', {})
+    scans_published = max(int(sim_diag.get('/scan', 0)), counts.get('/scan', 0))
+    report['scans'] = {
+        'published_by_sim': scans_published,
+        'received_by_recorder': counts.get('/scan', 0),
+        'processed_by_icp_matcher': counts.get('/scan_match/odom', 0),
+        'processed_by_line_extractor': counts.get('/scan/lines', 0),
+    }
+    latencies = []
+    fused_wall = collected.wall.get('/odometry/filtered', {})
+    for stamp, wall in collected.wall.get('/scan', {}).items():
+        if stamp in fused_wall:
+            latencies.append((fused_wall[stamp] - wall) * 1e-6)
+    report['latency_ms'] = ({'p50': float(np.percentile(latencies, 50)),
+                             'p99': float(np.percentile(latencies, 99)), 'samples': len(latencies)}
+                            if latencies else {'p50': None, 'p99': None, 'samples': 0})
+    report['_errors'] = errors_by_name
+    return report
+
+
+def print_table(report: dict) -> None:
+    distance = report['distance_m']
+    print(f"\nDrove {distance:.1f} m in {report['duration_s']:.1f} s simulated "
+          f"({report['real_time_factor']:.1f}x real time)\n")
+    print(f"{'estimate':<16}{'final pos':>11}{'% dist':>8}{'rms pos':>10}{'final yaw':>11}"
+          f"{'rms yaw':>10}{'in 3σ':>8}")
+    for name, e in report['estimates'].items():
+        if e.get('missing'):
+            print(f'{name:<16}   (no messages)')
+            continue
+        pos = e.get('final_position_error_m')
+        cols = [f'{pos:9.3f} m' if pos is not None else f'{"-":>11}',
+                f'{100 * pos / distance:7.2f}%' if pos is not None else f'{"-":>8}',
+                f"{e['rms_position_error_m']:8.3f} m" if pos is not None else f'{"-":>10}',
+                f"{e['final_heading_error_deg']:9.2f}°", f"{e['rms_heading_error_deg']:8.2f}°",
+                f"{100 * e['within_3_sigma']:7.1f}%" if 'within_3_sigma' in e else f'{"-":>8}']
+        print(f'{name:<16}' + ''.join(cols))
+    lat = report['latency_ms']
+    if lat['p50'] is not None:
+        print(f"\nlatency scan -> fused output: p50 {lat['p50']:.1f} ms, p99 {lat['p99']:.1f} ms")
+    s = report['scans']
+    print(f"scans: published {s['published_by_sim']}, matched {s['processed_by_icp_matcher']}, "
+          f"lines {s['processed_by_line_extractor']}")
+
+
+def plot(report: dict, collected: Collected, out: Path) -> list[Path]:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    from sensing_nodes.core.evaluation import express_in_reference_frame, interpolate_poses
+    from sensing_nodes.core.world import load_world
+
+    world = load_world(config_file('default_world.yaml'))
+    t_ref, truth = collected.arrays('/ground_truth/odom')
+    fig, ax = plt.subplots(figsize=(9, 7.5))
+    for x0, y0, x1, y1 in world.segments:
+        ax.plot([x0, x1], [y0, y1], color='0.3', lw=2)
+    ax.plot(truth[:, 0], truth[:, 1], 'k-', lw=2.5, label='ground truth')
+    colours = {'wheel_odometry': 'tab:red', 'scan_matching': 'tab:blue', 'fused': 'tab:green'}
+    for name, colour in colours.items():
+        t_est, est = collected.arrays(ESTIMATES[name][0])
+        if len(t_est) == 0:
+            continue
+        start = interpolate_poses(t_ref, truth, t_est[:1])[0]
+        origin = se2.compose(tuple(start), se2.inverse(tuple(est[0])))
+        aligned = express_in_reference_frame(origin, est)
+        ax.plot(aligned[:, 0], aligned[:, 1], '-', color=colour, lw=1.3, label=name)
+    ax.set_aspect('equal')
+    ax.set_xlabel('x (m, map)')
+    ax.set_ylabel('y (m, map)')
+    ax.set_title('sensing_demo: trajectories over the world map')
+    ax.legend(loc='upper right', fontsize=8)
+    paths = [out / 'trajectories.png']
+    fig.savefig(paths[0], dpi=110, bbox_inches='tight')
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    t0 = t_ref[0]
+    for name, errors in report['_errors'].items():
+        ax.plot((errors.t - t0) * 1e-9, np.degrees(errors.heading_rad), lw=1.2, label=name,
+                color=colours.get(name, 'tab:orange'))
+    ax.axhline(0.0, color='0.5', lw=0.8)
+    ax.set_xlabel('simulated time (s)')
+    ax.set_ylabel('heading error (deg)')
+    ax.legend(fontsize=8)
+    ax.set_title('heading error against ground truth')
+    paths.append(out / 'heading_error.png')
+    fig.savefig(paths[1], dpi=110, bbox_inches='tight')
+    plt.close(fig)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    out = args.out or Path('demo_out') / datetime.now().strftime('run-%Y%m%d-%H%M%S')
+    if (out / 'bag').exists():
+        print(f'sensing_demo: {out} already holds a run; choose another --out', file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    print(f'sensing_demo: {args.duration:g} s of the default route at {args.rate:g}x, seed {args.seed}')
+    collected, counts, wall_s, duration = run_graph(args, out)
+    report = score(collected, counts, wall_s, duration)
+    plots = plot(report, collected, out)
+    errors = report.pop('_errors')
+    del errors
+    (out / 'report.json').write_text(json.dumps(report, indent=2) + '\n')
+    print_table(report)
+    print(f'\nwrote {out}/: report.json, bag/ (MCAP), logs/, ' + ', '.join(p.name for p in plots))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
