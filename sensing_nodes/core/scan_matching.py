@@ -52,6 +52,7 @@ class ScanStep:
     new_keyframe: bool = False
     prediction: str = ''        # odometry | constant_velocity
     result: icp.MatchResult | None = None
+    twist_covariance: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
 
     @property
     def publish(self) -> bool:
@@ -136,6 +137,7 @@ class KeyframeScanMatcher:
         guess_base = between(self.keyframe_pose, predicted)
         guess_laser = mount_transform(guess_base, s.laser_pose)
         result = icp.match(points, self.keyframe, guess_laser, **s.match_options)
+        points_usable = result.source_points >= s.match_options.get('min_points', 3)
 
         reason = self._rejection(result, guess_laser)
         previous = self.pose
@@ -145,12 +147,16 @@ class KeyframeScanMatcher:
             self.pose, self.covariance = compose_with_covariance(
                 self.pose, self.covariance, predicted_motion, fallback_cov)
             status = 'fallback'
-            new_keyframe = True
+            # Restart the keyframe here (the old one did not fit), unless this scan is too
+            # sparse to match against: then the old keyframe stays, at its own pose.
+            new_keyframe = points_usable
+            motion_cov = fallback_cov
         else:
             relative, rel_cov = unmount_transform(result.pose, result.covariance, s.laser_pose)
             self.pose, self.covariance = compose_with_covariance(
                 self.keyframe_pose, self.keyframe_covariance, relative, rel_cov)
             status = 'matched'
+            motion_cov = rel_cov      # the keyframe's own uncertainty is common to both poses
             new_keyframe = (math.hypot(relative[0], relative[1]) > s.keyframe_distance_m
                             or abs(relative[2]) > s.keyframe_angle_rad)
         if new_keyframe:
@@ -159,7 +165,8 @@ class KeyframeScanMatcher:
         self.twist = (motion[0] / dt, motion[1] / dt, motion[2] / dt)
         self.stamp_ns = stamp_ns
         return ScanStep(stamp_ns, self.pose, self.covariance.copy(), self.twist, status, reason,
-                        new_keyframe=new_keyframe, prediction=source, result=result)
+                        new_keyframe=new_keyframe, prediction=source, result=result,
+                        twist_covariance=motion_cov / (dt * dt))
 
     def _rejection(self, result: icp.MatchResult, guess: Pose2) -> str:
         """Why a match must not be used ('' when it is fine)."""

@@ -1,0 +1,174 @@
+"""icp_matcher: /scan -> /scan_match/odom (base_link motion from point-to-line ICP on keyframes),
+with the initial guess from an odometry topic or a constant-velocity model."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+from diagnostic_msgs.msg import DiagnosticStatus
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import LaserScan
+
+from sensing_nodes.core.scan import scan_to_points
+from sensing_nodes.core.scan_matching import (
+    KeyframeScanMatcher, OdometryBuffer, ScanMatcherSettings,
+)
+from sensing_nodes.ros.conversions import make_odometry, odometry_pose, scan_arrays, stamp_to_ns
+from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.logging import ThrottledWarnings
+from sensing_nodes.ros.params import declare, require
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.ros.run import run_node
+
+
+class IcpMatcherNode(Node):
+    def __init__(self) -> None:
+        super().__init__('icp_matcher')
+        odom_topic = declare(self, 'odom_topic', '',
+                             "odometry for the initial guess (e.g. /wheel/odom); '' = constant "
+                             'velocity model')
+        self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the published pose')
+        self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame (robot base)')
+        laser = (declare(self, 'laser_x_m', 0.10, 'laser mount x in base_link (m)'),
+                 declare(self, 'laser_y_m', 0.0, 'laser mount y in base_link (m)'),
+                 declare(self, 'laser_yaw_rad', 0.0, 'laser mount yaw in base_link (rad)',
+                         minimum=-math.pi, maximum=math.pi))
+        kf_distance = declare(self, 'keyframe_distance_m', 0.10,
+                              'new keyframe after moving this far from the last one (m)',
+                              minimum=0.0, maximum=10.0)
+        kf_angle = declare(self, 'keyframe_angle_rad', math.radians(10.0),
+                           'new keyframe after turning this much from the last one (rad)',
+                           minimum=0.0, maximum=math.pi)
+        method = declare(self, 'method', 'point_to_line', "'point_to_line' or 'point_to_point'")
+        robust = declare(self, 'robust', 'adaptive',
+                         "outlier rule: 'adaptive' (3 x robust std of residuals), 'trim', 'none'")
+        max_iterations = declare(self, 'max_iterations', 50, 'ICP iterations at most',
+                                 minimum=1, maximum=1000)
+        max_corr = declare(self, 'max_correspondence_distance_m', 1.0,
+                           'initial correspondence gate (m); shrinks with the residuals',
+                           minimum=0.01, maximum=10.0)
+        voxel = declare(self, 'voxel_size_m', 0.0,
+                        'downsample each scan to one point per voxel of this size (m); 0 = off',
+                        minimum=0.0, maximum=1.0)
+        min_inliers = declare(self, 'min_inlier_fraction', 0.3,
+                              'fewer matched points than this fraction: failed match',
+                              minimum=0.0, maximum=1.0)
+        max_error = declare(self, 'max_error_m', 0.05,
+                            'mean alignment error above this: failed match (m)', minimum=0.0)
+        max_jump = declare(self, 'max_jump_m', 0.5,
+                           'a match further than this from the prediction is rejected (m)',
+                           minimum=0.0)
+        max_jump_rad = declare(self, 'max_jump_rad', math.radians(30.0),
+                               'a match turned further than this from the prediction is rejected',
+                               minimum=0.0, maximum=math.pi)
+        fallback_std_m = declare(self, 'fallback_std_m', 0.05,
+                                 'std added to x and y per fallback step (m)', minimum=0.0)
+        fallback_std_rad = declare(self, 'fallback_std_rad', math.radians(3.0),
+                                   'std added to yaw per fallback step (rad)', minimum=0.0)
+        max_gap = declare(self, 'max_gap_s', 1.0,
+                          'scans further apart than this restart the keyframe (s)', minimum=0.0)
+        odom_extrapolation = declare(self, 'odom_max_extrapolation_s', 0.1,
+                                     'use odometry up to this far past its newest message (s)',
+                                     minimum=0.0, maximum=1.0)
+        self._min_points = declare(self, 'min_points', 20,
+                                   'scans with fewer valid points are not matched', minimum=3)
+
+        require(method in ('point_to_line', 'point_to_point'), 'method',
+                "must be 'point_to_line' or 'point_to_point'", method)
+        require(robust in ('adaptive', 'trim', 'none'), 'robust',
+                "must be 'adaptive', 'trim' or 'none'", robust)
+        require(all(math.isfinite(v) for v in laser), 'laser_x_m/laser_y_m',
+                'must be finite', laser)
+        require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
+                'must not be empty')
+        require(max_gap > 0.0, 'max_gap_s', 'must be > 0', max_gap)
+
+        self._settings = ScanMatcherSettings(
+            laser_pose=laser, keyframe_distance_m=kf_distance, keyframe_angle_rad=kf_angle,
+            max_error_m=max_error, max_jump_m=max_jump, max_jump_rad=max_jump_rad,
+            fallback_std_m=fallback_std_m, fallback_std_rad=fallback_std_rad, max_gap_s=max_gap,
+            match_options={'method': method, 'robust': robust, 'max_iterations': max_iterations,
+                           'max_correspondence_distance': max_corr, 'voxel_size': voxel,
+                           'min_inlier_fraction': min_inliers,
+                           'min_points': max(3, self._min_points)})
+        self._matcher = KeyframeScanMatcher(self._settings)
+        self._odometry = OdometryBuffer(max_extrapolation_s=odom_extrapolation) \
+            if odom_topic else None
+        self._last_scan_ns: int | None = None
+        self._warnings = ThrottledWarnings(self)
+        self.diagnostics = Diagnostics(self)
+        self._publisher = self.create_publisher(Odometry, '/scan_match/odom', ESTIMATE_QOS)
+        self.create_subscription(LaserScan, '/scan', self._on_scan, SENSOR_QOS)
+        if odom_topic:
+            self.create_subscription(Odometry, odom_topic, self._on_odometry, ESTIMATE_QOS)
+        self.diagnostics.values['prediction'] = odom_topic or 'constant_velocity'
+        self.get_logger().info(
+            f"initial guess from {odom_topic or 'a constant-velocity model'}; laser at "
+            f'({laser[0]}, {laser[1]}, {laser[2]}) in {self._base_frame}; keyframes every '
+            f'{kf_distance} m / {math.degrees(kf_angle):.1f} deg; {method}, robust {robust}')
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        pose, _ = odometry_pose(msg)
+        if not all(math.isfinite(v) for v in pose):
+            self.diagnostics.count('odom_not_finite')
+            self._warnings.warn('odom_nan', f'odometry at {stamp * 1e-9:.3f} s is not finite: ignored')
+            return
+        if not self._odometry.add(stamp, pose):
+            self.diagnostics.count('odom_backwards')
+            self._warnings.warn('odom_backwards', f'odometry stamp {stamp * 1e-9:.3f} s went '
+                                'backwards: odometry buffer cleared')
+
+    def _on_scan(self, msg: LaserScan) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        diag = self.diagnostics
+        diag.count('scans')
+        ranges, angles = scan_arrays(msg)
+        points, _ = scan_to_points(ranges, angles, msg.range_min, msg.range_max)
+        if points.shape[0] < self._min_points:
+            diag.count('too_few_points')
+            self._warnings.warn('few', f'scan at {stamp * 1e-9:.3f} s has {points.shape[0]} valid '
+                                f'points (< {self._min_points}): falling back to the prediction')
+        prediction = None
+        if self._odometry is not None and self._last_scan_ns is not None \
+                and stamp > self._last_scan_ns:
+            prediction = self._odometry.motion_between(self._last_scan_ns, stamp)
+            if prediction is None:
+                diag.count('odom_unavailable')
+                self._warnings.warn('odom', f'no odometry around {stamp * 1e-9:.3f} s: constant '
+                                    'velocity prediction instead')
+        step = self._matcher.process(stamp, points, prediction)
+        if step.status != 'repeated':
+            self._last_scan_ns = stamp
+        diag.count(step.status)
+        if step.prediction:
+            diag.count(f'predicted_by_{step.prediction}')
+        if step.new_keyframe:
+            diag.count('keyframes')
+        if step.status == 'fallback':
+            diag.values['last_fallback'] = step.reason
+            self._warnings.warn('fallback', f'scan at {stamp * 1e-9:.3f} s: match failed '
+                                f'({step.reason}); using the {step.prediction} prediction')
+        elif step.status in ('repeated', 'reset_backwards', 'gap'):
+            self._warnings.warn(step.status, f'scan at {stamp * 1e-9:.3f} s: {step.reason}')
+        if step.result is not None and step.status == 'matched':
+            diag.values['last_error_m'] = f'{step.result.error:.4f}'
+            diag.values['last_iterations'] = str(step.result.iterations)
+        if not step.publish:
+            return
+        self._publisher.publish(make_odometry(
+            stamp, self._odom_frame, self._base_frame, step.pose, step.covariance,
+            step.twist, step.twist_covariance))
+        diag.count('published')
+        diag.last_stamp_ns = max(diag.last_stamp_ns, stamp)
+        diag.values['pose'] = '%.4f %.4f %.4f' % step.pose
+        failures = diag.counts['fallback']
+        diag.level = DiagnosticStatus.WARN if step.status == 'fallback' else DiagnosticStatus.OK
+        diag.message = (f'last match failed ({failures} in all): {step.reason}'
+                        if step.status == 'fallback' else f'ok ({failures} failed matches)')
+
+
+def main(args: list[str] | None = None) -> None:
+    sys.exit(run_node(IcpMatcherNode, args))

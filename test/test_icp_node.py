@@ -1,0 +1,199 @@
+"""icp_matcher over real DDS: scans of the default room along a known path, odometry with a
+scale error as the initial guess; the output follows the truth, falls back without a jump on a
+blank scan, counts it on /diagnostics, and bad parameters exit with 2."""
+
+import math
+import time
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from harness import Collector, NodeProcess, run_to_exit, spin_until
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import LaserScan
+
+from sensing_nodes.core.scan import beam_angles
+from sensing_nodes.core.se2 import between, compose, wrap_angle
+from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.paths import config_file
+from sensing_nodes.ros.conversions import (
+    float32_array, make_odometry, ns_to_stamp, odometry_pose, stamp_to_ns,
+)
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+
+T0 = 1_700_000_000 * 1_000_000_000
+SCAN_DT = 100_000_000
+MOUNT = (0.10, 0.0, 0.0)
+BEAMS = 360
+ANGLE_MIN, ANGLE_INC = -math.pi, 2 * math.pi / BEAMS
+WORLD = load_world(config_file('default_world.yaml'))
+ODOM_SCALE = 1.08           # the odometry overestimates every motion by 8 %
+
+
+def truth(k):
+    """base_link pose (map frame) at scan k: an arc south of the table."""
+    return (-2.5 + 0.06 * k, -2.0 + 0.002 * k * k, 0.02 * k)
+
+
+def scan_msg(k, blank=False, rng=None):
+    laser = compose(truth(k), MOUNT)
+    angles = beam_angles(ANGLE_MIN, ANGLE_INC, BEAMS)
+    ranges = raycast(WORLD.segments, laser[:2], angles + laser[2])
+    ranges = np.where(ranges > 8.0, np.inf, ranges + rng.normal(0.0, 0.005, BEAMS))
+    if blank:
+        ranges[:] = np.nan
+    msg = LaserScan()
+    msg.header.stamp = ns_to_stamp(T0 + k * SCAN_DT)
+    msg.header.frame_id = 'laser'
+    msg.angle_min, msg.angle_increment = ANGLE_MIN, ANGLE_INC
+    msg.angle_max = ANGLE_MIN + ANGLE_INC * (BEAMS - 1)
+    msg.range_min, msg.range_max = 0.12, 8.0
+    msg.ranges = float32_array(ranges)
+    return msg
+
+
+def odom_msg(t_ns, k_float):
+    """Odometry in its own odom frame (origin at scan 0's base pose), every motion 8 % too long."""
+    k0 = int(math.floor(k_float))
+    a, b = truth(k0), truth(k0 + 1)
+    f = k_float - k0
+    pose = (a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]))
+    rel = between(truth(0), pose)
+    biased = (rel[0] * ODOM_SCALE, rel[1] * ODOM_SCALE, rel[2] * ODOM_SCALE)
+    return make_odometry(t_ns, 'odom', 'base_link', biased, np.eye(3) * 1e-4)
+
+
+def reference(k):
+    return between(truth(0), truth(k))
+
+
+@pytest.fixture
+def pubs(probe):
+    scan_pub = probe.create_publisher(LaserScan, '/scan', SENSOR_QOS)
+    odom_pub = probe.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS)
+    yield scan_pub, odom_pub
+    probe.destroy_publisher(scan_pub)
+    probe.destroy_publisher(odom_pub)
+
+
+def run_sequence(probe, pubs, node, count, blank=(), odometry=True):
+    """Publish odometry (5 per scan interval, ahead of each scan) and scans 0..count-1; return
+    the /scan_match/odom messages by stamp."""
+    scan_pub, odom_pub = pubs
+    out = Collector(probe, Odometry, '/scan_match/odom', ESTIMATE_QOS)
+    rng = np.random.default_rng(0)
+    assert spin_until(probe, lambda: scan_pub.get_subscription_count() > 0
+                      and (odom_pub.get_subscription_count() > 0 or not odometry), 20), \
+        node.output()
+    first = scan_msg(0, rng=rng)
+    for j in range(3):
+        odom_pub.publish(odom_msg(T0 + j * SCAN_DT // 5, j / 5))
+    deadline = time.monotonic() + 20
+    while not out.messages and time.monotonic() < deadline:
+        scan_pub.publish(first)            # best effort: repeat until the reader has matched
+        spin_until(probe, lambda: bool(out.messages), 0.2)
+    assert out.messages, 'the node never answered:\n' + node.output()
+    for k in range(1, count):
+        for j in range(5):
+            sub = (k - 1) + (j + 1) / 5 + 0.4     # odometry runs up to 0.4 scans ahead
+            odom_pub.publish(odom_msg(T0 + int(sub * SCAN_DT), sub))
+        spin_until(probe, lambda: False, 0.01)
+        scan_pub.publish(scan_msg(k, blank=k in blank, rng=rng))
+        spin_until(probe, lambda: len({stamp_to_ns(m.header.stamp) for m in out.messages}) > k, 5)
+    out.wait_for(count, 10)
+    by_stamp = {stamp_to_ns(m.header.stamp): m for m in out.messages}
+    out.close()
+    return by_stamp
+
+
+def pose_error(pose, ref):
+    return math.hypot(pose[0] - ref[0], pose[1] - ref[1]), abs(wrap_angle(pose[2] - ref[2]))
+
+
+def diagnostic_values(collector):
+    """The newest value of every key the node reported on /diagnostics."""
+    return {kv.key: kv.value for d in collector.messages for s in d.status for kv in s.values}
+
+
+def test_follows_the_truth_with_odometry_initial_guess(probe, pubs):
+    count = 25
+    diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 10)
+    with NodeProcess('icp_matcher', params_file=config_file('icp_matcher.yaml')) as node:
+        out = run_sequence(probe, pubs, node, count)
+        spin_until(probe, lambda: diagnostic_values(diagnostics).get('matched') == str(count - 1),
+                   5)
+        assert node.alive(), node.output()
+    values = diagnostic_values(diagnostics)
+    diagnostics.close()
+    assert values['predicted_by_odometry'] == str(count - 1)      # every step, none by default
+    assert values['matched'] == str(count - 1)
+    assert 'fallback' not in values
+    assert sorted(out) == [T0 + k * SCAN_DT for k in range(count)]      # scan stamps, each once
+    final = out[T0 + (count - 1) * SCAN_DT]
+    pose, cov = odometry_pose(final)
+    ref = reference(count - 1)
+    trans, rot = pose_error(pose, ref)
+    odom_trans, _ = pose_error(odometry_pose(odom_msg(0, count - 1))[0], ref)
+    assert odom_trans > 0.05                  # the guess alone would be this far off ...
+    assert trans < 0.01 and rot < math.radians(0.3), (pose, ref)   # ... the match is not
+    assert final.header.frame_id == 'odom' and final.child_frame_id == 'base_link'
+    assert np.all(np.linalg.eigvalsh(cov) > 0) and cov[0, 0] < 1e-3
+    # Twist = change of pose over the scan interval, in base_link.
+    prev_pose, _ = odometry_pose(out[T0 + (count - 2) * SCAN_DT])
+    delta = between(prev_pose, pose)
+    assert final.twist.twist.linear.x == pytest.approx(delta[0] / 0.1, rel=1e-6, abs=1e-9)
+    assert final.twist.twist.angular.z == pytest.approx(delta[2] / 0.1, rel=1e-6, abs=1e-9)
+    assert final.twist.twist.angular.z == pytest.approx(0.2, abs=0.03)     # 0.02 rad per 0.1 s
+
+
+def test_blank_scan_falls_back_to_the_prediction_without_a_jump(probe, pubs):
+    count, blank = 16, 8
+    diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 10)
+    with NodeProcess('icp_matcher', params_file=config_file('icp_matcher.yaml')) as node:
+        out = run_sequence(probe, pubs, node, count, blank={blank})
+        spin_until(probe, lambda: any(
+            kv.key == 'fallback' for d in diagnostics.messages for s in d.status for kv in s.values),
+            5)
+        assert node.alive()
+        log = node.output()
+    diagnostics.close()
+    assert sorted(out) == [T0 + k * SCAN_DT for k in range(count)]
+    poses = [odometry_pose(out[T0 + k * SCAN_DT]) for k in range(count)]
+    # The blank scan's pose is the odometry prediction: close to the truth, covariance inflated.
+    blank_pose, blank_cov = poses[blank]
+    before_cov = poses[blank - 1][1]
+    assert pose_error(blank_pose, reference(blank))[0] < 0.03
+    assert blank_cov[0, 0] > before_cov[0, 0] + 0.05 ** 2 * 0.9
+    # No jump anywhere: each step is the true step within 2 cm.
+    for k in range(1, count):
+        step = between(poses[k - 1][0], poses[k][0])
+        true_step = between(reference(k - 1), reference(k))
+        assert pose_error(step, true_step)[0] < 0.02, k
+    # Matching resumes after the blank scan and the end is on the truth.
+    assert pose_error(poses[-1][0], reference(count - 1))[0] < 0.03
+    values = diagnostic_values(diagnostics)
+    assert int(values['fallback']) == 1
+    assert int(values['too_few_points']) == 1
+    assert 'match failed' in log
+
+
+def test_constant_velocity_model_without_odometry(probe, pubs):
+    count = 20
+    with NodeProcess('icp_matcher', params={'odom_topic': ''}) as node:
+        out = run_sequence(probe, pubs, node, count, odometry=False)
+        assert node.alive()
+    pose, _ = odometry_pose(out[T0 + (count - 1) * SCAN_DT])
+    trans, rot = pose_error(pose, reference(count - 1))
+    assert trans < 0.01 and rot < math.radians(0.3)
+
+
+@pytest.mark.parametrize('args, name', [
+    (['-p', 'method:=plane'], 'method'),
+    (['-p', 'robust:=ransac'], 'robust'),
+    (['-p', 'keyframe_distance_m:=-1.0'], 'keyframe_distance_m'),
+    (['-p', 'max_iterations:=0'], 'max_iterations'),
+])
+def test_bad_parameters_exit_with_2(args, name):
+    result = run_to_exit('icp_matcher', ['--ros-args', *args])
+    assert result.returncode == 2, result.stderr + result.stdout
+    assert name in result.stderr + result.stdout
