@@ -274,3 +274,47 @@ def test_honest_heading_uncertainty_on_the_simulated_route():
     print(f'gyro heading, {z.size} samples: within 3 sigma {within3:.4f}, beyond 1 sigma {beyond1:.4f}')
     assert within3 >= 0.95
     assert beyond1 >= 0.10
+
+
+def test_batch_update_equals_per_sample_updates():
+    """update_batch (vectorised windows and moving runs) gives the per-sample numbers, whatever
+    the chunking, including a wheel veto frozen over the batch and bad samples (per-sample path)."""
+    from sensing_nodes.core.sim import SimParams, simulate
+    from sensing_nodes.core.world import load_world
+    from sensing_nodes.paths import config_file
+
+    run = simulate(SimParams(), load_world(config_file('default_world.yaml')), 60.0, seed=2)
+    t, gyro, accel = run.imu_t, run.imu_gyro.copy(), run.imu_accel
+    gyro[5000, 1] = math.nan                       # one bad sample: that chunk goes per sample
+    cfg = GyroConfig()
+    reference = GyroIntegrator(cfg)
+    expected = []
+    for i in range(t.size):
+        if i == 9000:
+            reference.observe_wheels(int(t[i]), 0.2, 0.0)
+        reference.update(int(t[i]), gyro[i], accel[i])
+        expected.append((reference.yaw, reference.heading_variance, reference.bias[2],
+                         reference.still, reference.rate[2]))
+    expected = np.array(expected)
+    assert 0.2 < expected[:, 3].mean() < 0.9          # both still and moving runs are exercised
+    for chunks in ([t.size], [1000] * 12, [1, 6, 4993, 3000, 1000, 20000]):
+        gi = GyroIntegrator(cfg)
+        got, i = [], 0
+        sizes = iter(chunks)
+        while i < t.size:
+            size = next(sizes, 5000)
+            if i == 9000:
+                gi.observe_wheels(int(t[i]), 0.2, 0.0)
+            if i < 9000 < i + size:                    # split where the wheels report motion
+                size = 9000 - i
+            out = gi.update_batch(t[i:i + size], gyro[i:i + size], accel[i:i + size])
+            got.append(np.column_stack([out.yaw, out.heading_variance, out.bias[:, 2],
+                                        out.still, out.rate[:, 2]]))
+            i += size
+        got = np.concatenate(got)
+        valid = ~np.isnan(got[:, 0])
+        assert valid.sum() == t.size - 1 and not valid[5000]
+        np.testing.assert_array_equal(got[valid, 3], expected[valid, 3])
+        np.testing.assert_allclose(got[valid], expected[valid], rtol=1e-9, atol=1e-12)
+        assert gi.yaw == pytest.approx(reference.yaw, abs=1e-12)
+        assert gi.p_yaw == pytest.approx(reference.p_yaw, rel=1e-9)

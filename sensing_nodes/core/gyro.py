@@ -147,6 +147,22 @@ class ImuUpdate:
 
 
 @dataclass
+class BatchUpdate:
+    """Per-sample results of GyroIntegrator.update_batch, as update() would have left them."""
+    accepted: NDArray[np.bool_]
+    yaw: NDArray[np.float64]               # unwrapped heading (rad)
+    heading_variance: NDArray[np.float64]  # rad^2
+    rate: NDArray[np.float64]              # (N, 3) bias-corrected rates (rad/s)
+    bias: NDArray[np.float64]              # (N, 3) bias estimate (rad/s)
+    still: NDArray[np.bool_]
+
+    @classmethod
+    def empty(cls, n: int) -> BatchUpdate:
+        return cls(np.zeros(n, bool), np.full(n, np.nan), np.full(n, np.nan),
+                   np.full((n, 3), np.nan), np.full((n, 3), np.nan), np.zeros(n, bool))
+
+
+@dataclass
 class _Sample:
     stamp_ns: int
     gyro: tuple[float, float, float]
@@ -317,6 +333,148 @@ class GyroIntegrator:
         self._prev_gyro = g
         self.rate = np.array(g) - self.bias
         return ImuUpdate(True, step, note=note, still=self.still)
+
+    def update_batch(self, stamps_ns: ArrayLike, gyro: ArrayLike, accel: ArrayLike) -> BatchUpdate:
+        """Take many raw samples at once: the same numbers as calling update() on each in turn.
+
+        stamps_ns (N,) int64, gyro (N, 3) rad/s, accel (N, 3) m/s^2. The stillness windows and
+        the integration while moving are vectorised; while still, the bias filter runs as a
+        scalar recursion. Wheel-odometry state is taken as it is at the call. Batches holding
+        anything the per-sample rules must handle (non-finite values, stamps not strictly
+        increasing, gaps, a pending calibration with estimation off) go through update().
+        """
+        t = np.asarray(stamps_ns, dtype=np.int64).ravel()
+        g = np.asarray(gyro, dtype=float).reshape(-1, 3)
+        a = np.asarray(accel, dtype=float).reshape(-1, 3)
+        if not (t.size == g.shape[0] == a.shape[0]):
+            raise ValueError(f'{t.size} stamps, {g.shape[0]} rates and {a.shape[0]} accelerations')
+        out = BatchUpdate.empty(t.size)
+        start = 0
+        while start < t.size and self.stamp_ns is None:
+            self._record(out, start, self.update(int(t[start]), g[start], a[start]))
+            start += 1
+        if start == t.size:
+            return out
+        cfg = self.config
+        dt_ns = np.diff(np.concatenate([[self.stamp_ns], t[start:]]))
+        clean = (np.isfinite(g[start:]).all() and np.isfinite(a[start:]).all() and dt_ns.min() > 0
+                 and dt_ns.max() <= cfg.max_gap_s * 1e9
+                 and not (self.calibration_requested and not cfg.bias_estimation))
+        if not clean:
+            for i in range(start, t.size):
+                self._record(out, i, self.update(int(t[i]), g[i], a[i]))
+            return out
+        self._batch_clean(t[start:], g[start:], a[start:], dt_ns * 1e-9, out, start)
+        return out
+
+    def _record(self, out: BatchUpdate, i: int, result: ImuUpdate) -> None:
+        out.accepted[i] = result.publish
+        if not result.publish:
+            return          # rejected: its row stays NaN
+        out.yaw[i] = self.yaw
+        out.heading_variance[i] = self.heading_variance
+        out.rate[i] = self.rate
+        out.bias[i] = self.bias
+        out.still[i] = self.still
+
+    def _batch_clean(self, t, g, a, dt, out: BatchUpdate, offset: int) -> None:
+        cfg = self.config
+        n = t.size
+        # The window holds earlier samples too: prefix them so every window is the per-sample one.
+        prefix = list(self._window.samples)
+        npre = len(prefix)
+        t_all = np.concatenate([np.array([s.stamp_ns for s in prefix], dtype=np.int64), t])
+        g_all = np.concatenate([np.array([s.gyro for s in prefix]).reshape(-1, 3), g])
+        a_all = np.concatenate([np.array([s.accel for s in prefix]).reshape(-1, 3), a])
+        first = window_starts(t_all, cfg.stillness_window_s)
+        if cfg.bias_estimation:
+            both = np.concatenate([g_all, a_all], axis=1)
+            mean, std, full = window_statistics(t_all, both, cfg.stillness_window_s)
+            still = (full & (std[:, :3] < cfg.gyro_std_threshold_rad_s).all(axis=1)
+                     & (std[:, 3:] < cfg.accel_std_threshold_m_s2).all(axis=1)
+                     & (np.abs(mean[:, :3]) <= cfg.max_gyro_bias_rad_s).all(axis=1))[npre:]
+            wheels = (self._wheel_last_ns is not None) & (
+                np.abs(t - (self._wheel_last_ns or 0)) <= cfg.wheel_timeout_s * 1e9)
+            if self._wheel_motion_ns is not None:
+                still &= ~(wheels & (self._wheel_motion_ns >= t_all[first[npre:]]))
+        else:
+            still = np.zeros(n, dtype=bool)
+
+        # Heading and covariance after every sample of the combined window history.
+        yaw_all = np.concatenate([[s.yaw for s in prefix], np.empty(n)])
+        py_all = np.concatenate([[s.p_yaw for s in prefix], np.empty(n)])
+        pc_all = np.concatenate([[s.p_cross for s in prefix], np.empty(n)])
+        bias_out = np.empty((n, 3))
+        gz_prev = np.concatenate([[self._prev_gyro[2]], g[:-1, 2]])
+        q, nd2 = cfg.bias_random_walk ** 2, cfg.noise_density ** 2
+        yaw, py, pc, pb = self.yaw, self.p_yaw, self.p_cross, self.p_bias
+        bias = self.bias.copy()
+        was_still, used_until, updates = self.still, self._used_until_ns, self.bias_updates
+        edges = np.flatnonzero(np.diff(still.astype(np.int8))) + 1
+        for lo, hi in zip(np.concatenate([[0], edges]), np.concatenate([edges, [n]])):
+            d = dt[lo:hi]
+            if not still[lo]:
+                # Moving: yaw' = yaw + (trapezoid - bias) dt; F = [[1, -dt], [0, 1]] plus noise.
+                pb_before = pb + q * np.concatenate([[0.0], np.cumsum(d[:-1])])
+                pc_run = pc - np.cumsum(d * pb_before)
+                pc_before = np.concatenate([[pc], pc_run[:-1]])
+                py_run = py + np.cumsum(-2.0 * d * pc_before + d * d * pb_before + nd2 * d)
+                yaw_run = yaw + np.cumsum((0.5 * (gz_prev[lo:hi] + g[lo:hi, 2]) - bias[2]) * d)
+                yaw_all[npre + lo:npre + hi] = yaw_run
+                py_all[npre + lo:npre + hi] = py_run
+                pc_all[npre + lo:npre + hi] = pc_run
+                bias_out[lo:hi] = bias
+                yaw, py, pc, pb = yaw_run[-1], py_run[-1], pc_run[-1], pb_before[-1] + q * d[-1]
+                was_still = False
+                continue
+            for k in range(lo, hi):
+                if not was_still:
+                    j = first[npre + k]
+                    yaw, py, pc = yaw_all[j], py_all[j], pc_all[j]
+                    fresh = slice(max(j, int(np.searchsorted(t_all, used_until, side='right'))),
+                                  npre + k + 1)
+                    m = fresh.stop - fresh.start
+                    z = g_all[fresh].mean(axis=0) if m > 1 else g_all[fresh.start]
+                    was_still = True
+                else:
+                    m, z = 1, g[k]
+                pb += q * d[k - lo]
+                r = nd2 / max(d[k - lo], 1e-6) / m
+                s_inv = 1.0 / (pb + r)
+                k_yaw, k_bias = pc * s_inv, pb * s_inv
+                innovation = z - bias
+                yaw += k_yaw * innovation[2]
+                bias = bias + k_bias * innovation
+                py -= k_yaw * pc
+                pc -= k_yaw * pb
+                pb -= k_bias * pb
+                updates += m
+                used_until = int(t[k])
+                yaw_all[npre + k], py_all[npre + k], pc_all[npre + k] = yaw, py, pc
+                bias_out[k] = bias
+        # Outputs and state as after the last per-sample update.
+        rate = g - bias_out
+        half = 0.5 * rate[:, 2] * dt
+        sl = slice(offset, offset + n)
+        out.accepted[sl] = True
+        out.yaw[sl] = yaw_all[npre:]
+        out.heading_variance[sl] = py_all[npre:] + half * half
+        out.rate[sl] = rate
+        out.bias[sl] = bias_out
+        out.still[sl] = still
+        self.yaw, self.p_yaw, self.p_cross, self.p_bias = float(yaw), float(py), float(pc), float(pb)
+        self.bias = bias.copy()
+        self.still = bool(still[-1])
+        self._used_until_ns, self.bias_updates = used_until, updates
+        self.stamp_ns = int(t[-1])
+        self._prev_gyro = tuple(float(v) for v in g[-1])
+        self._last_dt = float(dt[-1])
+        self.rate = rate[-1].copy()
+        self._window.clear()
+        for j in range(first[-1], t_all.size):
+            self._window.add(_Sample(int(t_all[j]), tuple(float(v) for v in g_all[j]),
+                                     tuple(float(v) for v in a_all[j]),
+                                     float(yaw_all[j]), float(py_all[j]), float(pc_all[j])))
 
     @property
     def heading_variance(self) -> float:
