@@ -210,9 +210,8 @@ class _Loop:
     error: float = math.nan
     inliers: int = 0
     history: list[float] = field(default_factory=list)
-    p: NDArray[np.float64] | None = None          # moved inlier source points
-    q: NDArray[np.float64] | None = None          # their target neighbours
-    info: NDArray[np.float64] | None = None       # their 2x2 information rows (point-to-line)
+    p: NDArray[np.float64] | None = None          # moved inlier source points (last iteration)
+    matched: NDArray[np.intp] | None = None       # index of each one's target neighbour
 
 
 def _median(values: NDArray[np.float64]) -> float:
@@ -229,53 +228,80 @@ def _icp_loop(src, tgt: Target, pose, *, point_to_line: bool, max_iterations: in
     x, y, yaw = pose
     previous: NDArray[np.intp] | None = None
     best_error, stalled = math.inf, 0
+    scale = np.array([1.0, 1.0, 1.0 / radius])
+    outer = scale[:, None] * scale[None, :]
+    floor_sq = (0.25 * min_gate) ** 2
     for iteration in range(1, max_iterations + 1):
         state.iterations = iteration
         c, s = math.cos(yaw), math.sin(yaw)
-        moved = src @ np.array([[c, s], [-s, c]]) + (x, y)
+        moved = src @ np.array([[c, s], [-s, c]])
+        moved += (x, y)
         distance, index = tgt.tree.query(moved, k=1, distance_upper_bound=gate)
         keep = distance < gate
-        count = int(keep.sum())
+        count = int(np.count_nonzero(keep))
         if count < min_inliers:
             state.reason = f'too few correspondences ({count} < {min_inliers}) within {gate:.3f} m'
             state.converged = False
             state.inliers = count
             break
-        p = moved[keep]
-        matched = index[keep]
-        q = tgt.points[matched]
-        e = p - q
+        if count < keep.size:
+            p, matched = moved[keep], index[keep]
+        else:
+            p, matched = moved, index
+        e = p - tgt.points[matched]
+        ex, ey = e[:, 0], e[:, 1]
         if point_to_line:
             info = tgt.information[matched]
-            me0 = info[:, 0] * e[:, 0] + info[:, 1] * e[:, 1]
-            me1 = info[:, 1] * e[:, 0] + info[:, 2] * e[:, 1]
-            size = np.sqrt(np.maximum(e[:, 0] * me0 + e[:, 1] * me1, 0.0))
+            m00, m01, m11 = info[:, 0], info[:, 1], info[:, 2]
+            me0 = m00 * ex + m01 * ey
+            me1 = m01 * ex + m11 * ey
+            size_sq = ex * me0 + ey * me1          # squared Mahalanobis-like residual (m²)
         else:
-            size = distance[keep]
+            size_sq = distance[keep] ** 2
         # Robust rule: which of the gated pairs enter the estimate.
-        median = _median(size)
-        chosen: NDArray[np.intp] | slice
-        if robust == 'trim' and size.size > min_inliers:
-            chosen = np.argpartition(size, max(min_inliers, int(trim_fraction * size.size)) - 1)[
-                :max(min_inliers, int(trim_fraction * size.size))]
+        median_sq = _median(size_sq)
+        chosen: NDArray[np.bool_] | NDArray[np.intp] | None
+        if robust == 'trim' and count > min_inliers:
+            n_keep = max(min_inliers, int(trim_fraction * count))
+            chosen = np.argpartition(size_sq, n_keep - 1)[:n_keep]
         elif robust == 'adaptive':
-            chosen = np.flatnonzero(size <= max(adaptive_factor * 1.4826 * median, 0.25 * min_gate))
-            if chosen.size < min_inliers:
-                chosen = np.argpartition(size, min_inliers - 1)[:min_inliers]
+            threshold_sq = max((adaptive_factor * 1.4826) ** 2 * median_sq, floor_sq)
+            chosen = size_sq <= threshold_sq
+            if np.count_nonzero(chosen) < min_inliers:
+                chosen = np.argpartition(size_sq, min_inliers - 1)[:min_inliers]
         else:
-            chosen = slice(None)
-        p, q = p[chosen], q[chosen]
+            chosen = None
+        if chosen is not None:
+            p, matched, size_sq = p[chosen], matched[chosen], size_sq[chosen]
+            ex, ey = ex[chosen], ey[chosen]
         state.inliers = p.shape[0]
-        state.error = float(size[chosen].mean())
+        state.error = float(np.sqrt(size_sq).mean())
         state.history.append(state.error)
-        state.p, state.q = p, q
+        state.p, state.matched = p, matched
         if point_to_line:
-            info, me0, me1 = info[chosen], me0[chosen], me1[chosen]
-            state.info = info
-            hessian, gradient = _normal_equations(p - (x, y), info, me0, me1)
-            dx, dy, dyaw = _solve(hessian, -gradient, radius, solve_ratio)
+            if chosen is not None:
+                m00, m01, m11, me0, me1 = m00[chosen], m01[chosen], m11[chosen], me0[chosen], \
+                    me1[chosen]
+            c0 = y - p[:, 1]                     # J·(p - t), J = 90° rotation
+            c1 = p[:, 0] - x
+            mc0 = m00 * c0 + m01 * c1
+            mc1 = m01 * c0 + m11 * c1
+            h02, h12 = mc0.sum(), mc1.sum()
+            s01 = m01.sum()
+            hessian = np.array([[m00.sum(), s01, h02], [s01, m11.sum(), h12],
+                                [h02, h12, c0 @ mc0 + c1 @ mc1]])
+            gradient = np.array([me0.sum(), me1.sum(), c0 @ me0 + c1 @ me1])
+            values, vectors = np.linalg.eigh(hessian * outer)
+            if values[-1] <= 0:
+                dx = dy = dyaw = 0.0
+            else:
+                strong = values > solve_ratio * values[-1]
+                g = vectors.T @ (gradient * scale)
+                g[strong] /= values[strong]
+                g[~strong] = 0.0
+                dx, dy, dyaw = -(vectors @ g) * scale
         else:
-            r_step, t_step = align_paired(p, q)
+            r_step, t_step = align_paired(p, tgt.points[matched])
             dyaw = math.atan2(r_step[1, 0], r_step[0, 0])
             # The SVD step is exact for these pairs; compose it with the current transform.
             new_xy = r_step @ np.array([x, y]) + t_step
@@ -284,7 +310,7 @@ def _icp_loop(src, tgt: Target, pose, *, point_to_line: bool, max_iterations: in
         yaw = math.remainder(yaw + dyaw, 2.0 * math.pi)
         state.x, state.y, state.yaw = x, y, yaw
         if robust == 'adaptive':
-            gate = max(min_gate, min(gate, 2.0 * adaptive_factor * 1.4826 * median))
+            gate = max(min_gate, min(gate, 2.0 * adaptive_factor * 1.4826 * math.sqrt(median_sq)))
         same_pairs = previous is not None and previous.size == matched.size \
             and np.array_equal(previous, matched)
         previous = matched
@@ -405,16 +431,16 @@ def match(
         stall_iterations=stall_iterations)
     start = (float(guess[0]), float(guess[1]), float(guess[2]))
     if yaw_hypotheses:
-        coarse = voxel_downsample(src, coarse_voxel_size)
-        if coarse.shape[0] < min_points:
-            coarse = src
+        coarse = voxel_downsample(src, coarse_voxel_size) if coarse_voxel_size > 0 else src
+        if coarse.shape[0] < max(min_points, 20):
+            coarse = src            # too few points left to be worth a coarse stage
         coarse_min = max(min_points, int(math.ceil(min_inlier_fraction * coarse.shape[0])))
         best, best_score = start, -1.0
         for offset in (0.0, *yaw_hypotheses):
             seed = (start[0], start[1], start[2] + float(offset))
             state = _icp_loop(coarse, tgt, seed, max_iterations=coarse_iterations,
                               gate=max_correspondence_distance, min_inliers=coarse_min, **settings)
-            candidate = (state.x, state.y, state.yaw)
+            candidate = (state.x, state.y, state.yaw) if state.p is not None else seed
             score = _score(coarse, tgt, candidate, score_distance)
             # The guess's own result wins unless a hypothesis explains clearly more points.
             if score > best_score + (hypothesis_margin if offset else 0.0):
@@ -428,11 +454,12 @@ def match(
                            state.error, state.reason, source_points=src.shape[0],
                            dropped_points=dropped, history=state.history, inliers=state.inliers)
 
-    # Final linearised system at the estimate, over the last inlier pairs.
-    p, q = state.p, state.q
+    # Final linearised system over the last iteration's inlier pairs (converged: a tiny step).
+    p = state.p
+    q = tgt.points[state.matched]
     lever = p - (x, y)
     e = p - q
-    info = state.info if point_to_line else np.tile((1.0, 0.0, 1.0), (len(p), 1))
+    info = tgt.information[state.matched] if point_to_line else np.tile((1.0, 0.0, 1.0), (len(p), 1))
     me0 = info[:, 0] * e[:, 0] + info[:, 1] * e[:, 1]
     me1 = info[:, 1] * e[:, 0] + info[:, 2] * e[:, 1]
     hessian, _ = _normal_equations(lever, info, me0, me1)
@@ -457,20 +484,6 @@ def _scaled(info: NDArray[np.float64], radius: float) -> NDArray[np.float64]:
     compare metres with metres."""
     scale = np.array([1.0, 1.0, 1.0 / radius])
     return info * scale[:, None] * scale[None, :]
-
-
-def _solve(info, gradient, radius, solve_ratio) -> NDArray[np.float64]:
-    """Gauss-Newton step, solved only in the directions the geometry constrains (eigenvalues
-    above solve_ratio × the largest): an unconstrained direction keeps its initial value."""
-    scaled = _scaled(info, radius)
-    values, vectors = np.linalg.eigh(scaled)
-    if values[-1] <= 0:
-        return np.zeros(3)
-    keep = values > solve_ratio * values[-1]
-    scale = np.array([1.0, 1.0, 1.0 / radius])
-    g = gradient * scale
-    step_scaled = vectors[:, keep] @ ((vectors[:, keep].T @ g) / values[keep])
-    return step_scaled * scale
 
 
 def _covariance(info, variance, radius, degeneracy_ratio):
