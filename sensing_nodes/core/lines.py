@@ -22,7 +22,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sensing_nodes.core.scan import scan_to_points
-from sensing_nodes.core.se2 import wrap_angle
 
 # cos²(incidence) is floored here: at grazing incidence the real error is dominated by beam width
 # and mixed returns, not by the range noise (which would give a vanishing distance variance).
@@ -33,7 +32,7 @@ _MIN_COS2 = 0.05
 _END_SIGMAS = 3.0
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Line:
     """A fitted line in the laser frame: x·cos(alpha) + y·sin(alpha) = r (m, rad).
 
@@ -252,7 +251,7 @@ def _is_full_circle(angles: NDArray[np.float64]) -> bool:
     first, last = float(angles[0]), float(angles[-1])
     step = (last - first) / (angles.size - 1)
     return math.isfinite(step) and step != 0.0 \
-        and abs(wrap_angle(first - last - step)) < 0.5 * abs(step)
+        and abs(math.remainder(first - last - step, 2.0 * math.pi)) < 0.5 * abs(step)
 
 
 def _breaks(x, y, beams, beam_count: int, circular: bool, max_gap: float) -> NDArray[np.bool_]:
