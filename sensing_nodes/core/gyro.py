@@ -427,31 +427,43 @@ class GyroIntegrator:
                 yaw, py, pc, pb = yaw_run[-1], py_run[-1], pc_run[-1], pb_before[-1] + q * d[-1]
                 was_still = False
                 continue
-            for k in range(lo, hi):
-                if not was_still:
-                    j = first[npre + k]
-                    yaw, py, pc = yaw_all[j], py_all[j], pc_all[j]
-                    fresh = slice(max(j, int(np.searchsorted(t_all, used_until, side='right'))),
-                                  npre + k + 1)
-                    m = fresh.stop - fresh.start
-                    z = g_all[fresh].mean(axis=0) if m > 1 else g_all[fresh.start]
-                    was_still = True
-                else:
-                    m, z = 1, g[k]
-                pb += q * d[k - lo]
-                r = nd2 / max(d[k - lo], 1e-6) / m
+            # Still: a scalar Kalman recursion in plain floats (numpy per element costs more).
+            if not was_still:
+                j = first[npre + lo]
+                yaw, py, pc = float(yaw_all[j]), float(py_all[j]), float(pc_all[j])
+                begin = max(j, int(np.searchsorted(t_all, used_until, side='right')))
+                zs = g_all[begin:npre + lo + 1].mean(axis=0)
+                ms = [npre + lo + 1 - begin]
+                was_still = True
+            else:
+                zs, ms = g[lo], [1]
+            gx, gy, gz = g[lo:hi, 0].tolist(), g[lo:hi, 1].tolist(), g[lo:hi, 2].tolist()
+            gx[0], gy[0], gz[0] = (float(v) for v in zs)
+            ms += [1] * (hi - lo - 1)
+            bx, by, bz = (float(v) for v in bias)
+            yaws, pys, pcs, bxs, bys, bzs = [], [], [], [], [], []
+            for dk, m, zx, zy, zz in zip(d.tolist(), ms, gx, gy, gz):
+                pb += q * dk
+                r = nd2 / max(dk, 1e-6) / m
                 s_inv = 1.0 / (pb + r)
                 k_yaw, k_bias = pc * s_inv, pb * s_inv
-                innovation = z - bias
-                yaw += k_yaw * innovation[2]
-                bias = bias + k_bias * innovation
+                yaw += k_yaw * (zz - bz)
+                bx, by, bz = bx + k_bias * (zx - bx), by + k_bias * (zy - by), bz + k_bias * (zz - bz)
                 py -= k_yaw * pc
                 pc -= k_yaw * pb
                 pb -= k_bias * pb
                 updates += m
-                used_until = int(t[k])
-                yaw_all[npre + k], py_all[npre + k], pc_all[npre + k] = yaw, py, pc
-                bias_out[k] = bias
+                yaws.append(yaw)
+                pys.append(py)
+                pcs.append(pc)
+                bxs.append(bx)
+                bys.append(by)
+                bzs.append(bz)
+            used_until = int(t[hi - 1])
+            yaw_all[npre + lo:npre + hi], py_all[npre + lo:npre + hi] = yaws, pys
+            pc_all[npre + lo:npre + hi] = pcs
+            bias_out[lo:hi, 0], bias_out[lo:hi, 1], bias_out[lo:hi, 2] = bxs, bys, bzs
+            bias = np.array([bx, by, bz])
         # Outputs and state as after the last per-sample update.
         rate = g - bias_out
         half = 0.5 * rate[:, 2] * dt
