@@ -56,7 +56,11 @@ class BagWriter:
     def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
         """Append one message, with `stamp_ns` as its bag (receive) time."""
         self.add_topic(topic, type_name(msg))
-        self._writer.write(self._connections[topic], int(stamp_ns), serialize_message(msg))
+        self.write_raw(topic, serialize_message(msg), stamp_ns)
+
+    def write_raw(self, topic: str, data: bytes, stamp_ns: int) -> None:
+        """Append one already CDR-serialised message of a topic registered with add_topic."""
+        self._writer.write(self._connections[topic], int(stamp_ns), data)
         self.counts[topic] += 1
 
 

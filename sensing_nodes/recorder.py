@@ -1,71 +1,72 @@
 """Recording every topic of a running graph into a rosbag2 MCAP bag, as `ros2 bag record -a` would.
 
-The bag's time of a message is its header stamp (simulated or sensor time), or the newest stamp
-seen for messages without a header, so the bag replays on the data's own timeline. The wall time
-each message arrived is kept alongside for latency measurements.
+Messages are taken as serialised bytes and written as they are (no deserialisation on the hot
+path, so one recorder keeps up with a whole graph). A message's bag time is its header stamp
+(simulated or sensor time) read from the CDR bytes, or the newest stamp seen for messages
+without one, so the bag replays on the data's own timeline. The wall time each message arrived
+is handed to listeners for latency measurements.
 """
 
 from __future__ import annotations
 
+import struct
 import time
 from collections import defaultdict
-from typing import Any, Callable
+from typing import Callable
 
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from sensing_nodes.bag import BagWriter, message_class
-from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
 # Graph-internal topics nobody wants in a data bag.
 EXCLUDED_TOPICS = {'/rosout', '/parameter_events'}
+_STAMP_FIRST = {'std_msgs/Header', 'builtin_interfaces/Time'}
 
 
-def message_stamp_ns(msg: Any) -> int | None:
-    """The data time of a message: header stamp, /clock value, or first marker's stamp."""
-    header = getattr(msg, 'header', None)
-    if header is not None:
-        return stamp_to_ns(header.stamp)
-    clock = getattr(msg, 'clock', None)
-    if clock is not None:
-        return stamp_to_ns(clock)
-    markers = getattr(msg, 'markers', None)
-    if markers:
-        return stamp_to_ns(markers[0].header.stamp)
-    return None
+def leading_stamp_ns(raw: bytes) -> int:
+    """Stamp of a CDR-serialised message whose first field is a Header or a Time: the two
+    32-bit words after the 4-byte encapsulation header (its second byte says the byte order)."""
+    sec, nanosec = struct.unpack_from('<iI' if raw[1] == 1 else '>iI', raw, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 class TopicRecorder:
-    """Subscribes `node` to every topic it discovers and writes what arrives to `bag`.
+    """Subscribes `node` to every published topic it discovers and writes what arrives to `bag`.
 
-    `listeners[topic]` callbacks also get (msg, stamp_ns, wall_ns) for live analysis.
+    `listeners[topic]` callbacks also get (raw bytes, stamp ns, wall ns) of each message.
     """
 
     def __init__(self, node: Node, bag: BagWriter | None,
-                 listeners: dict[str, Callable[[Any, int, int], None]] | None = None) -> None:
+                 listeners: dict[str, Callable[[bytes, int, int], None]] | None = None) -> None:
         self._node = node
         self._bag = bag
         self._listeners = listeners or {}
-        self._subscriptions: dict[str, Any] = {}
+        self._subscriptions: dict[str, object] = {}
         self.counts: dict[str, int] = defaultdict(int)
         self.newest_stamp_ns = 0
 
     def discover(self) -> list[str]:
-        """Subscribe to topics that appeared since the last call; returns the new ones."""
+        """Subscribe to topics that appeared (with a publisher) since the last call."""
         added = []
         for topic, types in self._node.get_topic_names_and_types():
             if topic in self._subscriptions or topic in EXCLUDED_TOPICS or len(types) != 1:
                 continue
+            if not self._node.get_publishers_info_by_topic(topic):
+                continue  # only subscribers so far: wait for a publisher to choose the QoS
             try:
                 msg_type = message_class(types[0])
             except (ImportError, AttributeError, ValueError):
                 continue
-            qos = self._qos_for(topic)
-            self._subscriptions[topic] = self._node.create_subscription(
-                msg_type, topic, lambda msg, topic=topic: self._on_message(topic, msg), qos)
+            first_field = next(iter(msg_type.get_fields_and_field_types().values()), '')
+            stamped = first_field in _STAMP_FIRST
             if self._bag is not None:
                 self._bag.add_topic(topic, types[0])
+            self._subscriptions[topic] = self._node.create_subscription(
+                msg_type, topic,
+                lambda raw, topic=topic, stamped=stamped: self._on_message(topic, raw, stamped),
+                self._qos_for(topic), raw=True)
             added.append(topic)
         return added
 
@@ -75,15 +76,15 @@ class TopicRecorder:
             return SENSOR_QOS
         return ESTIMATE_QOS
 
-    def _on_message(self, topic: str, msg: Any) -> None:
+    def _on_message(self, topic: str, raw: bytes, stamped: bool) -> None:
         wall_ns = time.monotonic_ns()
-        stamp = message_stamp_ns(msg)
-        if stamp is None or stamp == 0:
+        stamp = leading_stamp_ns(raw) if stamped else 0
+        if stamp <= 0:
             stamp = self.newest_stamp_ns
         self.newest_stamp_ns = max(self.newest_stamp_ns, stamp)
         self.counts[topic] += 1
         if self._bag is not None:
-            self._bag.write(topic, msg, stamp)
+            self._bag.write_raw(topic, raw, stamp)
         listener = self._listeners.get(topic)
         if listener is not None:
-            listener(msg, stamp, wall_ns)
+            listener(raw, stamp, wall_ns)

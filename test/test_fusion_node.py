@@ -127,7 +127,7 @@ def test_bad_covariances_are_rejected_and_fusion_carries_on(probe, publishers):
     events = _inputs(30)
     bad = [('wheel', events[20][1] + 1, (0.0, 0.0, 0.0), np.diag([-1.0, 1.0, 1.0])),
            ('scan', events[20][1] + 2, (0.0, 0.0, 0.0), np.diag([math.nan, 1.0, 1.0])),
-           ('imu', events[20][1] + 3, 0.0, 0.0)]
+           ('imu', events[20][1] + 3, 0.0, -1.0)]
     messages, log = _run(probe, publishers, events[:20] + bad + events[20:])
     assert 'wheel_odom: rejected' in log and 'scan_match: rejected' in log and 'imu: rejected' in log
     expected = _expected(events)

@@ -17,6 +17,7 @@ from sensing_nodes.core.fusion import ComplementaryFusion, FusionSettings, Stamp
 from sensing_nodes.ros.conversions import (
     make_odometry,
     odometry_pose,
+    odometry_twist,
     quaternion_to_yaw,
     stamp_to_ns,
 )
@@ -46,7 +47,7 @@ class ComplementaryFusionNode(Node):
                 description="complementary filter weight of the gyro-propagated heading, in "
                             "[0, 1], or 'auto' to derive it each update from the two variances",
                 dynamic_typing=True, read_only=True)).value
-        window_s = declare(self, 'reorder_window_s', 0.5,
+        window_s = declare(self, 'reorder_window_s', 2.0,
                            'longest an input may lag the newest (stamp time) and still be fused '
                            'in stamp order; later messages are dropped and counted',
                            minimum=0.0, maximum=10.0)
@@ -56,10 +57,11 @@ class ComplementaryFusionNode(Node):
         max_gap_s = declare(self, 'max_gap_s', 1.0,
                             'an input silent longer than this (stamp time) restarts its increments',
                             minimum=0.001, maximum=3600.0)
-        self._reset_jump_s = declare(self, 'reset_on_backwards_jump_s', 1.0,
-                                     'a stamp this far behind the newest means a restarted '
-                                     'source (looping bag): the filter resets', minimum=0.0)
-        self._input_timeout_s = declare(self, 'input_timeout_s', 1.0,
+        self._reset_jump_s = declare(self, 'reset_on_backwards_jump_s', 0.0,
+                                     'an input stamp more than this before the same input\'s '
+                                     'previous one means time went backwards (looping bag): the '
+                                     'filter resets', minimum=0.0)
+        self._input_timeout_s = declare(self, 'input_timeout_s', 2.0,
                                         'an enabled input silent for this long is reported missing',
                                         minimum=0.01)
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the fused pose')
@@ -88,6 +90,8 @@ class ComplementaryFusionNode(Node):
         self._processed = {k: 0 for k in INPUT_NAMES}
         self._first_stamp = {k: None for k in INPUT_NAMES}
         self._accepted_first = {k: False for k in INPUT_NAMES}
+        self._origin: dict[int, object] = {}
+        self._previous_scan_stamp: int | None = None
         self._last_arrival = time.monotonic()
 
         self._warnings = ThrottledWarnings(self)
@@ -113,11 +117,11 @@ class ComplementaryFusionNode(Node):
         reading = self._reading(source, msg)
         if reading is None:
             return
-        newest = self._buffer.newest_ns
-        if newest is not None and newest - stamp > self._reset_jump_s * 1e9:
+        previous = self._arrived[source]
+        if previous is not None and previous - stamp > self._reset_jump_s * 1e9:
             self.get_logger().warn(
-                f'{name} stamp {stamp * 1e-9:.3f} s is {(newest - stamp) * 1e-9:.3f} s behind the '
-                'newest input: time went backwards (looping bag or restarted source); resetting')
+                f'{name} stamp {stamp * 1e-9:.3f} s is {(previous - stamp) * 1e-9:.3f} s before its '
+                'previous one: time went backwards (looping bag or restarted clock); resetting')
             self.diagnostics.count('resets')
             self._process(self._buffer.flush())  # what was held belongs to the old timeline
             self._reset()
@@ -159,27 +163,45 @@ class ComplementaryFusionNode(Node):
         if source == GYRO:
             yaw_var = float(msg.orientation_covariance[8])
             yaw = quaternion_to_yaw(msg.orientation)
+            if not self._accepted_first[source]:
+                self._origin[source] = yaw
             ok = math.isfinite(yaw) and math.isfinite(yaw_var) and (
-                yaw_var > 0.0 or (yaw_var == 0.0 and not self._accepted_first[source]))
+                yaw_var > 0.0 or (yaw_var == 0.0 and yaw == self._origin[source]))
             if msg.orientation_covariance[0] == -1.0:
                 ok = False
             reading = (yaw, yaw_var)
         else:
             pose, cov = odometry_pose(msg)
             diagonal = np.diag(cov)
+            if not self._accepted_first[source]:
+                self._origin[source] = pose
             ok = bool(np.all(np.isfinite(pose)) and np.all(np.isfinite(cov)) and (
                 np.all(diagonal > 0.0) or
-                (np.all(diagonal == 0.0) and not self._accepted_first[source])))
+                (np.all(diagonal == 0.0) and pose == self._origin[source])))
             reading = (pose, cov)
+            if source == SCAN:
+                reading = (pose, cov, self._scan_increment_covariance(msg, stamp_to_ns(msg.header.stamp)))
         if not ok:
             self.diagnostics.count(f'{name}_rejected')
             self._warnings.warn(
                 f'{name}_rejected',
-                f'{name}: rejected a message whose pose or covariance is NaN, negative, zero '
-                '(only a source\'s first pose may be exactly known) or absent')
+                f'{name}: rejected a message whose pose or covariance is NaN, negative, absent, '
+                'or zero after moving (only a source\'s starting pose may be exactly known)')
             return None
         self._accepted_first[source] = True
         return source, reading
+
+    def _scan_increment_covariance(self, msg, stamp: int):
+        """Covariance of the motion since the matcher's previous output, from its twist
+        covariance (twist = motion / dt), when it provides one; else None and the fusion core
+        recovers it from the cumulative covariances."""
+        _, twist_cov = odometry_twist(msg)
+        previous, self._previous_scan_stamp = self._previous_scan_stamp, stamp
+        if previous is None or stamp <= previous or not np.all(np.isfinite(twist_cov)) \
+                or not np.all(np.diag(twist_cov) > 0.0):
+            return None
+        dt = (stamp - previous) * 1e-9
+        return twist_cov * dt * dt
 
     def _reset(self) -> None:
         self._fusion.reset()
@@ -190,6 +212,7 @@ class ComplementaryFusionNode(Node):
         self._start_ns = None
         self._processed = {k: 0 for k in INPUT_NAMES}
         self._accepted_first = {k: False for k in INPUT_NAMES}
+        self._previous_scan_stamp = None
 
     def _flush_if_idle(self) -> None:
         if len(self._buffer) and time.monotonic() - self._last_arrival > self._flush_after_s:

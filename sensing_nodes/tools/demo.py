@@ -113,41 +113,41 @@ class Graph:
 
 
 class Collected:
-    """What the demo keeps of the recorded topics for scoring."""
+    """What the demo keeps for scoring: arrival wall times live, everything else from the bag."""
 
     def __init__(self) -> None:
         self.poses: dict[str, list] = defaultdict(list)       # topic -> [(stamp, x, y, yaw)]
         self.covariances: dict[str, list] = defaultdict(list)  # topic -> [3x3]
-        self.wall: dict[str, dict[int, int]] = defaultdict(dict)  # topic -> stamp -> wall ns
-        self.diagnostics: dict[str, dict[str, str]] = {}
+        self.scan_wall: dict[int, int] = {}    # scan stamp -> wall ns it arrived
+        self.fused_wall: dict[int, int] = {}   # fused stamp -> wall ns of the last output with it
 
     def listeners(self):
+        def scan(raw, stamp, wall):
+            self.scan_wall.setdefault(stamp, wall)
+
+        def fused(raw, stamp, wall):
+            self.fused_wall[stamp] = wall  # the scan-match update comes after wheel updates
+
+        return {'/scan': scan, '/odometry/filtered': fused}
+
+    def load(self, bag_path: Path) -> None:
+        """Estimates, ground truth and final diagnostics from the recorded bag."""
+        from sensing_nodes.bag import read_messages
         from sensing_nodes.ros.conversions import odometry_pose, quaternion_to_yaw
 
-        def odometry(topic):
-            def on(msg, stamp, wall):
+        odometry = {'/ground_truth/odom', '/wheel/odom', '/scan_match/odom', '/odometry/filtered'}
+        self.diagnostics: dict[str, dict[str, str]] = {}
+        for topic, stamp, msg in read_messages(bag_path, odometry | {'/imu/data', '/diagnostics'}):
+            if topic in odometry:
                 pose, cov = odometry_pose(msg)
                 self.poses[topic].append((stamp, *pose))
                 self.covariances[topic].append(cov)
-                self.wall[topic].setdefault(stamp, wall)
-            return on
-
-        def imu(msg, stamp, wall):
-            yaw = quaternion_to_yaw(msg.orientation)
-            self.poses['/imu/data'].append((stamp, 0.0, 0.0, yaw))
-            self.covariances['/imu/data'].append(np.diag([0.0, 0.0, msg.orientation_covariance[8]]))
-
-        def scan(msg, stamp, wall):
-            self.wall['/scan'].setdefault(stamp, wall)
-
-        def diagnostics(msg, stamp, wall):
-            for status in msg.status:
-                self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
-
-        handlers = {topic: odometry(topic) for topic in
-                    ['/ground_truth/odom', '/wheel/odom', '/scan_match/odom', '/odometry/filtered']}
-        handlers.update({'/imu/data': imu, '/scan': scan, '/diagnostics': diagnostics})
-        return handlers
+            elif topic == '/imu/data':
+                self.poses[topic].append((stamp, 0.0, 0.0, quaternion_to_yaw(msg.orientation)))
+                self.covariances[topic].append(np.diag([0.0, 0.0, msg.orientation_covariance[8]]))
+            else:
+                for status in msg.status:
+                    self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
 
     def arrays(self, topic: str):
         rows = sorted(self.poses.get(topic, []), key=lambda r: r[0])
@@ -165,6 +165,7 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
 
     from sensing_nodes.bag import BagWriter
     from sensing_nodes.recorder import TopicRecorder
+    from sensing_nodes.ros.run import make_executor
 
     env = dict(os.environ)
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -176,24 +177,28 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
     graph = Graph(out, env)
     rclpy.init()
     node = Node('sensing_demo_recorder')
+    executor = make_executor()
+    executor.add_node(node)
     try:
         with BagWriter(out / 'bag') as bag:
             recorder = TopicRecorder(node, bag, collected.listeners())
             for name in PROCESSING_NODES:
                 graph.start(name, [])
-            _wait_for_nodes(node, PROCESSING_NODES, graph, recorder)
+            _wait_for_nodes(node, executor, PROCESSING_NODES, graph, recorder)
             sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
                         '-p', f'real_time_factor:={args.rate}']
             wall_start = time.monotonic()
             graph.start('sensor_sim', sim_args)
             sim = graph.processes['sensor_sim']
-            next_progress = wall_start
+            next_progress = next_discovery = wall_start
             start_stamp = None
             while sim.poll() is None:
-                rclpy.spin_once(node, timeout_sec=0.01)
+                executor.spin_once(timeout_sec=0.01)
                 now = time.monotonic()
-                if now >= next_progress:
+                if now >= next_discovery:
                     recorder.discover()
+                    next_discovery = now + 0.25
+                if now >= next_progress:
                     if start_stamp is None and recorder.newest_stamp_ns:
                         start_stamp = recorder.newest_stamp_ns
                     if not args.quiet and start_stamp is not None:
@@ -210,7 +215,7 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
             # Let the last scans work through matching and fusion (and fusion's idle flush).
             drain_until = time.monotonic() + 2.0
             while time.monotonic() < drain_until:
-                rclpy.spin_once(node, timeout_sec=0.01)
+                executor.spin_once(timeout_sec=0.01)
             counts = dict(recorder.counts)
     finally:
         codes = graph.stop()
@@ -222,13 +227,11 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
     return collected, counts, wall_s, args.duration
 
 
-def _wait_for_nodes(node, names, graph, recorder, timeout=30.0) -> None:
+def _wait_for_nodes(node, executor, names, graph, recorder, timeout=30.0) -> None:
     """Until every processing node is discovered (so no early message is missed)."""
-    import rclpy
-
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.1)
+        executor.spin_once(timeout_sec=0.1)
         recorder.discover()
         if graph.failed():
             raise SystemExit(f'sensing_demo: node(s) failed at start-up: {graph.failed()}')
@@ -278,11 +281,8 @@ def score(collected: Collected, counts: dict, wall_s: float, duration_s: float) 
         'processed_by_icp_matcher': counts.get('/scan_match/odom', 0),
         'processed_by_line_extractor': counts.get('/scan/lines', 0),
     }
-    latencies = []
-    fused_wall = collected.wall.get('/odometry/filtered', {})
-    for stamp, wall in collected.wall.get('/scan', {}).items():
-        if stamp in fused_wall:
-            latencies.append((fused_wall[stamp] - wall) * 1e-6)
+    latencies = [(collected.fused_wall[stamp] - wall) * 1e-6
+                 for stamp, wall in collected.scan_wall.items() if stamp in collected.fused_wall]
     report['latency_ms'] = ({'p50': float(np.percentile(latencies, 50)),
                              'p99': float(np.percentile(latencies, 99)), 'samples': len(latencies)}
                             if latencies else {'p50': None, 'p99': None, 'samples': 0})
@@ -372,6 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     print(f'sensing_demo: {args.duration:g} s of the default route at {args.rate:g}x, seed {args.seed}')
     collected, counts, wall_s, duration = run_graph(args, out)
+    collected.load(out / 'bag')
     report = score(collected, counts, wall_s, duration)
     plots = plot(report, collected, out)
     errors = report.pop('_errors')
