@@ -324,3 +324,38 @@ def test_deterministic(simulated):
     again = extract_lines(ranges.copy(), angles.copy())
     assert [(ln.r, ln.alpha, ln.first, ln.last) for ln in again] == \
         [(ln.r, ln.alpha, ln.first, ln.last) for ln in lines]
+
+
+# ---------------------------------------------------------------- properties on random input
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    beams=st.integers(0, 400),
+    full_circle=st.booleans(),
+    invalid_fraction=st.floats(0.0, 1.0),
+    min_line_points=st.integers(2, 12),
+    max_line_gap=st.floats(0.05, 2.0),
+)
+def test_random_scans_give_well_formed_lines(seed, beams, full_circle, invalid_fraction,
+                                             min_line_points, max_line_gap):
+    rng = np.random.default_rng(seed)
+    span = 2 * math.pi if full_circle else rng.uniform(0.1, 2 * math.pi)
+    angles = -span / 2 + span * np.arange(beams) / max(beams, 1)
+    walls = rng.uniform(-6, 6, size=(rng.integers(1, 8), 4))
+    ranges = raycast(walls, (0.0, 0.0), angles) + rng.normal(0, 0.01, beams)
+    bad = rng.random(beams) < invalid_fraction
+    ranges[bad] = rng.choice([np.nan, np.inf, -np.inf, 0.0, -1.0], size=int(bad.sum()))
+    lines = extract_lines(ranges, angles, min_line_points=min_line_points, max_line_gap=max_line_gap)
+    for line in lines:
+        assert line.r >= 0.0 and -math.pi < line.alpha <= math.pi
+        assert 0 <= line.first < beams and 0 <= line.last < beams
+        assert line.point_count >= min_line_points and line.length >= 0.2
+        assert np.all(np.isfinite(line.covariance))
+        assert line.covariance[0, 1] == line.covariance[1, 0]
+        assert np.all(np.linalg.eigvalsh(line.covariance) > 0)
+        # The endpoints lie on the line.
+        assert distances(line, [line.start, line.end]) == pytest.approx([0.0, 0.0], abs=1e-9)

@@ -30,6 +30,7 @@ _MIN_COS2 = 0.05
 # a split point found a beam or two off a corner lies on the other wall, within split_distance
 # of this one. A split point within noise of both walls stays in both lines.
 _END_SIGMAS = 3.0
+_SMALLEST_RANGE = 1e-9
 
 
 @dataclass(slots=True)
@@ -282,7 +283,7 @@ def extract_lines(
     split_distance: a segment is split while a point is farther than this from its fit (m);
     max_line_gap: no line spans two consecutive points farther apart than this (m);
     min_line_points, min_line_length (m): smaller lines are dropped;
-    min_range, max_range (m): beams outside are invalid, like NaN and ±inf;
+    min_range, max_range (m): beams outside are invalid, like NaN and ±inf (and a range of 0);
     range_sigma: standard deviation of the range noise (m), scales the covariances;
     merge_chi2: neighbouring segments merge when chi-square of (dr, dalpha) is at most this
     (2 degrees of freedom; 9.21 is the 99 % quantile).
@@ -293,7 +294,8 @@ def extract_lines(
                    min_range, max_range, range_sigma, merge_chi2)
     r_in = np.asarray(ranges, dtype=float).ravel()
     a_in = np.asarray(angles, dtype=float).ravel()
-    points, beams = scan_to_points(r_in, a_in, min_range, max_range)
+    # A zero range is no point on a surface, whatever min_range says.
+    points, beams = scan_to_points(r_in, a_in, max(min_range, _SMALLEST_RANGE), max_range)
     min_points = max(int(min_line_points), 2)
     if len(points) < min_points:
         return []
