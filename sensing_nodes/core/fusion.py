@@ -78,6 +78,10 @@ class FusionSettings:
     use_scan_heading: bool = True     # absolute heading from scan matching
     alpha: float | None = 0.98        # None: derive α each update from the two variances
     max_gap_s: float = 1.0            # an input silent for longer restarts its increments
+    # After a silence, a scan matcher whose motion disagrees with dead reckoning by more than
+    # this has restarted (its frame is new) and is tied to the current estimate again.
+    restart_distance_m: float = 0.5
+    restart_angle_rad: float = math.radians(20.0)
 
 
 @dataclass
@@ -183,10 +187,9 @@ class ComplementaryFusion:
             return
         self._ensure_started(stamp_ns)
         src = self._scan
-        fresh = src.stamp_ns is None or not (
-            0 < stamp_ns - src.stamp_ns <= self.settings.max_gap_s * 1e9)
         predicted, predicted_cov = self._propagated()
-        if fresh or self._scan_offset is None:
+        if src.stamp_ns is None or self._scan_offset is None or \
+                self._restarted(stamp_ns, pose, predicted):
             # First match, or the matcher restarted: tie its frame to ours, fuse nothing yet.
             self._scan_offset = se2.compose(predicted, se2.inverse(pose))
             fused, fused_cov = predicted, predicted_cov
@@ -199,6 +202,18 @@ class ComplementaryFusion:
         self._wheel_since = self._zero_increment()
         self._gyro_since = (0.0, 0.0)
         self.updates += 1
+
+    def _restarted(self, stamp_ns: int, pose: Pose2, predicted: Pose2) -> bool:
+        """After a silence longer than max_gap_s, did the matcher start over in a new frame?
+        Judged by whether its motion over the silence disagrees with dead reckoning's."""
+        if stamp_ns - self._scan.stamp_ns <= self.settings.max_gap_s * 1e9:
+            return False
+        assert self._anchor is not None
+        scan_motion = se2.between(self._scan.pose, pose)
+        dr_motion = se2.between(self._anchor.pose, predicted)
+        mismatch = se2.between(dr_motion, scan_motion)
+        return (math.hypot(mismatch[0], mismatch[1]) > self.settings.restart_distance_m
+                or abs(mismatch[2]) > self.settings.restart_angle_rad)
 
     def _fuse(self, stamp_ns, pose, cov, increment_cov, predicted, predicted_cov):
         assert self._anchor is not None and self._scan_offset is not None

@@ -212,10 +212,14 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
                         raise SystemExit(f'sensing_demo: node(s) exited early: {graph.failed()}; '
                                          f'see {out / "logs"}')
             wall_s = time.monotonic() - wall_start
-            # Let the last scans work through matching and fusion (and fusion's idle flush).
-            drain_until = time.monotonic() + 2.0
-            while time.monotonic() < drain_until:
+            # Let the last scans work through matching and fusion (and fusion's idle flush):
+            # until nothing has arrived for a second.
+            drain_deadline = time.monotonic() + 30.0
+            quiet_since, seen = time.monotonic(), sum(recorder.counts.values())
+            while time.monotonic() - quiet_since < 1.0 and time.monotonic() < drain_deadline:
                 executor.spin_once(timeout_sec=0.01)
+                if sum(recorder.counts.values()) != seen:
+                    quiet_since, seen = time.monotonic(), sum(recorder.counts.values())
             counts = dict(recorder.counts)
     finally:
         codes = graph.stop()

@@ -1,0 +1,35 @@
+"""The demo graph on a machine with ROS 2 installed: sensor_sim and the five processing nodes.
+
+    ros2 launch sensing_nodes sensing_graph.launch.py [real_time_factor:=5.0] [seed:=0]
+
+Each node reads its parameter file from this package's share/sensing_nodes/config.
+"""
+
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+NODES = ['sensor_sim', 'wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
+         'complementary_fusion']
+
+
+def generate_launch_description():
+    config = os.path.join(get_package_share_directory('sensing_nodes'), 'config')
+    arguments = [
+        DeclareLaunchArgument('real_time_factor', default_value='1.0',
+                              description='simulated seconds per wall second'),
+        DeclareLaunchArgument('seed', default_value='0', description='simulation seed'),
+    ]
+    nodes = []
+    for name in NODES:
+        parameters = [os.path.join(config, f'{name}.yaml')]
+        if name == 'sensor_sim':
+            parameters.append({'real_time_factor': LaunchConfiguration('real_time_factor'),
+                               'seed': LaunchConfiguration('seed')})
+        nodes.append(Node(package='sensing_nodes', executable=name, name=name,
+                          parameters=parameters, output='screen'))
+    return LaunchDescription(arguments + nodes)
