@@ -1,0 +1,87 @@
+"""sensing_bench (`make bench`): every benchmark of the package in one run, one JSON, one table.
+
+Each area's module in sensing_nodes.bench has run(quick) -> dict of figures measured in that
+run (rates and the ratios between implementations measured side by side). The graph's real-time
+factor and latency come from a sensing_demo run. Nothing here asserts a time: the machines are
+shared and noisy, so only ratios measured in one run mean much.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+AREAS = ['sim', 'dead_reckoning', 'lines', 'icp']
+
+
+def demo_figures(quick: bool) -> dict:
+    """Real-time factor, latency and dropped scans of the whole graph, from a sensing_demo run."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / 'run'
+        demo = Path(sys.argv[0]).resolve().parent / 'sensing_demo'
+        cmd = [str(demo) if demo.is_file() else 'sensing_demo', '--out', str(out), '--quiet',
+               '--duration', '40' if quick else '130']
+        result = subprocess.run(cmd, capture_output=True, text=True)
+        if result.returncode != 0:
+            return {'error': result.stderr.strip().splitlines()[-1:] or ['sensing_demo failed']}
+        report = json.loads((out / 'report.json').read_text())
+    scans = report['scans']
+    return {
+        'real_time_factor': report['real_time_factor'],
+        'latency_p50_ms': report['latency_ms']['p50'],
+        'latency_p99_ms': report['latency_ms']['p99'],
+        'scans_published': scans['published_by_sim'],
+        'scans_matched': scans['processed_by_icp_matcher'],
+        'scans_lines': scans['processed_by_line_extractor'],
+        'fused_final_position_error_m': report['estimates']['fused'].get('final_position_error_m'),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='sensing_bench', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--quick', action='store_true', help='smaller runs (a smoke test)')
+    parser.add_argument('--out', type=Path, default=Path('bench_results.json'),
+                        help='JSON output file (default bench_results.json)')
+    parser.add_argument('--only', nargs='*', choices=AREAS + ['graph'], help='run only these areas')
+    args = parser.parse_args(argv)
+
+    results: dict = {
+        'when': datetime.now(timezone.utc).isoformat(timespec='seconds'),
+        'machine': f'{platform.machine()}, {platform.python_implementation()} '
+                   f'{platform.python_version()}',
+        'quick': args.quick,
+    }
+    for area in args.only or AREAS + ['graph']:
+        print(f'[bench] {area} ...', flush=True)
+        start = time.monotonic()
+        try:
+            if area == 'graph':
+                figures = demo_figures(args.quick)
+            else:
+                figures = importlib.import_module(f'sensing_nodes.bench.{area}').run(quick=args.quick)
+        except Exception as exc:  # a failing area must not hide the others' figures
+            figures = {'error': f'{type(exc).__name__}: {exc}'}
+        figures['bench_seconds'] = round(time.monotonic() - start, 1)
+        results[area] = figures
+    args.out.write_text(json.dumps(results, indent=2, default=float) + '\n')
+
+    print(f'\n{"area":<16}{"figure":<44}{"value":>14}')
+    for area in args.only or AREAS + ['graph']:
+        for key, value in results[area].items():
+            if isinstance(value, float):
+                value = f'{value:.4g}'
+            print(f'{area:<16}{key:<44}{str(value):>14}')
+    print(f'\nwrote {args.out}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
