@@ -80,8 +80,8 @@ def fit_line(points: ArrayLike) -> PolarFit:
 
 
 class _PolarFits:
-    """Weighted least-squares lines from rows of sums (w, Σwx, Σwy, Σwx², Σwy², Σwxy), with
-    r >= 0 and alpha in (-pi, pi], and their (r, alpha) covariances when w = 1 / var(distance)."""
+    """Least-squares lines from rows of point sums (n, Σx, Σy, Σx², Σy², Σxy), with r >= 0 and
+    alpha in (-pi, pi]; covariance() is that of (r, alpha) for unit distance variance per point."""
 
     def __init__(self, sums: NDArray[np.float64]) -> None:
         w = self.w = sums[:, 0]
@@ -100,9 +100,9 @@ class _PolarFits:
         self.r = np.abs(r)
 
     def covariance(self):
-        """(var r, cov r-alpha, var alpha), each (k,): the inverse information of the fit."""
+        """(var r, cov r-alpha, var alpha), each (k,), for unit distance variance per point."""
         c, s = self.c, self.s
-        # Along-line coordinate t = p·(-sin, cos): its weighted spread and the centroid's t.
+        # Along-line coordinate t = p·(-sin, cos): its spread about the centroid and the centroid's t.
         # Floored so that a degenerate fit (one point) gives a huge but finite covariance.
         stt = np.maximum(s * s * self.sxx + c * c * self.syy - 2.0 * s * c * self.sxy, 1e-12)
         tm = c * self.ym - s * self.xm
@@ -202,8 +202,8 @@ def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: 
     """Merge neighbouring ranges whose lines agree within their summed covariance (chi-square on
     (dr, dalpha), 2 dof) when the gap between them is at most max_gap and the merged fit still has
     every point within split_distance. A range of fewer than min_points points (a piece of wall
-    between invalid beams, or an outlier) needs only the gap and the merged fit to pass. Also returns the fits (cos, sin, r) of the ranges when
-    they were computed and nothing merged, else None."""
+    between invalid beams, or an outlier) needs only the gap and the merged fit to pass.
+    Also returns the ranges' fits (cos, sin, r) when they were computed and nothing merged."""
     if len(s) < 2:
         return s, e, None
     gap = np.hypot(scan.x[s[1:]] - scan.x[e[:-1]], scan.y[s[1:]] - scan.y[e[:-1]])
@@ -287,7 +287,7 @@ def extract_lines(
     range_sigma: standard deviation of the range noise (m), scales the covariances;
     merge_chi2: neighbouring segments merge when chi-square of (dr, dalpha) is at most this
     (2 degrees of freedom; 9.21 is the 99 % quantile).
-    Lines are in scan order. Raises ValueError for ranges and angles of different lengths
+    Lines are sorted by first beam. Raises ValueError for ranges and angles of different lengths
     and for option values that make no sense; otherwise returns what it finds (possibly nothing).
     """
     _check_options(split_distance, max_line_gap, min_line_points, min_line_length,
@@ -385,12 +385,15 @@ def _final_lines(scan: _Scan, s, e, sigma2: float, min_length: float) -> list[Li
         return []
     rows = np.column_stack((fit.r, fit.alpha, rr, ra, aa, qx, qy))[keep].tolist()
     beams = np.column_stack((scan.beams[ends], e - s + 1))[keep].tolist()
-    return [
+    lines = [
         Line(r=row[0], alpha=row[1], covariance=np.array([[row[2], row[3]], [row[3], row[4]]]),
              start=(row[5], row[7]), end=(row[6], row[8]),
              first=b[0], last=b[1], point_count=b[2])
         for row, b in zip(rows, beams)
     ]
+    # A 360-degree scan was processed from a break, not from beam 0.
+    lines.sort(key=lambda line: line.first)
+    return lines
 
 
 def _check_options(split_distance, max_line_gap, min_line_points, min_line_length,
