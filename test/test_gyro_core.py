@@ -196,6 +196,10 @@ def test_time_going_backwards_resets_heading_keeps_bias():
     r = gi.update(T0, (0.0, 0.0, 0.0087), GRAVITY)
     assert r.step is StampStep.BACKWARDS and r.publish and 'backwards' in r.note
     assert gi.yaw == 0.0 and gi.p_yaw == 0.0 and gi.bias[2] == bias
+    # The replayed still start is used for the bias again.
+    updates = gi.bias_updates
+    run_constant(gi, 0.0087, 1.0, 200.0, t0=T0 + 5 * MS)
+    assert gi.still and gi.bias_updates > updates + 100
 
 
 def test_gap_is_not_integrated_across():

@@ -47,7 +47,8 @@ def _wheel_rates(run, quick: bool) -> dict:
     tiles = 20 if quick else 200
     positions = run.joint_position
     steps = np.diff(positions, axis=0)
-    tiled = np.concatenate([[positions[0]], positions[0] + np.cumsum(np.tile(steps, (tiles, 1)), axis=0)])
+    tiled = np.concatenate([[positions[0]],
+                            positions[0] + np.cumsum(np.tile(steps, (tiles, 1)), axis=0)])
     n = tiled.shape[0] - 1
 
     def batch():
@@ -136,8 +137,8 @@ def _dds_check(executable: str, seconds: float, rate_hz: float) -> dict:
     try:
         if executable == 'wheel_odometry':
             pub = node.create_publisher(JointState, '/joint_states', SENSOR_QOS)
-            node.create_subscription(Odometry, '/wheel/odom',
-                                     lambda m: received.add(stamp_to_ns(m.header.stamp)), ESTIMATE_QOS)
+            node.create_subscription(Odometry, '/wheel/odom', lambda m: received.add(
+                stamp_to_ns(m.header.stamp)), ESTIMATE_QOS)
 
             def message(k, t):
                 msg = JointState()
@@ -147,8 +148,8 @@ def _dds_check(executable: str, seconds: float, rate_hz: float) -> dict:
                 return msg
         else:
             pub = node.create_publisher(Imu, '/imu/data_raw', SENSOR_QOS)
-            node.create_subscription(Imu, '/imu/data',
-                                     lambda m: received.add(stamp_to_ns(m.header.stamp)), ESTIMATE_QOS)
+            node.create_subscription(Imu, '/imu/data', lambda m: received.add(
+                stamp_to_ns(m.header.stamp)), ESTIMATE_QOS)
 
             def message(k, t):
                 msg = Imu()
@@ -165,7 +166,8 @@ def _dds_check(executable: str, seconds: float, rate_hz: float) -> dict:
             pub.publish(message(0, 1_000_000_000))
             executor.spin_once(timeout_sec=0.1)
         if not received:
-            return {'sent': 0, 'received': 0, 'error': 'node never answered: ' + Path(log.name).read_text()[-500:]}
+            tail = Path(log.name).read_text()[-500:]
+            return {'sent': 0, 'received': 0, 'error': 'node never answered: ' + tail}
         received.clear()
         count = int(seconds * rate_hz)
         period_ns = int(1e9 / rate_hz)
@@ -198,7 +200,8 @@ def _dds_check(executable: str, seconds: float, rate_hz: float) -> dict:
 def run(quick: bool = False, dds: bool = True) -> dict:
     """Measured figures: core throughput (batch and per message) and the 1 kHz DDS check."""
     params = SimParams()
-    sim = simulate(params, load_world(config_file('default_world.yaml')), 20.0 if quick else 124.0, seed=1)
+    world = load_world(config_file('default_world.yaml'))
+    sim = simulate(params, world, 20.0 if quick else 124.0, seed=1)
     out = {}
     out.update(_wheel_rates(sim, quick))
     out.update(_gyro_rates(sim, quick))

@@ -29,7 +29,7 @@ from sensing_nodes.core.timing import StampStep, classify_step
 
 def integrate_rate(stamps_ns: ArrayLike, rate: ArrayLike, bias: float = 0.0, yaw0: float = 0.0
                    ) -> NDArray[np.float64]:
-    """Unwrapped heading (rad) at every stamp from rates (rad/s) minus a constant bias, trapezoidal."""
+    """Unwrapped heading (rad) at every stamp: rates (rad/s) minus a constant bias, trapezoidal."""
     t = np.asarray(stamps_ns, dtype=np.int64)
     r = np.asarray(rate, dtype=float) - bias
     if t.shape != r.shape:
@@ -193,7 +193,8 @@ class _Window:
             self._s2 = [0.0] * 6
         self._accumulate(sample, 1.0)
         self.samples.append(sample)
-        while len(self.samples) > 1 and sample.stamp_ns - self.samples[1].stamp_ns >= self.window_ns:
+        samples = self.samples
+        while len(samples) > 1 and sample.stamp_ns - samples[1].stamp_ns >= self.window_ns:
             self._accumulate(self.samples.popleft(), -1.0)
 
     def _accumulate(self, sample: _Sample, sign: float) -> None:
@@ -249,7 +250,7 @@ class GyroIntegrator:
 
     # -- wheel odometry gate -------------------------------------------------------------------
     def observe_wheels(self, stamp_ns: int, linear_m_s: float, angular_rad_s: float) -> None:
-        """Record a wheel-odometry twist (m/s, rad/s); motion vetoes stillness of windows holding it."""
+        """Record a wheel-odometry twist (m/s, rad/s); motion vetoes windows that hold it."""
         if self._wheel_last_ns is not None and stamp_ns < self._wheel_last_ns:
             self._wheel_motion_ns = None       # the wheel stream restarted (looping bag)
         self._wheel_last_ns = stamp_ns
@@ -265,7 +266,7 @@ class GyroIntegrator:
 
     # -- services ------------------------------------------------------------------------------
     def request_calibration(self) -> None:
-        """Forget the bias confidence so the next still window re-estimates it (even if disabled)."""
+        """Forget the bias confidence: the next still window re-estimates it (even if disabled)."""
         self.p_bias = self.config.initial_bias_sigma_rad_s ** 2
         self.p_cross = 0.0
         self.calibration_requested = True
@@ -273,12 +274,13 @@ class GyroIntegrator:
         self.still = False
 
     def reset_heading(self, yaw: float = 0.0) -> None:
-        """Heading back to yaw (rad) with zero variance; the bias estimate is kept (it is the sensor's)."""
+        """Heading back to yaw (rad) with zero variance; the bias (the sensor's) is kept."""
         self.yaw = float(yaw)
         self.p_yaw = 0.0
         self.p_cross = 0.0
         self._window.clear()
         self.still = False
+        self._used_until_ns = -1        # after a looping bag, stamps restart below it
 
     # -- main step -----------------------------------------------------------------------------
     def update(self, stamp_ns: int, gyro: Sequence[float], accel: Sequence[float]) -> ImuUpdate:
@@ -448,7 +450,8 @@ class GyroIntegrator:
                 s_inv = 1.0 / (pb + r)
                 k_yaw, k_bias = pc * s_inv, pb * s_inv
                 yaw += k_yaw * (zz - bz)
-                bx, by, bz = bx + k_bias * (zx - bx), by + k_bias * (zy - by), bz + k_bias * (zz - bz)
+                bx, by = bx + k_bias * (zx - bx), by + k_bias * (zy - by)
+                bz = bz + k_bias * (zz - bz)
                 py -= k_yaw * pc
                 pc -= k_yaw * pb
                 pb -= k_bias * pb
@@ -474,7 +477,8 @@ class GyroIntegrator:
         out.rate[sl] = rate
         out.bias[sl] = bias_out
         out.still[sl] = still
-        self.yaw, self.p_yaw, self.p_cross, self.p_bias = float(yaw), float(py), float(pc), float(pb)
+        self.yaw, self.p_yaw = float(yaw), float(py)
+        self.p_cross, self.p_bias = float(pc), float(pb)
         self.bias = bias.copy()
         self.still = bool(still[-1])
         self._used_until_ns, self.bias_updates = used_until, updates
@@ -490,7 +494,7 @@ class GyroIntegrator:
 
     @property
     def heading_variance(self) -> float:
-        """Published heading variance (rad^2): the filter's, plus a term for the sampling convention.
+        """Published heading variance (rad^2): the filter's plus a term for the sample convention.
 
         Trapezoidal integration of samples that are interval means (or of instantaneous samples
         of a changing rate) is off by up to half a sample of rotation; that error does not

@@ -67,7 +67,7 @@ def wheel_increments(
 def body_increments(
     ds_left: ArrayLike, ds_right: ArrayLike, wheel_separation_m: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Wheel distances (m) -> base travel ds = (dsR + dsL)/2 (m) and heading change (dsR - dsL)/L (rad)."""
+    """Wheel distances (m) -> base travel (dsR + dsL)/2 (m), heading change (dsR - dsL)/L (rad)."""
     left = np.asarray(ds_left, dtype=float)
     right = np.asarray(ds_right, dtype=float)
     return 0.5 * (right + left), (right - left) / wheel_separation_m
@@ -92,7 +92,8 @@ def _arc_factors(half_turn):
     safe = np.where(small, 1.0, a)
     a2 = a * a
     f = np.where(small, 1.0 - a2 / 6.0, np.sin(safe) / safe)
-    df = np.where(small, -a / 3.0 + a * a2 / 30.0, (safe * np.cos(safe) - np.sin(safe)) / (safe * safe))
+    df = np.where(small, -a / 3.0 + a * a2 / 30.0,
+                  (safe * np.cos(safe) - np.sin(safe)) / (safe * safe))
     return f, df
 
 
@@ -105,7 +106,8 @@ def _displacement(yaw, ds, dtheta, method: str):
         f, df = _arc_factors(half)
         s, c = _sincos(yaw + half)
         dx, dy = ds * f * c, ds * f * s
-        return dx, dy, (f * c, f * s), (ds * (0.5 * df * c - 0.5 * f * s), ds * (0.5 * df * s + 0.5 * f * c))
+        d_dtheta = (ds * (0.5 * df * c - 0.5 * f * s), ds * (0.5 * df * s + 0.5 * f * c))
+        return dx, dy, (f * c, f * s), d_dtheta
     if method == 'euler':
         s, c = _sincos(yaw)
         return ds * c, ds * s, (c, s), (0.0 * c, 0.0 * s)
@@ -121,7 +123,8 @@ def integrate_step(pose: ArrayLike, ds: ArrayLike, dtheta: ArrayLike, method: st
         dx, dy, _, _ = _displacement(float(pose[2]), ds, dtheta, method)
         return (pose[0] + dx, pose[1] + dy, float(wrap_angle(pose[2] + dtheta)))
     p = np.asarray(pose, dtype=float)
-    dx, dy, _, _ = _displacement(p[..., 2], np.asarray(ds, float), np.asarray(dtheta, float), method)
+    dx, dy, _, _ = _displacement(p[..., 2], np.asarray(ds, float), np.asarray(dtheta, float),
+                                 method)
     return np.stack([p[..., 0] + dx, p[..., 1] + dy, wrap_angle(p[..., 2] + dtheta)], axis=-1)
 
 
@@ -145,7 +148,7 @@ def propagate_covariance(
     variance_per_m: tuple[float, float],
     method: str = 'exact_arc',
 ) -> NDArray[np.float64]:
-    """Pose covariance (3x3, x/y/yaw in odom) after one step from heading yaw with wheel distances (m).
+    """Pose covariance (3x3, x/y/yaw in odom) after one step from heading yaw, wheel distances in m.
 
     Wheel distance variance is variance_per_m[i] * |ds_i| (m^2), independent per wheel.
     """
@@ -171,8 +174,8 @@ def _step_noise(yaw, ds_left, ds_right, wheel_separation_m, variance_per_m, meth
     q = (var_l[..., None, None] * g_left[..., :, None] * g_left[..., None, :]
          + var_r[..., None, None] * g_right[..., :, None] * g_right[..., None, :])
     # d(step)/d(relative radius errors): a radius error e scales that wheel's distance by (1 + e).
-    h = np.stack([g_left * np.asarray(ds_left)[..., None], g_right * np.asarray(ds_right)[..., None]],
-                 axis=-1)
+    h = np.stack([g_left * np.asarray(ds_left)[..., None],
+                  g_right * np.asarray(ds_right)[..., None]], axis=-1)
     return dx, dy, dtheta, q, h
 
 
@@ -199,14 +202,15 @@ def integrate_path(
     n = ds_l.size
     _, dtheta = body_increments(ds_l, ds_r, wheel_separation_m)
     yaw_before = pose0[2] + np.concatenate([[0.0], np.cumsum(dtheta)[:-1]])
-    dx, dy, _, q, h = _step_noise(yaw_before, ds_l, ds_r, wheel_separation_m, variance_per_m, method)
+    dx, dy, _, q, h = _step_noise(yaw_before, ds_l, ds_r, wheel_separation_m, variance_per_m,
+                                  method)
     x = pose0[0] + np.cumsum(dx)
     y = pose0[1] + np.cumsum(dy)
     poses = np.stack([x, y, wrap_angle(yaw_before + dtheta) if n else np.zeros(0)], axis=-1)
 
     cov0 = np.zeros((3, 3)) if covariance0 is None else np.asarray(covariance0, float)
-    # Term k (k = 0 is the initial covariance) enters P_N as Phi Q_k Phi^T, Phi = I + (w_N - w_k) e3^T,
-    # w = (-y, x, 0).
+    # Term k (k = 0 is the initial covariance) enters P_N as Phi Q_k Phi^T with
+    # Phi = I + (w_N - w_k) e3^T, w = (-y, x, 0).
     w = np.zeros((n + 1, 3))
     w[0, :2] = (-pose0[1], pose0[0])
     w[1:, 0], w[1:, 1] = -y, x
@@ -269,8 +273,9 @@ class WheelOdometryConfig:
             out.append(('method', f'must be one of {list(METHODS)}', self.method))
         if any(not (math.isfinite(k) and k >= 0) for k in self.variance_per_m):
             out.append(('variance_per_m', 'must be finite and >= 0', self.variance_per_m))
-        if not (math.isfinite(self.radius_multiplier_std) and 0 <= self.radius_multiplier_std < 0.5):
-            out.append(('radius_multiplier_std', 'must be in [0, 0.5)', self.radius_multiplier_std))
+        std = self.radius_multiplier_std
+        if not (math.isfinite(std) and 0 <= std < 0.5):
+            out.append(('radius_multiplier_std', 'must be in [0, 0.5)', std))
         return out
 
     @property
@@ -367,7 +372,7 @@ class WheelOdometry:
         step = classify_step(self.stamp_ns, stamp_ns, self.config.max_gap_s)
         if step is StampStep.REPEATED:
             return OdometryUpdate(False, step, Rejection.REPEATED_STAMP,
-                                  note=f'duplicate stamp {stamp_ns} ns; waiting for the next sample')
+                                  note=f'duplicate stamp {stamp_ns} ns; waiting for the next one')
         if step is StampStep.FIRST:
             self._restart(stamp_ns, pos, vel)
             return OdometryUpdate(True, step)
@@ -430,7 +435,8 @@ class WheelOdometry:
         dx, dy, (fx, fy), (gx, gy) = _displacement(yaw, ds, dtheta, cfg.method)
         # F = I + u e3^T with u = (-dy, dx, 0); G = [g_left g_right] w.r.t. the wheel distances.
         a, b = -dy, dx
-        lx, ly, rx, ry = 0.5 * fx - inv_l * gx, 0.5 * fy - inv_l * gy, 0.5 * fx + inv_l * gx, 0.5 * fy + inv_l * gy
+        lx, ly = 0.5 * fx - inv_l * gx, 0.5 * fy - inv_l * gy
+        rx, ry = 0.5 * fx + inv_l * gx, 0.5 * fy + inv_l * gy
         var_l = cfg.variance_per_m[0] * abs(ds_l)
         var_r = cfg.variance_per_m[1] * abs(ds_r)
         p = self.random_covariance
@@ -465,4 +471,4 @@ class WheelOdometry:
         # difference bounds the turn; add both as variance rather than pretend to know the pose.
         path = 0.5 * (abs(ds_l) + abs(ds_r))
         turn = (abs(ds_l) + abs(ds_r)) / self.config.wheel_separation_m
-        self.random_covariance = self.random_covariance + np.diag([path * path, path * path, turn * turn])
+        self.random_covariance = self.random_covariance + np.diag([path**2, path**2, turn**2])

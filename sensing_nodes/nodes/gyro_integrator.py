@@ -41,7 +41,8 @@ class GyroIntegratorNode(Node):
                 self, 'max_gyro_bias_rad_s', d.max_gyro_bias_rad_s,
                 'still only if every gyro axis mean over the window is within this (rad/s)'),
             noise_density=declare(self, 'gyro_noise_density', d.noise_density,
-                                  'white rate noise density (rad/s/sqrt(Hz)): sample std * sqrt(dt)'),
+                                  'white rate noise density (rad/s/sqrt(Hz)): '
+                                  'sample std * sqrt(dt)'),
             bias_random_walk=declare(self, 'bias_random_walk', d.bias_random_walk,
                                      'bias random walk density (rad/s/sqrt(s))'),
             initial_bias_sigma_rad_s=declare(
@@ -82,7 +83,8 @@ class GyroIntegratorNode(Node):
 
     def _on_wheel_odom(self, msg: Odometry) -> None:
         twist = msg.twist.twist
-        self._integrator.observe_wheels(stamp_to_ns(msg.header.stamp), twist.linear.x, twist.angular.z)
+        self._integrator.observe_wheels(
+            stamp_to_ns(msg.header.stamp), twist.linear.x, twist.angular.z)
 
     def _on_imu(self, msg: Imu) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -136,7 +138,8 @@ class GyroIntegratorNode(Node):
         diag.values['still'] = str(gi.still)
         diag.values['heading_std_rad'] = f'{math.sqrt(max(gi.heading_variance, 0.0)):.2e}'
 
-    def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+    def _on_calibrate(self, request: Trigger.Request,
+                      response: Trigger.Response) -> Trigger.Response:
         gi = self._integrator
         before = gi.bias[2]
         gi.request_calibration()

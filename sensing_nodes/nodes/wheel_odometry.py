@@ -34,13 +34,16 @@ class WheelOdometryNode(Node):
         separation = declare(self, 'wheel_separation_m', 0.30,
                              'distance between the wheel contact points (m)')
         left_mult = declare(self, 'left_radius_multiplier', 1.0,
-                            'calibration: left radius = wheel_radius_m * this', minimum=0.5, maximum=1.5)
+                            'calibration: left radius = wheel_radius_m * this',
+                            minimum=0.5, maximum=1.5)
         right_mult = declare(self, 'right_radius_multiplier', 1.0,
-                             'calibration: right radius = wheel_radius_m * this', minimum=0.5, maximum=1.5)
+                             'calibration: right radius = wheel_radius_m * this',
+                             minimum=0.5, maximum=1.5)
         method = declare(self, 'integration_method', 'exact_arc',
                          "'exact_arc' (default) or 'euler' (the textbook update, for teaching)")
         variance = declare(self, 'wheel_variance_per_m', 4e-6,
-                           'random error model: variance (m^2) of a wheel distance is this * |distance (m)|',
+                           'random error model: variance (m^2) of a wheel distance is '
+                           'this * |distance (m)|',
                            minimum=0.0)
         radius_std = declare(self, 'radius_multiplier_std', 0.0,
                              'systematic error model: std of each wheel\'s relative radius error '
@@ -53,9 +56,9 @@ class WheelOdometryNode(Node):
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the published pose')
         self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame (robot base)')
         mode = declare(self, 'covariance_mode', 'propagated',
-                       "'propagated' (from the wheel error model) or 'static' (the two lists below)")
+                       "'propagated' (from the wheel error model) or 'static' (the lists below)")
         static_pose = declare(self, 'static_pose_variances', [1e-3, 1e-3, 1e-3],
-                              "with covariance_mode 'static': variances of x (m^2), y (m^2), yaw (rad^2)")
+                              "with covariance_mode 'static': variances of x, y (m^2), yaw (rad^2)")
         static_twist = declare(self, 'static_twist_variances', [1e-3, 1e-9, 1e-3],
                                "with covariance_mode 'static': variances of vx, vy, wz")
 
@@ -82,7 +85,8 @@ class WheelOdometryNode(Node):
             require(False, names.get(field_name, field_name), problem, value)
 
         self._joints = (left, right)
-        self._static = None if mode == 'propagated' else (np.diag(static_pose), np.diag(static_twist))
+        self._static = (None if mode == 'propagated'
+                        else (np.diag(static_pose), np.diag(static_twist)))
         self._odometry = WheelOdometry(config)
         self._message: Odometry | None = None
         self._warnings = ThrottledWarnings(self)
@@ -96,7 +100,8 @@ class WheelOdometryNode(Node):
 
     def _on_joint_state(self, msg: JointState) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
-        result = self._odometry.update(stamp, list(msg.name), msg.position, msg.velocity, self._joints)
+        result = self._odometry.update(
+            stamp, list(msg.name), msg.position, msg.velocity, self._joints)
         diag = self.diagnostics
         if result.rejection is not None:
             key = result.rejection.value
@@ -105,7 +110,8 @@ class WheelOdometryNode(Node):
                                      f'({key}): {result.note}')
         elif result.step in (StampStep.BACKWARDS, StampStep.GAP):
             diag.count(result.step.value)
-            self._warnings.warn(result.step.value, f'JointState at {stamp * 1e-9:.3f} s: {result.note}')
+            self._warnings.warn(result.step.value,
+                                f'JointState at {stamp * 1e-9:.3f} s: {result.note}')
         elif result.wrapped:
             diag.count('encoder_wraps')
             self._warnings.warn('wrap', f'JointState at {stamp * 1e-9:.3f} s: {result.note}')
@@ -142,7 +148,8 @@ class WheelOdometryNode(Node):
     def _refresh_diagnostics(self, diag: Diagnostics) -> None:
         odo = self._odometry
         diag.values['pose'] = '%.4f %.4f %.4f' % odo.pose
-        diag.values['pose_std'] = '%.2e %.2e %.2e' % tuple(np.sqrt(np.maximum(np.diag(odo.covariance), 0.0)))
+        std = np.sqrt(np.maximum(np.diag(odo.covariance), 0.0))
+        diag.values['pose_std'] = '%.2e %.2e %.2e' % tuple(std)
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         before = self._odometry.pose
