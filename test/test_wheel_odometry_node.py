@@ -187,3 +187,26 @@ def test_bad_parameters_exit_2_naming_the_parameter(args, name):
     result = run_to_exit('wheel_odometry', ['--ros-args', *args], timeout=30)
     assert result.returncode == 2, result.stdout + result.stderr
     assert f"parameter '{name}'" in result.stderr
+
+
+def test_static_covariance_override(probe, joint_pub):
+    good = good_inputs(20)
+    msgs = [joint_state(t, n, p) for t, n, p in good]
+    out = Collector(probe, Odometry, '/wheel/odom', ESTIMATE_QOS)
+    params = {'covariance_mode': 'static', 'static_pose_variances': [0.01, 0.02, 0.03],
+              'static_twist_variances': [0.1, 0.2, 0.3], 'integration_method': 'euler'}
+    with NodeProcess('wheel_odometry', params=params) as node:
+        assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 20)
+        prime(probe, joint_pub, out, msgs[0], node)
+        send(probe, joint_pub, msgs[1:])
+        spin_until(probe, lambda: stamp_to_ns(out.messages[-1].header.stamp) == good[-1][0], 20)
+        assert node.alive(), node.output()
+    out.close()
+    pose, cov = odometry_pose(out.messages[-1])
+    _, twist_cov = odometry_twist(out.messages[-1])
+    np.testing.assert_array_equal(cov, np.diag([0.01, 0.02, 0.03]))
+    np.testing.assert_array_equal(twist_cov, np.diag([0.1, 0.2, 0.3]))
+    received = [g for g in good if g[0] in {stamp_to_ns(m.header.stamp) for m in out.messages}]
+    euler = expected_odometry(received, WheelOdometryConfig(method='euler'))
+    assert pose == pytest.approx(euler.pose, abs=1e-9)
+    assert pose != pytest.approx(expected_odometry(received).pose, abs=1e-6)
