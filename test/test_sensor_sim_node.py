@@ -164,3 +164,52 @@ def test_bad_parameters_exit_2_naming_the_parameter_before_publishing(probe, tmp
         assert clock.messages == []
     finally:
         clock.close()
+
+
+def test_paced_mode_waits_for_the_graph_and_loses_no_scan(probe):
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import LaserScan
+
+    from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+
+    answer = probe.create_publisher(Odometry, '/pace_answer', ESTIMATE_QOS)
+    scans = []
+
+    def on_scan(msg):                      # a one-node "graph": answer each scan with its stamp
+        scans.append(stamp_ns(msg))
+        out = Odometry()
+        out.header.stamp = msg.header.stamp
+        answer.publish(out)
+
+    sub = probe.create_subscription(LaserScan, '/scan', on_scan, SENSOR_QOS)
+    try:
+        params = {'pace_topic': '/pace_answer', 'pace_timeout_s': 60.0, 'duration_s': 5.0}
+        with NodeProcess('sensor_sim', params=params) as node:
+            assert spin_until(probe, lambda: not node.alive(), timeout=60), node.output()
+            assert node.proc.returncode == 0
+            assert 'no answer' not in node.output()
+        # every scan from the first to the last, none lost, none early
+        assert scans == [START + k * SECOND // 10 for k in range(51)]
+    finally:
+        probe.destroy_subscription(sub)
+        probe.destroy_publisher(answer)
+
+
+def test_paced_mode_goes_on_after_the_timeout_with_a_warning(probe):
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import LaserScan
+
+    from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+
+    silent = probe.create_publisher(Odometry, '/pace_silent', ESTIMATE_QOS)
+    scans = Collector(probe, LaserScan, '/scan', SENSOR_QOS)
+    try:
+        params = {'pace_topic': '/pace_silent', 'pace_timeout_s': 0.2, 'duration_s': 0.5}
+        with NodeProcess('sensor_sim', params=params) as node:
+            assert spin_until(probe, lambda: not node.alive(), timeout=60), node.output()
+            assert node.proc.returncode == 0
+            assert 'no answer on /pace_silent' in node.output()
+        assert len(scans.messages) == 6
+    finally:
+        scans.close()
+        probe.destroy_publisher(silent)

@@ -39,6 +39,7 @@ from sensing_nodes.ros.run import run_node
 NODE_NAME = 'sensor_sim'
 EXIT_BAD_PARAMETER = 2
 _WALL_PERIOD_S = 0.005          # how often the node checks which samples have come due
+_PACED_PERIOD_S = 0.001         # ... and how often it checks for the pace topic's answer
 
 TOPICS = {
     core.CLOCK: ('/clock', 'rosgraph_msgs/msg/Clock'),
@@ -65,6 +66,8 @@ class NodeSettings:
     imu_frame: str = 'imu_link'
     left_joint_name: str = 'left_wheel_joint'
     right_joint_name: str = 'right_wheel_joint'
+    pace_topic: str = ''
+    pace_timeout_s: float = 5.0
 
 
 NODE_DOCS = {
@@ -80,8 +83,13 @@ NODE_DOCS = {
     'imu_frame': 'frame of /imu/data_raw (coincides with base_frame)',
     'left_joint_name': 'name of the left wheel joint in /joint_states',
     'right_joint_name': 'name of the right wheel joint in /joint_states',
+    'pace_topic': "'' = paced by real_time_factor; else as fast as the graph keeps up: a scan "
+                  'is published only once an Odometry stamped at or after the previous scan '
+                  'arrived on this topic',
+    'pace_timeout_s': 'with pace_topic: wall seconds to wait for it before going on (with a warning)',
 }
-NODE_RANGES = {'real_time_factor': (1e-3, 1e6), 'duration_s': (0.0, None), 'seed': (0, 2**63 - 1)}
+NODE_RANGES = {'real_time_factor': (1e-3, 1e6), 'duration_s': (0.0, None), 'seed': (0, 2**63 - 1),
+               'pace_timeout_s': (1e-3, None)}
 
 
 def settings_from_values(values: dict[str, Any]) -> tuple[core.SimParams, NodeSettings, World]:
@@ -292,11 +300,20 @@ class SensorSimNode(Node):
         self._sim_now_ns = params.start_ns
         self._wall_start = time.monotonic()
         self._finished = False
-        self.create_timer(_WALL_PERIOD_S, self._on_timer,
+        self._paced = bool(settings.pace_topic)
+        self._awaited_ns: int | None = None      # stamp of the scan whose answer is awaited
+        self._awaited_since = 0.0
+        self._answered_ns = -1
+        self._started = False
+        if self._paced:
+            self.create_subscription(Odometry, settings.pace_topic, self._on_pace, ESTIMATE_QOS)
+        self.create_timer(_PACED_PERIOD_S if self._paced else _WALL_PERIOD_S, self._on_timer,
                           clock=RosClock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(
             f'simulating {"/cmd_vel" if self._commands else "the scripted route"} in world '
-            f"'{world.name}' at {settings.real_time_factor:g}x real time, seed {settings.seed}")
+            f"'{world.name}' "
+            + (f'paced by {settings.pace_topic}' if self._paced
+               else f'at {settings.real_time_factor:g}x real time') + f', seed {settings.seed}')
 
     def _on_cmd_vel(self, msg: Twist) -> None:
         speed, yaw_rate = float(msg.linear.x), float(msg.angular.z)
@@ -319,17 +336,55 @@ class SensorSimNode(Node):
             for t, kind, i in zip(times.tolist(), kinds.tolist(), indices.tolist()):
                 yield t, kind, block, i
 
+    def _on_pace(self, msg: Odometry) -> None:
+        stamp = msg.header.stamp.sec * core.NS_PER_S + msg.header.stamp.nanosec
+        self._answered_ns = max(self._answered_ns, stamp)
+
+    def _graph_ready(self) -> bool:
+        """Paced mode: start once /scan has a subscriber and the pace topic a publisher."""
+        if self._started:
+            return True
+        if (self._outputs[core.SCAN].get_subscription_count() > 0
+                and self.count_publishers(self.settings.pace_topic) > 0):
+            self._started = True
+            self.get_logger().info(f'/scan has a subscriber and {self.settings.pace_topic} a '
+                                   'publisher: starting')
+        else:
+            self.get_logger().info(f'waiting for a /scan subscriber and a {self.settings.pace_topic} '
+                                   'publisher', throttle_duration_sec=10.0)
+        return self._started
+
+    def _scan_may_go(self) -> bool:
+        """Paced mode: has the graph answered the previous scan (or has the wait timed out)?"""
+        if self._awaited_ns is None or self._answered_ns >= self._awaited_ns:
+            return True
+        if time.monotonic() - self._awaited_since < self.settings.pace_timeout_s:
+            return False
+        self.diagnostics.count('pace_timeouts')
+        self.get_logger().warning(
+            f'no answer on {self.settings.pace_topic} to the scan stamped {self._awaited_ns} ns '
+            f'within {self.settings.pace_timeout_s:g} s: going on', throttle_duration_sec=5.0)
+        return True
+
     def _on_timer(self) -> None:
         if self._finished:
             return
-        elapsed_ns = int((time.monotonic() - self._wall_start) * self.settings.real_time_factor
-                         * core.NS_PER_S)
-        due_ns = self.params.start_ns + elapsed_ns
-        while self._upcoming[0] <= due_ns:
+        if self._paced:
+            if not self._graph_ready():
+                return
+            due_ns = None
+        else:
+            elapsed_s = time.monotonic() - self._wall_start
+            due_ns = self.params.start_ns + int(elapsed_s * self.settings.real_time_factor * core.NS_PER_S)
+        while due_ns is None or self._upcoming[0] <= due_ns:
             t, kind, block, i = self._upcoming
             if self._end_ns is not None and t > self._end_ns:
                 self._finish()
                 return
+            if self._paced and kind == core.SCAN:
+                if not self._scan_may_go():
+                    return
+                self._awaited_ns, self._awaited_since = t, time.monotonic()
             publisher = self._outputs.get(kind)
             if publisher is not None:
                 publisher.publish(self._convert.message(block, kind, i, t))
@@ -337,6 +392,8 @@ class SensorSimNode(Node):
             self._sim_now_ns = t
             self.diagnostics.last_stamp_ns = t
             self._upcoming = next(self._stream)
+            if self._paced and kind == core.SCAN:
+                return                            # let the executor deliver the answer
 
     def _finish(self) -> None:
         self._finished = True

@@ -1,0 +1,74 @@
+"""Speed of the simulated robot: simulated seconds recorded per wall second with the default
+sensors (engine alone, and engine + messages + MCAP bag), and ray-cast scans per second.
+
+All figures come from one run on one core; ratios are between figures measured in that run.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sensing_nodes.core import sim
+from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.paths import config_file
+
+
+def _best_of(repeats: int, fn) -> float:
+    """Shortest wall time (s) of `repeats` calls of fn (the least disturbed by other load)."""
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - started)
+    return min(times)
+
+
+def run(quick: bool = False) -> dict:
+    """Measure and return a flat dict of figures."""
+    from sensing_nodes.nodes.sensor_sim import NodeSettings, record
+
+    params = sim.SimParams()
+    world = load_world(config_file('default_world.yaml'))
+    duration = 20.0 if quick else sim.make_route(params).period_s
+    repeats = 1 if quick else 3
+
+    engine_s = _best_of(repeats, lambda: sim.simulate(params, world, duration, seed=0))
+
+    counts: dict[str, int] = {}
+
+    def record_once() -> None:
+        with tempfile.TemporaryDirectory() as tmp:
+            counts.update(record(Path(tmp) / 'bag', duration, params, NodeSettings(), world))
+
+    record_s = _best_of(repeats, record_once)
+
+    rng = np.random.default_rng(0)
+    origins = np.column_stack((rng.uniform(-4.5, 4.5, 200), rng.uniform(-3.5, 3.5, 200)))
+    angles = params.scan_angle_min_rad + params.scan_angle_increment_rad * np.arange(params.scan_beams)
+    scans = 200 if quick else 2000
+
+    def cast() -> None:
+        for i in range(scans):
+            raycast(world.segments, origins[i % len(origins)], angles)
+
+    raycast_s = _best_of(repeats, cast)
+    messages = sum(counts.values())
+    return {
+        'sim_duration_s': round(duration, 3),
+        'sim_messages': messages,
+        'sim_record_realtime_factor': round(duration / record_s, 1),
+        'sim_engine_realtime_factor': round(duration / engine_s, 1),
+        'sim_record_messages_per_s': round(messages / record_s),
+        'sim_raycast_scans_per_s': round(scans / raycast_s),
+        'sim_raycast_beams': params.scan_beams,
+        'sim_world_segments': int(len(world.segments)),
+    }
+
+
+if __name__ == '__main__':
+    print(json.dumps(run(), indent=2))
