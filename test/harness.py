@@ -119,3 +119,26 @@ class Collector:
 
     def close(self) -> None:
         self._node.destroy_subscription(self._sub)
+
+
+def publish_paced(node, publisher, messages, pause_s: float = 0.002) -> None:
+    """Publish messages one by one, paced like a live driver (best effort must not overrun the
+    reader) and draining the probe's own subscriptions in between."""
+    for msg in messages:
+        publisher.publish(msg)
+        time.sleep(pause_s)
+        for _ in range(3):
+            rclpy.spin_once(node, timeout_sec=0)
+
+
+def publish_until(node, publisher, msg, answered: Callable[[], bool], timeout: float = 20.0) -> bool:
+    """Publish msg every 0.2 s until answered() holds: best effort loses whatever is sent before
+    the reader has matched this writer. Extra copies arrive as duplicate stamps."""
+    if not spin_until(node, lambda: publisher.get_subscription_count() > 0, timeout):
+        return False
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        publisher.publish(msg)
+        if spin_until(node, answered, 0.2):
+            return True
+    return answered()
