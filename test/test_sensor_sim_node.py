@@ -22,7 +22,8 @@ def stamp_ns(msg) -> int:
 
 
 def test_node_settings_defaults_equal_config_file():
-    values = yaml.safe_load((REPO / 'config' / 'sensor_sim.yaml').read_text())['sensor_sim']['ros__parameters']
+    text = (REPO / 'config' / 'sensor_sim.yaml').read_text()
+    values = yaml.safe_load(text)['sensor_sim']['ros__parameters']
     for name, f in NodeSettings.__dataclass_fields__.items():
         assert values[name] == f.default, name
 
@@ -43,9 +44,9 @@ def live_run(probe):
         '/ground_truth/odom': Collector(probe, Odometry, '/ground_truth/odom', ESTIMATE_QOS),
         '/clock': Collector(probe, Clock, '/clock', CLOCK_QOS),
     }
-    # The node publishes from its first moment, possibly before discovery matched the probe:
-    # the rate test counts a window well after the start.
-    node = NodeProcess('sensor_sim', params={'real_time_factor': 3.0, 'seed': 9, 'duration_s': 6.0})
+    # Simulated time starts once the probe is subscribed to every sensor topic.
+    params = {'real_time_factor': 3.0, 'seed': 9, 'duration_s': 6.0, 'wait_for_subscribers': 1}
+    node = NodeProcess('sensor_sim', params=params)
     with node:
         assert spin_until(probe, lambda: not node.alive(), timeout=60), node.output()
         spin_until(probe, lambda: False, timeout=0.5)
@@ -66,6 +67,8 @@ def test_each_topic_at_its_configured_rate_over_simulated_time(live_run):
         stamps = np.array(sorted(stamp_ns(m) for m in messages[topic]))
         period = SECOND // rate
         assert stamps.size, topic
+        if topic != '/clock':                                     # /clock was not waited for
+            assert stamps[0] == START, f'{topic}: the first sample was not received'
         assert np.all((stamps - START) % period == 0), f'{topic}: stamps off the {rate} Hz grid'
         assert stamps.max() <= START + 6 * SECOND, topic           # stopped at duration_s
         window = stamps[(stamps >= START + 2 * SECOND) & (stamps < START + 5 * SECOND)]
@@ -77,7 +80,8 @@ def test_each_topic_at_its_configured_rate_over_simulated_time(live_run):
 
 def test_live_messages_are_the_batch_simulation_numbers(live_run):
     messages, _, _ = live_run
-    run = sim.simulate(sim.SimParams(), load_world(REPO / 'config' / 'default_world.yaml'), 6.0, seed=9)
+    world = load_world(REPO / 'config' / 'default_world.yaml')
+    run = sim.simulate(sim.SimParams(), world, 6.0, seed=9)
     scan_index = {t: i for i, t in enumerate(run.scan_t.tolist())}
     scans = messages['/scan']
     assert len(scans) >= 40
@@ -88,7 +92,8 @@ def test_live_messages_are_the_batch_simulation_numbers(live_run):
     imu_index = {t: i for i, t in enumerate(run.imu_t.tolist())}
     for msg in messages['/imu/data_raw']:
         i = imu_index[stamp_ns(msg)]
-        assert (msg.angular_velocity.z, msg.linear_acceleration.z) == (run.imu_gyro[i, 2], run.imu_accel[i, 2])
+        assert msg.angular_velocity.z == run.imu_gyro[i, 2]
+        assert msg.linear_acceleration.z == run.imu_accel[i, 2]
     imu = messages['/imu/data_raw'][0]
     assert imu.header.frame_id == 'imu_link' and imu.orientation_covariance[0] == -1.0
     joint_index = {t: i for i, t in enumerate(run.joint_t.tolist())}
@@ -99,6 +104,10 @@ def test_live_messages_are_the_batch_simulation_numbers(live_run):
         i = truth_index[stamp_ns(msg)]
         assert (msg.pose.pose.position.x, msg.pose.pose.position.y) == tuple(run.truth_pose[i, :2])
     assert (msg.header.frame_id, msg.child_frame_id) == ('map', 'base_link')
+
+
+def last_speed(collector) -> float:
+    return collector.messages[-1].twist.twist.linear.x
 
 
 def test_cmd_vel_is_followed_and_non_finite_commands_are_ignored_with_a_warning(probe):
@@ -122,10 +131,11 @@ def test_cmd_vel_is_followed_and_non_finite_commands_are_ignored_with_a_warning(
         return spin_until(probe, step, timeout)
 
     try:
-        with NodeProcess('sensor_sim', params={'use_cmd_vel': True, 'real_time_factor': 2.0}) as node:
+        params = {'use_cmd_vel': True, 'real_time_factor': 2.0}
+        with NodeProcess('sensor_sim', params=params) as node:
             assert spin_until(probe, lambda: len(truth.messages) > 10, 30), node.output()
             assert truth.messages[-1].twist.twist.linear.x == 0.0     # no command: standing
-            reached = drive(forward, lambda: truth.messages[-1].twist.twist.linear.x >= 0.3 - 1e-9, 30)
+            reached = drive(forward, lambda: last_speed(truth) >= 0.3 - 1e-9, 30)
             assert reached, node.output()
             last = truth.messages[-1]
             assert last.twist.twist.angular.z == pytest.approx(0.2)
@@ -133,8 +143,9 @@ def test_cmd_vel_is_followed_and_non_finite_commands_are_ignored_with_a_warning(
             assert drive(bad, lambda: 'ignoring /cmd_vel' in node.output(), 20), node.output()
             assert node.alive()
             # the bad commands changed nothing; without commands it stops after the timeout
-            assert spin_until(probe, lambda: truth.messages[-1].twist.twist.linear.x == 0.0, 20)
+            assert spin_until(probe, lambda: last_speed(truth) == 0.0, 20)
             assert all(math.isfinite(m.pose.pose.position.x) for m in truth.messages)
+            assert node.stop() == 0, node.output()                    # SIGINT: clean exit
     finally:
         truth.close()
         probe.destroy_publisher(cmd)

@@ -56,7 +56,8 @@ def test_simparams_defaults_equal_config_file():
 
 def test_defaults_a_student_recognises():
     p = sim.SimParams()
-    assert (p.scan_beams, p.scan_rate_hz, p.range_noise_std_m, p.range_max_m) == (360, 10.0, 0.01, 8.0)
+    lidar = (p.scan_beams, p.scan_rate_hz, p.range_noise_std_m, p.range_max_m)
+    assert lidar == (360, 10.0, 0.01, 8.0)
     assert (p.imu_rate_hz, p.joint_rate_hz) == (200.0, 50.0)
     assert math.degrees(p.gyro_bias_rad_s) == pytest.approx(0.5)
     assert (p.wheel_radius_m, p.wheel_separation_m) == (0.05, 0.30)
@@ -100,10 +101,12 @@ def test_occlusion_laser_mount_and_yaw_follow_from_the_nearest_hit():
     params = still(**NOISELESS, laser_x_m=0.5, start_yaw_rad=math.pi / 2,
                    start_x_m=0.0, start_y_m=-0.5)
     # base at (0, -0.5) facing +y, laser 0.5 m ahead at the origin still facing +y: the beam at
-    # -90 deg (laser frame) points along +x and sees the short wall at 1.5 m, which hides the far one.
+    # -90 deg (laser frame) points along +x and sees the short wall at 1.5 m, which hides the
+    # far one.
     run = sim.simulate(params, world, 0.0, seed=0)
     assert run.scan_ranges[0, beam_index(params, -90.0)] == pytest.approx(1.5, abs=1e-6)
-    assert run.scan_ranges[0, beam_index(params, -80.0)] == pytest.approx(3.0 / math.cos(math.radians(10)), abs=1e-5)
+    far = 3.0 / math.cos(math.radians(10))
+    assert run.scan_ranges[0, beam_index(params, -80.0)] == pytest.approx(far, abs=1e-5)
 
 
 def test_no_return_beyond_range_max_and_too_close_are_rep117_infinities():
@@ -126,7 +129,8 @@ def test_range_noise_mean_is_the_bias_and_std_is_sigma_over_many_beams():
     n = errors.size
     assert n > 30_000
     assert abs(errors.mean() - bias) < 4.0 * sigma / math.sqrt(n)
-    assert abs(errors.std() - sigma) < 4.0 * sigma / math.sqrt(2.0 * n) + 1e-6   # + float32 rounding
+    # + 1e-6 for float32 rounding
+    assert abs(errors.std() - sigma) < 4.0 * sigma / math.sqrt(2.0 * n) + 1e-6
 
 
 # --- IMU ------------------------------------------------------------------------------------
@@ -140,8 +144,8 @@ def test_accelerometer_reads_plus_g_on_z_and_gyro_reads_bias_at_rest():
     tol = 4.0 * params.accel_noise_std_m_s2 / math.sqrt(n)
     assert accel[2] == pytest.approx(9.81 + params.accel_bias_z_m_s2, abs=tol)
     assert accel[0] == pytest.approx(params.accel_bias_x_m_s2, abs=tol)
-    assert run.imu_gyro[:, 2].mean() == pytest.approx(math.radians(0.5),
-                                                      abs=4.0 * params.gyro_noise_std_rad_s / math.sqrt(n))
+    gyro_tol = 4.0 * params.gyro_noise_std_rad_s / math.sqrt(n)
+    assert run.imu_gyro[:, 2].mean() == pytest.approx(math.radians(0.5), abs=gyro_tol)
     assert run.imu_gyro[:, 2].std() == pytest.approx(params.gyro_noise_std_rad_s, rel=0.15)
 
 
@@ -189,7 +193,8 @@ def test_one_metre_straight_counts_and_one_percent_radius_error():
     per_metre = 1.0 / (params.wheel_radius_m * params.count_angle_rad)    # 25464.79 counts
     assert counts[0] == math.floor(per_metre) == 25464
     assert counts[1] == math.floor(per_metre / 1.01) == 25212
-    np.testing.assert_allclose(run.truth_pose[-1], (-1.5, -2.0, 0.0), atol=1e-12)  # truth unaffected
+    # the truth is unaffected by the radius error
+    np.testing.assert_allclose(run.truth_pose[-1], (-1.5, -2.0, 0.0), atol=1e-12)
 
 
 def test_slip_noise_grows_with_distance_and_leaves_standing_wheels_still():
@@ -238,12 +243,13 @@ def test_default_route_loops_clear_of_obstacles_with_still_start_slow_turn_and_s
 
 
 def test_route_repeats_when_the_run_is_longer():
-    params = sim.SimParams(route=('straight 1.0 0.5', 'turn 180 90', 'straight 1.0 0.5', 'turn 180 90',
-                                  'wait 1'))
+    params = sim.SimParams(route=('straight 1.0 0.5', 'turn 180 90', 'straight 1.0 0.5',
+                                  'turn 180 90', 'wait 1'))
     route = sim.make_route(params)
     run = sim.simulate(params, DEFAULT_WORLD, 2.5 * route.period_s, seed=0)
     for loops in (1, 2):
-        i = np.searchsorted(run.truth_t, run.truth_t[0] + int(round(loops * route.period_s * 1e9))) - 1
+        end = run.truth_t[0] + int(round(loops * route.period_s * 1e9))
+        i = np.searchsorted(run.truth_t, end) - 1
         # the last truth sample of the loop (100 Hz), in its final wait
         np.testing.assert_allclose(run.truth_pose[i], run.truth_pose[0], atol=1e-6)
 
@@ -301,7 +307,8 @@ def test_each_sensor_has_its_own_noise_stream():
                      DEFAULT_WORLD, 8.0, seed=1)
     np.testing.assert_array_equal(a.imu_gyro, b.imu_gyro)
     np.testing.assert_array_equal(a.joint_position, b.joint_position)
-    c = sim.simulate(dataclasses.replace(base, gyro_noise_std_rad_s=0.01), DEFAULT_WORLD, 8.0, seed=1)
+    c = sim.simulate(dataclasses.replace(base, gyro_noise_std_rad_s=0.01), DEFAULT_WORLD, 8.0,
+                     seed=1)
     np.testing.assert_array_equal(a.scan_ranges, c.scan_ranges)
 
 

@@ -9,7 +9,7 @@ import pytest
 import yaml
 from harness import REPO, run_to_exit
 
-from sensing_nodes.bag import read_messages, topic_counts
+from sensing_nodes.bag import read_messages, topic_counts, type_name
 from sensing_nodes.core import sim
 from sensing_nodes.core.world import load_world
 
@@ -50,7 +50,7 @@ def raw_messages(bag: Path):
 
 
 def fields_equal(a, b, path=''):
-    """Every field of rclpy message a equals the same field of b (any message object), recursively."""
+    """Every field of rclpy message a equals the same field of b (any message object)."""
     for name in a.get_fields_and_field_types():
         va, vb = getattr(a, name), getattr(b, name)
         if hasattr(va, 'get_fields_and_field_types'):
@@ -105,19 +105,21 @@ def test_bag_holds_exactly_the_batch_simulation(bags):
         assert stamp == t.sec * 10**9 + t.nanosec                    # bag time = message stamp
         got.setdefault(topic, []).append(msg)
     scans = got['/scan']
-    np.testing.assert_array_equal(np.array([m.ranges for m in scans], dtype=np.float32), run.scan_ranges)
+    ranges = np.array([m.ranges for m in scans], dtype=np.float32)
+    np.testing.assert_array_equal(ranges, run.scan_ranges)
     assert scans[0].header.frame_id == 'laser'
     assert scans[0].angle_min == pytest.approx(run.scan_angle_min)
     assert scans[0].angle_increment == pytest.approx(run.scan_angle_increment)
     assert (scans[0].range_min, scans[0].range_max) == pytest.approx((0.12, 8.0))
     imus = got['/imu/data_raw']
-    np.testing.assert_array_equal([[m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z]
-                                   for m in imus], run.imu_gyro)
+    gyro = [[m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z] for m in imus]
+    np.testing.assert_array_equal(gyro, run.imu_gyro)
     np.testing.assert_array_equal([[m.linear_acceleration.x, m.linear_acceleration.y,
                                     m.linear_acceleration.z] for m in imus], run.imu_accel)
     assert imus[0].header.frame_id == 'imu_link'
     assert imus[0].orientation_covariance[0] == -1.0
-    assert imus[0].angular_velocity_covariance[8] == pytest.approx(sim.SimParams().gyro_noise_std_rad_s ** 2)
+    gyro_var = sim.SimParams().gyro_noise_std_rad_s ** 2
+    assert imus[0].angular_velocity_covariance[8] == pytest.approx(gyro_var)
     assert imus[0].linear_acceleration_covariance[0] == pytest.approx(0.02 ** 2)
     joints = got['/joint_states']
     assert list(joints[0].name) == ['left_wheel_joint', 'right_wheel_joint']
@@ -127,10 +129,11 @@ def test_bag_holds_exactly_the_batch_simulation(bags):
     assert (truth[0].header.frame_id, truth[0].child_frame_id) == ('map', 'base_link')
     xy = np.array([[m.pose.pose.position.x, m.pose.pose.position.y] for m in truth])
     np.testing.assert_array_equal(xy, run.truth_pose[:, :2])
-    yaw = np.array([2.0 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w) for m in truth])
+    yaw = np.array([2.0 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w)
+                    for m in truth])
     np.testing.assert_allclose(np.angle(np.exp(1j * (yaw - run.truth_pose[:, 2]))), 0.0, atol=1e-12)
-    np.testing.assert_array_equal([[m.twist.twist.linear.x, m.twist.twist.angular.z] for m in truth],
-                                  run.truth_twist)
+    twist = [[m.twist.twist.linear.x, m.twist.twist.angular.z] for m in truth]
+    np.testing.assert_array_equal(twist, run.truth_twist)
 
 
 def test_rosbags_and_mcap_ros2_readers_agree(bags):
@@ -141,7 +144,7 @@ def test_rosbags_and_mcap_ros2_readers_agree(bags):
     assert len(ours) == len(theirs) == sum(c for _, c in topic_counts(bags['a']).values())
     for (topic, stamp, msg), other in zip(ours, theirs):
         assert (topic, stamp) == (other.channel.topic, other.log_time_ns)
-        assert other.schema.name == type(msg).__module__.split('.')[0] + '/msg/' + type(msg).__name__
+        assert other.schema.name == type_name(msg)
         fields_equal(msg, other.ros_msg, topic)
 
 
@@ -151,7 +154,8 @@ def test_shipped_params_file_records_the_defaults(tmp_path):
     record(tmp_path / 'x' / 'from_file', 5)
     assert (tmp_path / 'from_file' / 'metadata.yaml').read_text() \
         == (tmp_path / 'x' / 'from_file' / 'metadata.yaml').read_text()
-    a, b = (list(read_messages(p, ['/scan'])) for p in (tmp_path / 'from_file', tmp_path / 'x' / 'from_file'))
+    a, b = (list(read_messages(p, ['/scan']))
+            for p in (tmp_path / 'from_file', tmp_path / 'x' / 'from_file'))
     assert a == b
 
 
@@ -180,8 +184,9 @@ def test_bad_parameters_exit_2_naming_the_parameter_and_write_nothing(tmp_path, 
 def test_malformed_world_and_params_files_exit_2(tmp_path):
     world = tmp_path / 'world.yaml'
     world.write_text('walls:\n  - [0, 0, 1]\n')
+    bad_world = params_file(tmp_path, world_file=str(world))
     result = run_to_exit('sensor_sim', ['--record', str(tmp_path / 'bag'), '--duration', '1',
-                                        '--params-file', str(params_file(tmp_path, world_file=str(world)))])
+                                        '--params-file', str(bad_world)])
     assert result.returncode == 2 and "parameter 'world_file'" in result.stderr
     assert 'walls[0]' in result.stderr
     garbage = tmp_path / 'garbage.yaml'

@@ -49,7 +49,8 @@ def run(quick: bool = False) -> dict:
 
     rng = np.random.default_rng(0)
     origins = np.column_stack((rng.uniform(-4.5, 4.5, 200), rng.uniform(-3.5, 3.5, 200)))
-    angles = params.scan_angle_min_rad + params.scan_angle_increment_rad * np.arange(params.scan_beams)
+    angles = (params.scan_angle_min_rad
+              + params.scan_angle_increment_rad * np.arange(params.scan_beams))
     scans = 200 if quick else 2000
 
     def cast() -> None:

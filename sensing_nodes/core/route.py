@@ -109,7 +109,8 @@ def parse_leg(text: str, linear_accel_m_s2: float, angular_accel_rad_s2: float) 
 @dataclass(frozen=True)
 class Motion:
     """Body motion at a set of times: cumulative distance S (m) and heading change Theta (rad)
-    since the start, forward speed v (m/s), yaw rate w (rad/s), forward acceleration dv/dt (m/s^2)."""
+    since the start, forward speed v (m/s), yaw rate w (rad/s), forward acceleration dv/dt
+    (m/s^2)."""
 
     distance: NDArray[np.float64]
     heading: NDArray[np.float64]
@@ -141,7 +142,8 @@ class Route:
         t = np.asarray(t, dtype=float)
         loops = np.floor(t / self.period_s)
         local = t - loops * self.period_s
-        index = np.clip(np.searchsorted(self.starts, local, side='right') - 1, 0, len(self.legs) - 1)
+        index = np.clip(np.searchsorted(self.starts, local, side='right') - 1,
+                        0, len(self.legs) - 1)
         distance = loops * self.loop_distance_m + self._distance0[index]
         heading = loops * self.loop_heading_rad + self._heading0[index]
         speed, yaw_rate, accel = (np.zeros_like(t) for _ in range(3))

@@ -232,7 +232,8 @@ def load_params_file(path: str | Path, node_name: str = 'sensor_sim') -> dict[st
     try:
         data = yaml.safe_load(path.read_text())
     except OSError as exc:
-        raise SimParameterError('params_file', f'cannot be read: {exc.strerror}', str(path)) from None
+        raise SimParameterError('params_file', f'cannot be read: {exc.strerror}',
+                                str(path)) from None
     except yaml.YAMLError as exc:
         raise SimParameterError('params_file', f'is not valid YAML: {exc}', str(path)) from None
     values: dict[str, Any] = {}
@@ -322,7 +323,8 @@ def block_events(block: SimBlock) -> tuple[NDArray[np.int64], NDArray[np.int64],
     order: by time, then by kind (CLOCK, TRUTH, IMU, JOINTS, SCAN)."""
     times = [getattr(block, name) for _, name in _KIND_TIMES]
     t = np.concatenate(times)
-    kind = np.concatenate([np.full(len(x), k, dtype=np.int64) for (k, _), x in zip(_KIND_TIMES, times)])
+    kind = np.concatenate([np.full(len(x), k, dtype=np.int64)
+                           for (k, _), x in zip(_KIND_TIMES, times)])
     index = np.concatenate([np.arange(len(x), dtype=np.int64) for x in times])
     order = np.lexsort((kind, t))
     return t[order], kind[order], index[order]
@@ -365,7 +367,8 @@ class SensorSim:
                                       m0.yaw_rate[0], m0.accel[0]])
         self._xy_last = np.array([p.start_x_m, p.start_y_m])
         self._imu_last = self._motion_last[[1, 2]].copy()          # heading, speed
-        self._wheel_travel_last = self._wheel_travel(self._motion_last[:1], self._motion_last[1:2])[0]
+        self._wheel_travel_last = self._wheel_travel(self._motion_last[:1],
+                                                     self._motion_last[1:2])[0]
         self._wheel_angle_last = np.zeros(2)
         self._counts_last = np.zeros(2, dtype=np.int64)
 
@@ -433,8 +436,10 @@ class SensorSim:
         joint_t = stamps(k)
         travel = self._wheel_travel(distance[k], heading[k])
         step = np.diff(np.vstack((self._wheel_travel_last, travel)), axis=0)
-        slip_noise = p.slip_noise_sqrt_m * np.sqrt(np.abs(step)) * self._rng_wheels.standard_normal(step.shape)
-        angle = self._wheel_angle_last + np.cumsum((step * self._slip + slip_noise) / self._true_radius, axis=0)
+        slip_noise = (p.slip_noise_sqrt_m * np.sqrt(np.abs(step))
+                      * self._rng_wheels.standard_normal(step.shape))
+        angle = self._wheel_angle_last + np.cumsum(
+            (step * self._slip + slip_noise) / self._true_radius, axis=0)
         counts = np.floor(angle / p.count_angle_rad).astype(np.int64)
         joint_position = counts * p.count_angle_rad
         joint_period_s = self.periods['joint'] * self.tick_ns / NS_PER_S
@@ -463,7 +468,8 @@ class SensorSim:
         noise = self._rng_scan.standard_normal((x.size, p.scan_beams))
         for i in range(x.size):
             c, s = math.cos(yaw[i]), math.sin(yaw[i])
-            origin = (x[i] + c * p.laser_x_m - s * p.laser_y_m, y[i] + s * p.laser_x_m + c * p.laser_y_m)
+            origin = (x[i] + c * p.laser_x_m - s * p.laser_y_m,
+                      y[i] + s * p.laser_x_m + c * p.laser_y_m)
             true = raycast(self.world.segments, origin, yaw[i] + p.laser_yaw_rad + self.beam_angles)
             out[i] = measured_ranges(true, noise[i], p)
         return out
@@ -511,7 +517,8 @@ class SimRun:
     @property
     def scan_angles(self) -> NDArray[np.float64]:
         """Beam angles (rad) in the laser frame."""
-        return self.scan_angle_min + self.scan_angle_increment * np.arange(self.scan_ranges.shape[1])
+        beams = np.arange(self.scan_ranges.shape[1])
+        return self.scan_angle_min + self.scan_angle_increment * beams
 
     def truth_at(self, t_ns: NDArray[np.int64] | int) -> NDArray[np.float64]:
         """Truth pose(s) [x, y, yaw] interpolated at time(s) t_ns (linear; yaw unwrapped)."""

@@ -66,6 +66,7 @@ class NodeSettings:
     imu_frame: str = 'imu_link'
     left_joint_name: str = 'left_wheel_joint'
     right_joint_name: str = 'right_wheel_joint'
+    wait_for_subscribers: int = 0
     pace_topic: str = ''
     pace_timeout_s: float = 5.0
 
@@ -83,13 +84,16 @@ NODE_DOCS = {
     'imu_frame': 'frame of /imu/data_raw (coincides with base_frame)',
     'left_joint_name': 'name of the left wheel joint in /joint_states',
     'right_joint_name': 'name of the right wheel joint in /joint_states',
+    'wait_for_subscribers': 'start simulated time once /scan, /imu/data_raw, /joint_states and '
+                            '/ground_truth/odom have at least this many subscribers each',
     'pace_topic': "'' = paced by real_time_factor; else as fast as the graph keeps up: a scan "
                   'is published only once an Odometry stamped at or after the previous scan '
                   'arrived on this topic',
-    'pace_timeout_s': 'with pace_topic: wall seconds to wait for it before going on (with a warning)',
+    'pace_timeout_s': 'with pace_topic: wall seconds to wait for an answer before going on '
+                      '(with a warning)',
 }
 NODE_RANGES = {'real_time_factor': (1e-3, 1e6), 'duration_s': (0.0, None), 'seed': (0, 2**63 - 1),
-               'pace_timeout_s': (1e-3, None)}
+               'pace_timeout_s': (1e-3, None), 'wait_for_subscribers': (0, 1000)}
 
 
 def settings_from_values(values: dict[str, Any]) -> tuple[core.SimParams, NodeSettings, World]:
@@ -110,7 +114,8 @@ def settings_from_values(values: dict[str, Any]) -> tuple[core.SimParams, NodeSe
     for name, (lo, hi) in NODE_RANGES.items():
         value = getattr(settings, name)
         if not math.isfinite(value) or value < lo or (hi is not None and value > hi):
-            raise core.SimParameterError(name, f'must be in [{lo}, {hi if hi is not None else "inf"}]',
+            upper = hi if hi is not None else 'inf'
+            raise core.SimParameterError(name, f'must be in [{lo}, {upper}]',
                                          value)
     for name in ('map_frame', 'base_frame', 'laser_frame', 'imu_frame',
                  'left_joint_name', 'right_joint_name'):
@@ -141,16 +146,16 @@ class SimMessages:
         self._imu.header.frame_id = settings.imu_frame
         self._imu.orientation_covariance[0] = -1.0          # no orientation (REP 145)
         gyro_var, accel_var = p.gyro_noise_std_rad_s ** 2, p.accel_noise_std_m_s2 ** 2
-        self._imu.angular_velocity_covariance = [gyro_var, 0.0, 0.0, 0.0, gyro_var, 0.0, 0.0, 0.0, gyro_var]
-        self._imu.linear_acceleration_covariance = [accel_var, 0.0, 0.0, 0.0, accel_var, 0.0, 0.0, 0.0,
-                                                    accel_var]
+        self._imu.angular_velocity_covariance = np.diag([gyro_var] * 3).ravel().tolist()
+        self._imu.linear_acceleration_covariance = np.diag([accel_var] * 3).ravel().tolist()
         self._joints = JointState()
         self._joints.name = [settings.left_joint_name, settings.right_joint_name]
         self._scan = LaserScan()
         self._scan.header.frame_id = settings.laser_frame
         self._scan.angle_min = p.scan_angle_min_rad
         self._scan.angle_increment = p.scan_angle_increment_rad
-        self._scan.angle_max = p.scan_angle_min_rad + (p.scan_beams - 1) * p.scan_angle_increment_rad
+        self._scan.angle_max = (p.scan_angle_min_rad
+                                + (p.scan_beams - 1) * p.scan_angle_increment_rad)
         self._scan.time_increment = 0.0                    # every beam at the scan's stamp
         self._scan.scan_time = 1.0 / p.scan_rate_hz
         self._scan.range_min = p.range_min_m
@@ -173,7 +178,8 @@ class SimMessages:
             msg = self._odom
             x, y, yaw = block.truth_pose[i].tolist()
             msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
-            msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+            q = msg.pose.pose.orientation
+            q.z, q.w = math.sin(0.5 * yaw), math.cos(0.5 * yaw)
             msg.twist.twist.linear.x, msg.twist.twist.angular.z = block.truth_twist[i].tolist()
         elif kind == core.IMU:
             msg = self._imu
@@ -289,7 +295,8 @@ class SensorSimNode(Node):
             core.SCAN: self.create_publisher(LaserScan, TOPICS[core.SCAN][0], SENSOR_QOS),
         }
         if settings.publish_clock:
-            self._outputs[core.CLOCK] = self.create_publisher(Clock, TOPICS[core.CLOCK][0], CLOCK_QOS)
+            self._outputs[core.CLOCK] = self.create_publisher(Clock, TOPICS[core.CLOCK][0],
+                                                              CLOCK_QOS)
         if self._commands is not None:
             self.create_subscription(Twist, '/cmd_vel', self._on_cmd_vel, 10)
         self.diagnostics = Diagnostics(self)
@@ -323,7 +330,8 @@ class SensorSimNode(Node):
         except ValueError:
             self.diagnostics.count('cmd_vel_rejected')
             self.get_logger().warning(
-                f'ignoring /cmd_vel with non-finite values (linear.x={speed}, angular.z={yaw_rate})',
+                f'ignoring /cmd_vel with non-finite values (linear.x={speed}, '
+                f'angular.z={yaw_rate})',
                 throttle_duration_sec=2.0)
             return
         self.diagnostics.count('cmd_vel')
@@ -341,18 +349,27 @@ class SensorSimNode(Node):
         self._answered_ns = max(self._answered_ns, stamp)
 
     def _graph_ready(self) -> bool:
-        """Paced mode: start once /scan has a subscriber and the pace topic a publisher."""
+        """Start simulated time once every sensor and truth topic has wait_for_subscribers
+        subscribers and, when paced, /scan one and the pace topic a publisher."""
         if self._started:
             return True
-        if (self._outputs[core.SCAN].get_subscription_count() > 0
-                and self.count_publishers(self.settings.pace_topic) > 0):
-            self._started = True
-            self.get_logger().info(f'/scan has a subscriber and {self.settings.pace_topic} a '
-                                   'publisher: starting')
-        else:
-            self.get_logger().info(f'waiting for a /scan subscriber and a {self.settings.pace_topic} '
-                                   'publisher', throttle_duration_sec=10.0)
-        return self._started
+        wanted = self.settings.wait_for_subscribers
+        missing = [TOPICS[k][0] for k in (core.SCAN, core.IMU, core.JOINTS, core.TRUTH)
+                   if self._outputs[k].get_subscription_count() < wanted]
+        if self._paced:
+            if self._outputs[core.SCAN].get_subscription_count() < 1:
+                missing.append('/scan')
+            if self.count_publishers(self.settings.pace_topic) < 1:
+                missing.append(f'a publisher on {self.settings.pace_topic}')
+        if missing:
+            self.get_logger().info(f'waiting for subscribers of {", ".join(sorted(set(missing)))}',
+                                   throttle_duration_sec=10.0)
+            return False
+        self._started = True
+        self._wall_start = time.monotonic()
+        if wanted or self._paced:
+            self.get_logger().info('the graph is connected: starting')
+        return True
 
     def _scan_may_go(self) -> bool:
         """Paced mode: has the graph answered the previous scan (or has the wait timed out)?"""
@@ -369,13 +386,14 @@ class SensorSimNode(Node):
     def _on_timer(self) -> None:
         if self._finished:
             return
+        if not self._graph_ready():
+            return
         if self._paced:
-            if not self._graph_ready():
-                return
             due_ns = None
         else:
             elapsed_s = time.monotonic() - self._wall_start
-            due_ns = self.params.start_ns + int(elapsed_s * self.settings.real_time_factor * core.NS_PER_S)
+            due_ns = self.params.start_ns + int(
+                elapsed_s * self.settings.real_time_factor * core.NS_PER_S)
         while due_ns is None or self._upcoming[0] <= due_ns:
             t, kind, block, i = self._upcoming
             if self._end_ns is not None and t > self._end_ns:
