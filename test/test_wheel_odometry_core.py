@@ -228,10 +228,12 @@ def test_wrapped_encoder_positions_give_the_same_odometry():
 
 
 def test_unwrap_only_where_implausible():
-    delta = np.array([0.1, 2 * math.pi - 0.1, -(2 * math.pi - 0.05), 3.0])
+    delta = np.array([0.1, 2 * math.pi - 0.1, -(2 * math.pi - 0.05), 3.0, 4 * math.pi + 0.1])
     out = unwrap_increments(delta, 0.5)
-    np.testing.assert_allclose(out, [0.1, -0.1, 0.05, 3.0])   # 3.0 stays: implausible either way
-    np.testing.assert_allclose(unwrap_increments(delta, 10.0), delta)
+    # 3.0 stays (implausible either way), and so does two turns: a wrapped reading jumps by one.
+    np.testing.assert_allclose(out, [0.1, -0.1, 0.05, 3.0, 4 * math.pi + 0.1])
+    # With a limit of 10 rad per step only the two-turn jump is implausible; one turn comes off.
+    np.testing.assert_allclose(unwrap_increments(delta, 10.0), [*delta[:4], 2 * math.pi + 0.1])
 
 
 # -- bad input ----------------------------------------------------------------------------------
@@ -321,10 +323,13 @@ def test_implausible_jump_is_rejected_and_re_anchored():
     jumped = positions[20] + (0.0, 3.0)        # 3 rad in 20 ms: 150 rad/s, even after wrapping
     r = odo.update(int(t[20]), list(JOINTS), list(jumped), [], JOINTS)
     assert r.rejection is Rejection.IMPLAUSIBLE and odo.pose == before
-    feed(odo, t[21:], positions[21:] + (0.0, 3.0))   # encoder restarted with an offset
-    skipped = reference_pose(t, positions, skip=(20,))
-    # Only the increment of the jump is lost: 0.2 rad per wheel of 10 / 11 rad.
-    assert odo.pose[0] == pytest.approx(skipped.pose[0] * (1 - 0.21 / 10.5), rel=0.02)
+    two_turns = positions[21] + (0.0, 3.0 + 4 * math.pi)   # folds to near zero, yet not a wrap
+    r = odo.update(int(t[21]), list(JOINTS), list(two_turns), [], JOINTS)
+    assert r.rejection is Rejection.IMPLAUSIBLE and odo.pose == before
+    feed(odo, t[22:], positions[22:] + (0.0, 3.0 + 4 * math.pi))   # restarted with an offset
+    skipped = reference_pose(t, positions, skip=(20, 21))
+    # Only the increments of the jumps are lost: 2 x 0.2 rad per wheel of 10 / 11 rad.
+    assert odo.pose[0] == pytest.approx(skipped.pose[0] * (1 - 0.42 / 10.5), rel=0.02)
 
 
 def test_velocity_only_driver():

@@ -9,8 +9,8 @@ relative error of standard deviation `radius_multiplier_std` (what calibration l
 is carried as the Jacobian of the pose w.r.t. the two radius errors, so it correlates over the path.
 
 Encoder wrap: some drivers publish positions wrapped into (-pi, pi]. An increment whose size is
-impossible for the wheel in dt (|dphi| > max_wheel_speed * dt) but becomes possible after wrapping
-into (-pi, pi] is taken as a wrapped reading and folded back. This is only unambiguous while the
+impossible for the wheel in dt (|dphi| > max_wheel_speed * dt) but becomes possible with one
+turn (2 pi) taken off is a wrapped reading and is folded back. This is only unambiguous while the
 wheel turns less than pi per sample, which holds at usual rates (50 rad/s at 100 Hz is 0.5 rad).
 An increment that is implausible even after folding is rejected by WheelOdometry.
 """
@@ -38,10 +38,12 @@ LATERAL_VELOCITY_VARIANCE = 1e-9
 def unwrap_increments(delta_rad: ArrayLike, max_step_rad: ArrayLike) -> NDArray[np.float64]:
     """Encoder angle increments (rad) with wrap jumps folded back into (-pi, pi].
 
-    Folds only where |delta| > max_step_rad and the wrapped value is within max_step_rad.
+    Folds by one turn (a wrapped reading cannot jump further) only where |delta| > max_step_rad
+    and the folded value is within max_step_rad.
     """
     delta = np.asarray(delta_rad, dtype=float)
-    wrapped = np.asarray(wrap_angle(delta), dtype=float)
+    # A wrapping driver's reading jumps by exactly one turn: true step -+ 2 pi.
+    wrapped = delta - np.copysign(2.0 * np.pi, delta)
     limit = np.asarray(max_step_rad, dtype=float)
     fold = (np.abs(delta) > limit) & (np.abs(wrapped) <= limit)
     return np.where(fold, wrapped, delta)
@@ -392,7 +394,7 @@ class WheelOdometry:
             for now, prev in zip(pos, self._positions):
                 d = now - prev
                 if abs(d) > max_step and step is StampStep.OK:
-                    folded = float(wrap_angle(d))
+                    folded = d - math.copysign(2.0 * math.pi, d)
                     if abs(folded) > max_step:
                         self._restart(stamp_ns, pos, vel)
                         return OdometryUpdate(False, step, Rejection.IMPLAUSIBLE, note=(
