@@ -343,6 +343,9 @@ def test_velocity_only_driver():
     assert r.rejection is Rejection.LENGTH_MISMATCH
     r = odo.update(int(t[-1] + 40 * MS), list(JOINTS), [], [], JOINTS)
     assert r.rejection is Rejection.NO_DATA
+    pose = odo.pose
+    r = odo.update(int(t[-1] + 60 * MS), list(JOINTS), [], [4.0, 1e6], JOINTS)
+    assert r.rejection is Rejection.IMPLAUSIBLE and odo.pose == pose
 
 
 def test_config_problems_name_the_field():

@@ -367,6 +367,10 @@ class WheelOdometry:
             if not (math.isfinite(vel[0]) and math.isfinite(vel[1])):
                 return OdometryUpdate(False, rejection=Rejection.NON_FINITE,
                                       note=f'wheel velocities {vel}')
+            if max(abs(vel[0]), abs(vel[1])) > self.config.max_wheel_speed_rad_s:
+                return OdometryUpdate(False, rejection=Rejection.IMPLAUSIBLE, note=(
+                    f'wheel velocities {vel} rad/s beyond max_wheel_speed_rad_s '
+                    f'{self.config.max_wheel_speed_rad_s}'))
         else:
             return OdometryUpdate(False, rejection=Rejection.NO_DATA,
                                   note='no positions and no velocities')
