@@ -123,14 +123,17 @@ class SimParams:
 
     @property
     def scan_angle_min_rad(self) -> float:
+        """Angle of the first beam in the laser frame (rad)."""
         return -0.5 * self.scan_fov_rad
 
     @property
     def scan_angle_increment_rad(self) -> float:
+        """Angle between neighbouring beams (rad)."""
         return self.scan_fov_rad / self.scan_beams
 
     @property
     def start_ns(self) -> int:
+        """Stamp of the first sample (ns)."""
         return int(self.start_time_s) * NS_PER_S
 
 
@@ -379,6 +382,7 @@ class SensorSim:
 
     @property
     def block_ns(self) -> int:
+        """Simulated time covered by one advance() (ns)."""
         return self.block_ticks * self.tick_ns
 
     def _wheel_travel(self, distance: NDArray, heading: NDArray) -> NDArray[np.float64]:
