@@ -368,3 +368,13 @@ def test_params_file_errors_name_the_file(tmp_path):
         sim.load_params_file(bad)
     with pytest.raises(sim.SimParameterError, match='route'):
         sim.params_from_dict({'route': 'wait 3'})
+
+
+def test_truth_at_interpolates_between_truth_samples():
+    params = sim.SimParams(**NOISELESS)
+    run = sim.simulate(params, DEFAULT_WORLD, 20.0, seed=0)
+    np.testing.assert_array_equal(run.truth_at(run.truth_t[500]), run.truth_pose[500])
+    half = (run.truth_t[700] + run.truth_t[701]) // 2          # on the first straight
+    middle = 0.5 * (run.truth_pose[700] + run.truth_pose[701])
+    np.testing.assert_allclose(run.truth_at(half), middle, atol=1e-12)
+    assert run.truth_at(run.imu_t).shape == (len(run.imu_t), 3)

@@ -199,3 +199,8 @@ def test_malformed_world_and_params_files_exit_2(tmp_path):
     result = run_to_exit('sensor_sim', ['--record', str(existing), '--duration', '1'])
     assert result.returncode == 2 and "parameter 'record'" in result.stderr
     assert not (tmp_path / 'bag').exists()
+
+
+def test_publish_clock_false_leaves_clock_out_of_the_bag(tmp_path):
+    record(tmp_path / 'bag', 1, '--params-file', str(params_file(tmp_path, publish_clock=False)))
+    assert set(topic_counts(tmp_path / 'bag')) == set(RATES) - {'/clock'}
