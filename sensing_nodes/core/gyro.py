@@ -170,6 +170,7 @@ class _Sample:
     yaw: float = 0.0
     p_yaw: float = 0.0
     p_cross: float = 0.0
+    shifted: list | None = None      # gyro + accel minus the window's reference, for its sums
 
 
 class _Window:
@@ -186,36 +187,40 @@ class _Window:
         self.samples.clear()
 
     def add(self, sample: _Sample) -> None:
-        if not self.samples:
+        samples = self.samples
+        values = sample.gyro + sample.accel
+        if not samples:
             # Sums are shifted by the first sample so that squares of ~9.8 m/s^2 do not cancel.
-            self._ref = sample.gyro + sample.accel
+            self._ref = values
             self._s1 = [0.0] * 6
             self._s2 = [0.0] * 6
-        self._accumulate(sample, 1.0)
-        self.samples.append(sample)
-        samples = self.samples
+        shifted = sample.shifted = [v - r for v, r in zip(values, self._ref)]
+        self._s1 = [a + d for a, d in zip(self._s1, shifted)]
+        self._s2 = [a + d * d for a, d in zip(self._s2, shifted)]
+        samples.append(sample)
         while len(samples) > 1 and sample.stamp_ns - samples[1].stamp_ns >= self.window_ns:
-            self._accumulate(self.samples.popleft(), -1.0)
-
-    def _accumulate(self, sample: _Sample, sign: float) -> None:
-        for i, v in enumerate(sample.gyro + sample.accel):
-            d = v - self._ref[i]
-            self._s1[i] += sign * d
-            self._s2[i] += sign * d * d
+            old = samples.popleft().shifted
+            self._s1 = [a - d for a, d in zip(self._s1, old)]
+            self._s2 = [a - d * d for a, d in zip(self._s2, old)]
 
     def full(self) -> bool:
         return bool(self.samples) and (
             self.samples[-1].stamp_ns - self.samples[0].stamp_ns >= self.window_ns)
 
-    def stats(self) -> tuple[list[float], list[float]]:
-        """Mean and variance of gx, gy, gz, ax, ay, az over the window."""
+    def quiet(self, gyro_std: float, accel_std: float, max_gyro_mean: float) -> bool:
+        """True when every gyro and accelerometer axis std is below its limit and every gyro
+        mean within max_gyro_mean (stops at the first axis that fails)."""
         n = len(self.samples)
-        means, variances = [], []
+        s1, s2, ref = self._s1, self._s2, self._ref
         for i in range(6):
-            m = self._s1[i] / n
-            variances.append(max(self._s2[i] / n - m * m, 0.0))
-            means.append(m + self._ref[i])
-        return means, variances
+            m = s1[i] / n
+            var = s2[i] / n - m * m
+            if i < 3:
+                if var >= gyro_std * gyro_std or abs(m + ref[i]) > max_gyro_mean:
+                    return False
+            elif var >= accel_std * accel_std:
+                return False
+        return True
 
 
 @dataclass
@@ -287,7 +292,8 @@ class GyroIntegrator:
         """Take one raw sample: rates (rad/s, 3) and accelerations (m/s^2, 3) at stamp_ns."""
         g = (float(gyro[0]), float(gyro[1]), float(gyro[2]))
         a = (float(accel[0]), float(accel[1]), float(accel[2]))
-        if not all(math.isfinite(v) for v in g + a):
+        # One sum is finite exactly when every term is (sensor values never reach 1e308).
+        if not math.isfinite(g[0] + g[1] + g[2] + a[0] + a[1] + a[2]):
             return ImuUpdate(False, rejection=ImuRejection.NON_FINITE,
                              note=f'non-finite rate {g} or acceleration {a}')
         step = classify_step(self.stamp_ns, stamp_ns, self.config.max_gap_s)
@@ -333,7 +339,8 @@ class GyroIntegrator:
         sample.yaw, sample.p_yaw, sample.p_cross = self.yaw, self.p_yaw, self.p_cross
         self.stamp_ns = stamp_ns
         self._prev_gyro = g
-        self.rate = np.array(g) - self.bias
+        bx, by, bz = self.bias.tolist()
+        self.rate = np.array((g[0] - bx, g[1] - by, g[2] - bz))
         return ImuUpdate(True, step, note=note, still=self.still)
 
     def update_batch(self, stamps_ns: ArrayLike, gyro: ArrayLike, accel: ArrayLike) -> BatchUpdate:
@@ -534,13 +541,14 @@ class GyroIntegrator:
         if not fresh:
             return
         m = len(fresh)
-        z = np.mean(fresh, axis=0) if m > 1 else np.array(fresh[0])
+        zx, zy, zz = np.mean(fresh, axis=0).tolist() if m > 1 else fresh[0]
         r = self.config.noise_density ** 2 / max(dt, 1e-6) / m
-        innovation = z - self.bias
+        bx, by, bz = self.bias.tolist()
         s = self.p_bias + r
         k_yaw, k_bias = self.p_cross / s, self.p_bias / s
-        self.yaw += k_yaw * innovation[2]
-        self.bias = self.bias + k_bias * innovation
+        self.yaw += k_yaw * (zz - bz)
+        self.bias = np.array((bx + k_bias * (zx - bx), by + k_bias * (zy - by),
+                              bz + k_bias * (zz - bz)))
         # P - K H P, each line using the prior values it needs.
         self.p_yaw -= k_yaw * self.p_cross
         self.p_cross -= k_yaw * self.p_bias
@@ -552,13 +560,8 @@ class GyroIntegrator:
 
     def _window_still(self, stamp_ns: int) -> bool:
         cfg = self.config
-        if not self._window.full():
-            return False
-        means, variances = self._window.stats()
-        g_limit, a_limit = cfg.gyro_std_threshold_rad_s ** 2, cfg.accel_std_threshold_m_s2 ** 2
-        if any(v >= g_limit for v in variances[:3]) or any(v >= a_limit for v in variances[3:]):
-            return False
-        if any(abs(m) > cfg.max_gyro_bias_rad_s for m in means[:3]):
+        if not self._window.full() or not self._window.quiet(
+                cfg.gyro_std_threshold_rad_s, cfg.accel_std_threshold_m_s2, cfg.max_gyro_bias_rad_s):
             return False
         if self.wheels_available(stamp_ns) and self._wheel_motion_ns is not None:
             return self._wheel_motion_ns < self._window.samples[0].stamp_ns
