@@ -204,3 +204,16 @@ def test_malformed_world_and_params_files_exit_2(tmp_path):
 def test_publish_clock_false_leaves_clock_out_of_the_bag(tmp_path):
     record(tmp_path / 'bag', 1, '--params-file', str(params_file(tmp_path, publish_clock=False)))
     assert set(topic_counts(tmp_path / 'bag')) == set(RATES) - {'/clock'}
+
+
+def test_ros_args_override_the_params_file_in_record_mode(tmp_path):
+    base = params_file(tmp_path, scan_beams=180, seed=1)
+    record(tmp_path / 'bag', 3, '--params-file', str(base),
+           '--ros-args', '-p', 'scan_beams:=720', '-p', "route:=['wait 1']")
+    scans = [m for _, _, m in read_messages(tmp_path / 'bag', ['/scan'])]
+    assert len(scans[0].ranges) == 720
+    truth = [m for _, _, m in read_messages(tmp_path / 'bag', ['/ground_truth/odom'])]
+    assert all(m.twist.twist.linear.x == 0.0 for m in truth)        # the route is 'wait 1'
+    result = run_to_exit('sensor_sim', ['--record', str(tmp_path / 'bad'), '--duration', '1',
+                                        '--ros-args', '-p', 'scan_beams:=0'])
+    assert result.returncode == 2 and "parameter 'scan_beams'" in result.stderr

@@ -1,7 +1,7 @@
 """sensor_sim: the simulated robot as a ROS 2 node, and its offline recorder.
 
 Live:    sensor_sim --ros-args --params-file config/sensor_sim.yaml [-p real_time_factor:=5.0]
-Record:  sensor_sim --record DIR --duration S [--seed N] [--params-file F]
+Record:  sensor_sim --record DIR --duration S [--seed N] [--params-file F] [--ros-args -p N:=V]
          (a rosbag2 MCAP bag of every topic, no DDS, as fast as the CPU allows)
 
 Both run the same engine (sensing_nodes.core.sim.SensorSim) and the same message conversion,
@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+import yaml
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock as RosClock
@@ -229,10 +230,37 @@ def record(out_dir: str | Path, duration_s: float, params: core.SimParams, setti
         return dict(bag.counts)
 
 
-def _record_main(argv: list[str]) -> int:
+def ros_args_values(ros_args: list[str]) -> dict[str, Any]:
+    """Parameter values of `--ros-args` arguments (`--params-file F` sections for sensor_sim,
+    then `-p name:=value` with YAML-typed values, later ones winning), for --record."""
+    values: dict[str, Any] = {}
+    i = 0
+    while i < len(ros_args):
+        arg = ros_args[i]
+        if arg in ('-p', '--param', '--params-file') and i + 1 < len(ros_args):
+            if arg == '--params-file':
+                values.update(core.load_params_file(ros_args[i + 1], NODE_NAME))
+            else:
+                name, sep, text = ros_args[i + 1].partition(':=')
+                if not sep or not name:
+                    raise core.SimParameterError(ros_args[i + 1], 'is not NAME:=VALUE')
+                try:
+                    values[name] = yaml.safe_load(text) if text else ''
+                except yaml.YAMLError:
+                    raise core.SimParameterError(name, 'has a value that is not YAML',
+                                                 text) from None
+            i += 2
+        else:
+            i += 1
+    return values
+
+
+def _record_main(argv: list[str], ros_args: list[str]) -> int:
     parser = argparse.ArgumentParser(
         prog='sensor_sim', description='Record the simulated robot into a rosbag2 MCAP bag '
-        '(no DDS). Without --record, sensor_sim runs as a ROS 2 node (--ros-args ...).')
+        '(no DDS); parameters from --params-file, then --ros-args (--params-file F, '
+        '-p NAME:=VALUE). '
+        'Without --record, sensor_sim runs as a ROS 2 node (--ros-args ...).')
     parser.add_argument('--record', required=True, metavar='DIR', help='bag directory to create')
     parser.add_argument('--duration', required=True, type=float, metavar='S',
                         help='simulated seconds to record')
@@ -243,6 +271,7 @@ def _record_main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     try:
         values = core.load_params_file(args.params_file) if args.params_file else {}
+        values.update(ros_args_values(ros_args))
         if args.seed is not None:
             values['seed'] = args.seed
         params, settings, world = settings_from_values(values)
@@ -261,7 +290,8 @@ def _record_main(argv: list[str]) -> int:
     print(f'sensor_sim: recorded {args.duration:g} s of simulated time in {wall:.2f} s wall '
           f'({args.duration / wall:.1f}x real time) into {args.record}')
     for topic, count in counts.items():
-        print(f'  {topic:<20} {count:7d} messages  {count / args.duration:7.1f} Hz')
+        rate = (count - 1) / args.duration if count > 1 else 0.0      # both ends are sampled
+        print(f'  {topic:<20} {count:7d} messages  {rate:7.1f} Hz')
     return 0
 
 
@@ -424,5 +454,5 @@ def main(args: list[str] | None = None) -> None:
     argv = sys.argv[1:] if args is None else list(args)
     ros_index = argv.index('--ros-args') if '--ros-args' in argv else len(argv)
     if '--record' in argv[:ros_index] or '-h' in argv[:ros_index] or '--help' in argv[:ros_index]:
-        sys.exit(_record_main(argv[:ros_index]))
+        sys.exit(_record_main(argv[:ros_index], argv[ros_index + 1:]))
     sys.exit(run_node(SensorSimNode, args))
