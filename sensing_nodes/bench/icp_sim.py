@@ -4,7 +4,6 @@ default route, against the simulator's ground truth."""
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 

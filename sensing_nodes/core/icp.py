@@ -46,8 +46,10 @@ class Target:
 @dataclass
 class MatchResult:
     """Transform of the source into the target frame (m, rad) with its 3x3 covariance over
-    (x, y, yaw). `error` is the mean distance (m) of the inlier correspondences, measured along
-    the target normal for point-to-line and point-to-point otherwise. `converged` is True only when
+    (x, y, yaw). `error` is the mean residual (m) of the inlier correspondences: along the
+    target's normal where the target is line-like (point-to-line), the point-to-point distance
+    at corners and isolated points and with method='point_to_point'. `iterations` counts the
+    full-resolution iterations (a yaw-hypothesis stage runs before them). `converged` is True only when
     the increment fell below the tolerance before `max_iterations`; `reason` says why not.
     `degenerate` flags a direction the geometry does not constrain (a corridor's axis), along which
     the covariance is inflated; `degenerate_direction` is that unit vector over (x, y, yaw·L)."""
@@ -375,7 +377,6 @@ def match(
     hypothesis_margin: float = 0.05,
     min_points: int = 3,
     min_inlier_fraction: float = 0.2,
-    min_planarity: float = 0.5,
     degeneracy_ratio: float = 1e-3,
     min_residual_std: float = 0.005,
 ) -> MatchResult:
@@ -386,9 +387,12 @@ def match(
     max_correspondence_distance and, with robust='adaptive', shrinks each iteration to
     2 × adaptive_factor × 1.4826 × the median residual (never below min_correspondence_distance),
     keeping pairs within adaptive_factor × 1.4826 × median; robust='trim' keeps the
-    trim_fraction best pairs; 'none' keeps every pair inside the gate. Iteration stops when the
-    increment (m, with yaw as arc length at the source's RMS radius) is below `tolerance`, or at
-    max_iterations. With yaw_hypotheses (yaw offsets, rad) a coarse match from the initial guess
+    trim_fraction best pairs; 'none' keeps every pair inside the gate. Fewer pairs than
+    min_inlier_fraction of the source: failure. Iteration stops (converged) when the increment
+    (m, with yaw as arc length at the source's RMS radius) is below `tolerance`, when the mean
+    error changes by less than error_tolerance (relative) or has not improved on its best for
+    stall_iterations (correspondences flipping back and forth), else at max_iterations
+    (not converged). voxel_size > 0 downsamples the source first. With yaw_hypotheses (yaw offsets, rad) a coarse match from the initial guess
     and from each offset is scored by the fraction of source points within score_distance of the
     target, and the best seeds the fine match. Malformed arrays or options raise ValueError;
     valid but unusable input (too few points, all points identical, a non-finite guess) returns
