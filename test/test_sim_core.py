@@ -351,6 +351,7 @@ def test_commanded_motion_ramps_to_the_command_and_stops_on_timeout():
     ('wheel_radius_m', -0.05), ('scan_beams', 0), ('range_min_m', 8.0), ('range_max_m', math.inf),
     ('imu_rate_hz', 300.0), ('physics_rate_hz', 999), ('encoder_quadrature', 3),
     ('route', ('straight 1.0',)), ('route', ()), ('gyro_bias_rad_s', math.nan),
+    ('scan_beams', 360.0), ('wheel_radius_m', '0.05'),
 ])
 def test_bad_parameters_are_refused_naming_the_parameter(name, value):
     with pytest.raises(sim.SimParameterError) as info:

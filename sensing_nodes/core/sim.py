@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -157,7 +158,7 @@ def validate(params: SimParams) -> None:
         value = getattr(params, f.name)
         if f.name == 'route':
             continue
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise SimParameterError(f.name, 'must be a number', value)
         if not math.isfinite(value):
             raise SimParameterError(f.name, 'must be finite', value)
@@ -166,7 +167,7 @@ def validate(params: SimParams) -> None:
             raise SimParameterError(f.name, f'must be >= {lo}', value)
         if hi is not None and value > hi:
             raise SimParameterError(f.name, f'must be <= {hi}', value)
-        if f.type == 'int' and int(value) != value:
+        if f.type == 'int' and not isinstance(value, numbers.Integral):
             raise SimParameterError(f.name, 'must be an integer', value)
     if NS_PER_S % params.physics_rate_hz:
         raise SimParameterError('physics_rate_hz', 'must divide 1e9 (whole nanoseconds per tick)',
