@@ -197,3 +197,34 @@ def test_bad_parameters_exit_with_2(args, name):
     result = run_to_exit('icp_matcher', ['--ros-args', *args])
     assert result.returncode == 2, result.stderr + result.stdout
     assert name in result.stderr + result.stdout
+
+
+def test_bad_scans_and_backwards_time_keep_the_node_running(probe, pubs):
+    scan_pub, _ = pubs
+    diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 10)
+    with NodeProcess('icp_matcher', params={'odom_topic': ''}) as node:
+        out = run_sequence(probe, pubs, node, 6, odometry=False)
+        rng = np.random.default_rng(1)
+        broken = scan_msg(6, rng=rng)
+        broken.angle_increment = math.nan             # every beam angle NaN: no valid point
+        replay = scan_msg(2, rng=rng)                 # a looping bag: time goes backwards
+        collector = Collector(probe, Odometry, '/scan_match/odom', ESTIMATE_QOS)
+        for msg in (broken, scan_msg(7, rng=rng), replay):
+            scan_pub.publish(msg)
+            spin_until(probe, lambda: False, 0.3)
+        collector.wait_for(3, 10)
+        spin_until(probe, lambda: 'reset_backwards' in diagnostic_values(diagnostics), 5)
+        assert node.alive(), node.output()
+        log = node.output()
+    values = diagnostic_values(diagnostics)
+    diagnostics.close()
+    got = {stamp_to_ns(m.header.stamp): odometry_pose(m)[0] for m in collector.messages}
+    collector.close()
+    assert len(out) == 6
+    assert set(got) == {T0 + 6 * SCAN_DT, T0 + 7 * SCAN_DT, T0 + 2 * SCAN_DT}
+    # The unusable scan is the constant-velocity prediction, close to the truth; no jump.
+    assert pose_error(got[T0 + 6 * SCAN_DT], reference(6))[0] < 0.02
+    assert pose_error(got[T0 + 7 * SCAN_DT], reference(7))[0] < 0.02
+    assert got[T0 + 2 * SCAN_DT] == (0.0, 0.0, 0.0)        # restarted at the origin
+    assert values['reset_backwards'] == '1' and values['too_few_points'] == '1'
+    assert 'backwards' in log
