@@ -322,3 +322,22 @@ def test_batch_update_equals_per_sample_updates():
         np.testing.assert_allclose(got[valid], expected[valid], rtol=1e-9, atol=1e-12)
         assert gi.yaw == pytest.approx(reference.yaw, abs=1e-12)
         assert gi.p_yaw == pytest.approx(reference.p_yaw, rel=1e-9)
+
+
+def test_batch_still_mask_with_wheel_motion_matches_the_veto():
+    n = 1200
+    t = T0 + np.arange(n) * 5 * MS
+    gyro = np.tile((0.0, 0.0, 0.0087), (n, 1))
+    accel = np.tile(GRAVITY, (n, 1))
+    moving = np.zeros(n, dtype=bool)
+    moving[300:340] = True                    # the wheels report a slow turn the IMU cannot see
+    cfg = GyroConfig()
+    batch = still_mask(t, gyro, accel, cfg, wheel_moving=moving)
+    gi = GyroIntegrator(cfg)
+    per_sample = []
+    for i in range(n):
+        gi.observe_wheels(int(t[i]), 0.0, 0.02 if moving[i] else 0.0)
+        gi.update(int(t[i]), gyro[i], accel[i])
+        per_sample.append(gi.still)
+    assert np.array_equal(batch, np.array(per_sample))
+    assert batch[299] and not batch[300] and not batch[400] and batch[500]
