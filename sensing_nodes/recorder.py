@@ -36,11 +36,15 @@ class TopicRecorder:
     """Subscribes `node` to every published topic it discovers and writes what arrives to `bag`.
 
     `listeners[topic]` callbacks also get (raw bytes, stamp ns, wall ns) of each message.
+    `only`, when given, limits recording to those topics (e.g. a replay records the graph's
+    outputs, not the inputs it publishes itself).
     """
 
     def __init__(self, node: Node, bag: BagWriter | None,
-                 listeners: dict[str, Callable[[bytes, int, int], None]] | None = None) -> None:
+                 listeners: dict[str, Callable[[bytes, int, int], None]] | None = None,
+                 only: set[str] | None = None) -> None:
         self._node = node
+        self._only = None if only is None else set(only)
         self._bag = bag
         self._listeners = listeners or {}
         self._subscriptions: dict[str, object] = {}
@@ -55,20 +59,25 @@ class TopicRecorder:
                 continue
             if not self._node.get_publishers_info_by_topic(topic):
                 continue  # only subscribers so far: wait for a publisher to choose the QoS
-            try:
-                msg_type = message_class(types[0])
-            except (ImportError, AttributeError, ValueError):
-                continue
-            first_field = next(iter(msg_type.get_fields_and_field_types().values()), '')
-            stamped = first_field in _STAMP_FIRST
-            if self._bag is not None:
-                self._bag.add_topic(topic, types[0])
-            self._subscriptions[topic] = self._node.create_subscription(
-                msg_type, topic,
-                lambda raw, topic=topic, stamped=stamped: self._on_message(topic, raw, stamped),
-                self._qos_for(topic), raw=True)
-            added.append(topic)
+            if self.subscribe(topic, types[0], self._qos_for(topic)):
+                added.append(topic)
         return added
+
+    def subscribe(self, topic: str, type_name: str, qos: QoSProfile) -> bool:
+        """Record `topic` from now on (before its publisher exists, when the QoS is known)."""
+        try:
+            msg_type = message_class(type_name)
+        except (ImportError, AttributeError, ValueError):
+            return False
+        first_field = next(iter(msg_type.get_fields_and_field_types().values()), '')
+        stamped = first_field in _STAMP_FIRST
+        if self._bag is not None:
+            self._bag.add_topic(topic, type_name)
+        self._subscriptions[topic] = self._node.create_subscription(
+            msg_type, topic,
+            lambda raw, topic=topic, stamped=stamped: self._on_message(topic, raw, stamped),
+            qos, raw=True)
+        return True
 
     def _qos_for(self, topic: str) -> QoSProfile:
         publishers = self._node.get_publishers_info_by_topic(topic)

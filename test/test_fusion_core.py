@@ -115,3 +115,13 @@ def test_scan_matcher_restart_is_tied_to_the_current_estimate():
     fusion.add_wheel(12 * 100_000_000, (1.2, 0.0, 0.0), cov * 13)
     fusion.add_scan_match(31 * 100_000_000, (0.0, 0.0, 0.0), cov)
     assert fusion.state.pose[0] == pytest.approx(1.2, abs=1e-9)
+
+
+def test_an_input_that_sent_nothing_does_not_claim_the_robot_stood_still():
+    """Wheel odometry that starts late must not pin the fused pose while scan matching moves."""
+    fusion = ComplementaryFusion(FusionSettings())
+    for k in range(21):
+        t = k * 100_000_000
+        fusion.add_gyro(t, 0.0, 1e-6 * (k + 1))
+        fusion.add_scan_match(t, (0.05 * k, 0.0, 0.0), np.diag([1e-4, 1e-4, 1e-5]) * (k + 1))
+    assert fusion.state.pose[0] == pytest.approx(1.0, abs=1e-9)

@@ -44,7 +44,9 @@ def test_ament_index_finds_package_and_every_executable(install_tree):
         'print(get_package_prefix("sensing_nodes")); print(get_package_share_directory("sensing_nodes"))\n'
         'import sensing_nodes; print(sensing_nodes.__file__)\n'
     )
-    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True)
+    # Run outside the checkout, so its sensing_nodes/ cannot shadow the installed one.
+    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True,
+                         cwd=prefix)
     assert out.returncode == 0, out.stderr
     found_prefix, share, module = out.stdout.split()
     assert Path(found_prefix) == prefix

@@ -123,6 +123,7 @@ class ComplementaryFusion:
         self._anchor: FusionState | None = None
         self._wheel_since = self._zero_increment()
         self._gyro_since = (0.0, 0.0)  # (yaw change, its variance)
+        self._wheel_steps = self._gyro_steps = 0  # increments since the anchor
         self._scan_offset: Pose2 | None = None  # scan frame -> fused frame
         self.updates = 0
 
@@ -139,7 +140,7 @@ class ComplementaryFusion:
         """Anchor ⊕ wheel motion since, with the gyro's heading change when it is used."""
         assert self._anchor is not None
         motion, motion_cov = self._wheel_since
-        if self.settings.use_gyro and self._gyro_stamp is not None:
+        if self._gyro_steps:
             motion = (motion[0], motion[1], self._gyro_since[0])
             motion_cov = motion_cov.copy()
             motion_cov[2, :] = motion_cov[:, 2] = 0.0
@@ -162,6 +163,7 @@ class ComplementaryFusion:
             step = se2.between(src.pose, pose)
             step_cov = increment_covariance(src.pose, src.cov, pose, cov)
             self._wheel_since = se2.compose_with_covariance(*self._wheel_since, step, step_cov)
+            self._wheel_steps += 1
         src.stamp_ns, src.pose, src.cov = stamp_ns, pose, np.asarray(cov, dtype=float)
         self._publishable(stamp_ns)
 
@@ -177,6 +179,7 @@ class ComplementaryFusion:
                 change + float(se2.wrap_angle(yaw - self._gyro_yaw)),
                 var + max(yaw_variance - self._gyro_var, 0.0),
             )
+            self._gyro_steps += 1
         self._gyro_stamp, self._gyro_yaw, self._gyro_var = stamp_ns, yaw, yaw_variance
 
     def add_scan_match(self, stamp_ns: int, pose: Pose2, cov: NDArray[np.float64],
@@ -201,6 +204,7 @@ class ComplementaryFusion:
         self.state = FusionState(stamp_ns, fused, fused_cov)
         self._wheel_since = self._zero_increment()
         self._gyro_since = (0.0, 0.0)
+        self._wheel_steps = self._gyro_steps = 0
         self.updates += 1
 
     def _restarted(self, stamp_ns: int, pose: Pose2, predicted: Pose2) -> bool:
@@ -223,24 +227,34 @@ class ComplementaryFusion:
             increment_cov = increment_covariance(self._scan.pose, self._scan.cov, pose, cov)
         scan_step_cov = increment_cov + np.eye(3) * VARIANCE_FLOOR
 
-        # Dead-reckoned motion over the same interval, in the anchor frame.
+        # Dead-reckoned motion over the same interval, in the anchor frame. A source that sent
+        # nothing in the interval knows nothing about it (it does not say "no motion").
         dr_step = se2.between(anchor.pose, predicted)
         _, motion_cov = self._wheel_since
         dr_cov = motion_cov + np.eye(3) * VARIANCE_FLOOR
-        if self.settings.use_gyro and self._gyro_stamp is not None:
+        if self._gyro_steps:
             dr_cov = dr_cov.copy()
             dr_cov[2, :] = dr_cov[:, 2] = 0.0
             dr_cov[2, 2] = self._gyro_since[1] + VARIANCE_FLOOR
+        elif not self._wheel_steps:
+            # No dead reckoning at all: the scan match's own heading change stands in for it.
+            predicted = (predicted[0], predicted[1],
+                         float(se2.wrap_angle(anchor.pose[2] + scan_step[2])))
+            predicted_cov = predicted_cov.copy()
+            predicted_cov[2, 2] = anchor.covariance[2, 2] + scan_step_cov[2, 2]
+            dr_step = (dr_step[0], dr_step[1], scan_step[2])
+            dr_cov[2, 2] = scan_step_cov[2, 2]
 
         step = np.array(dr_step, dtype=float)
         step_cov = dr_cov.copy()
-        if self.settings.use_scan_position and self.settings.use_wheel:
+        if self.settings.use_scan_position and self._wheel_steps:
             xy, xy_cov = fuse_information(
                 step[:2], dr_cov[:2, :2], np.array(scan_step[:2]), scan_step_cov[:2, :2])
             step[:2], step_cov[:2, :2] = xy, xy_cov
             step_cov[:2, 2] = step_cov[2, :2] = 0.0
         elif self.settings.use_scan_position:
             step[:2], step_cov[:2, :2] = scan_step[:2], scan_step_cov[:2, :2]
+            step_cov[:2, 2] = step_cov[2, :2] = 0.0
         fused, fused_cov = se2.compose_with_covariance(
             anchor.pose, anchor.covariance, tuple(step), step_cov)
 

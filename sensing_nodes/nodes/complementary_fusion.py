@@ -54,7 +54,7 @@ class ComplementaryFusionNode(Node):
         self._flush_after_s = declare(self, 'flush_after_s', 0.5,
                                       'wall time without input after which held inputs are processed',
                                       minimum=0.01, maximum=60.0)
-        max_gap_s = declare(self, 'max_gap_s', 1.0,
+        max_gap_s = declare(self, 'max_gap_s', 2.0,
                             'an input silent longer than this (stamp time) restarts its increments',
                             minimum=0.001, maximum=3600.0)
         self._reset_jump_s = declare(self, 'reset_on_backwards_jump_s', 0.0,

@@ -24,6 +24,7 @@ import numpy as np
 from sensing_nodes.core import se2
 from sensing_nodes.core.evaluation import path_length, sigma_consistency, trajectory_errors
 from sensing_nodes.paths import config_file
+from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
 
 PROCESSING_NODES = ['wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
                     'complementary_fusion']
@@ -44,6 +45,19 @@ NODE_TOPICS = {
     'icp_matcher': ('/scan', ['/scan_match/odom']),
     'complementary_fusion': (None, ['/odometry/filtered']),
 }
+
+
+# Simulator topics the recorder subscribes to before the simulator starts.
+SIM_TOPICS = {
+    '/scan': ('sensor_msgs/msg/LaserScan', SENSOR_QOS),
+    '/imu/data_raw': ('sensor_msgs/msg/Imu', SENSOR_QOS),
+    '/joint_states': ('sensor_msgs/msg/JointState', SENSOR_QOS),
+    '/ground_truth/odom': ('nav_msgs/msg/Odometry', ESTIMATE_QOS),
+    '/clock': ('rosgraph_msgs/msg/Clock', CLOCK_QOS),
+}
+# Topics between processing nodes, and how many subscribers each has in the graph (the
+# recorder included) once every node has matched.
+INTERNAL_EDGES = {'/wheel/odom': 4, '/imu/data': 2, '/scan_match/odom': 2}
 
 
 def executable(name: str) -> str:
@@ -185,8 +199,12 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
             for name in PROCESSING_NODES:
                 graph.start(name, [])
             _wait_for_nodes(node, executor, PROCESSING_NODES, graph, recorder)
+            for topic, (type_name, qos) in SIM_TOPICS.items():
+                recorder.subscribe(topic, type_name, qos)
+            # The recorder is the only subscriber of the ground truth: once the simulator has
+            # matched it, simulated time starts, so the bag misses nothing.
             sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
-                        '-p', f'real_time_factor:={args.rate}']
+                        '-p', f'real_time_factor:={args.rate}', '-p', 'wait_for_subscribers:=1']
             wall_start = time.monotonic()
             graph.start('sensor_sim', sim_args)
             sim = graph.processes['sensor_sim']
@@ -232,14 +250,20 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
 
 
 def _wait_for_nodes(node, executor, names, graph, recorder, timeout=30.0) -> None:
-    """Until every processing node is discovered (so no early message is missed)."""
+    """Until every processing node and every edge between them is discovered (so no early
+    message is missed), then a moment for the nodes to match each other as we matched them."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.1)
         recorder.discover()
         if graph.failed():
             raise SystemExit(f'sensing_demo: node(s) failed at start-up: {graph.failed()}')
-        if set(names) <= set(node.get_node_names()):
+        if set(names) <= set(node.get_node_names()) and all(
+                len(node.get_subscriptions_info_by_topic(topic)) >= count
+                for topic, count in INTERNAL_EDGES.items()):
+            settle = time.monotonic() + 0.5
+            while time.monotonic() < settle:
+                executor.spin_once(timeout_sec=0.05)
             return
     missing = set(names) - set(node.get_node_names())
     raise SystemExit(f'sensing_demo: nodes not discovered within {timeout:.0f} s: {sorted(missing)}')
