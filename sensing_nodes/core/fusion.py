@@ -125,6 +125,8 @@ class ComplementaryFusion:
         self._gyro_since = (0.0, 0.0)  # (yaw change, its variance)
         self._wheel_steps = self._gyro_steps = 0  # increments since the anchor
         self._scan_offset: Pose2 | None = None  # scan frame -> fused frame
+        self._tie_variance = 0.0            # fused heading variance when the frames were tied
+        self._scan_variance_at_tie = 0.0    # the matcher's own heading variance then
         self.updates = 0
 
     @staticmethod
@@ -195,6 +197,8 @@ class ComplementaryFusion:
                 self._restarted(stamp_ns, pose, predicted):
             # First match, or the matcher restarted: tie its frame to ours, fuse nothing yet.
             self._scan_offset = se2.compose(predicted, se2.inverse(pose))
+            self._tie_variance = float(predicted_cov[2, 2])
+            self._scan_variance_at_tie = float(np.asarray(cov)[2, 2])
             fused, fused_cov = predicted, predicted_cov
         else:
             fused, fused_cov = self._fuse(
@@ -261,14 +265,20 @@ class ComplementaryFusion:
         if self.settings.use_scan_heading:
             heading_abs = se2.compose(self._scan_offset, pose)[2]
             var_pred = float(predicted_cov[2, 2])
-            var_abs = float(anchor.covariance[2, 2] + scan_step_cov[2, 2])
+            # The matcher's heading is as uncertain as it says, relative to where it was tied.
+            var_abs = max(self._tie_variance + float(cov[2, 2]) - self._scan_variance_at_tie,
+                          float(scan_step_cov[2, 2]))
             alpha = self.settings.alpha
             if alpha is None:
                 alpha = auto_alpha(var_pred, var_abs)
             heading = complementary_heading(predicted[2], 0.0, 0.0, heading_abs, alpha)
             fused = (fused[0], fused[1], heading)
             fused_cov = fused_cov.copy()
-            var_heading = alpha ** 2 * var_pred + (1.0 - alpha) ** 2 * var_abs
+            # The prediction's error is mostly the earlier absolute headings' error (the filter
+            # tracks them), so the two are combined as fully correlated: the fused heading is
+            # never claimed to be better than the reference it follows.
+            sigma = alpha * math.sqrt(var_pred) + (1.0 - alpha) * math.sqrt(var_abs)
+            var_heading = sigma * sigma
             scale = math.sqrt(var_heading / fused_cov[2, 2]) if fused_cov[2, 2] > 0 else 0.0
             fused_cov[2, :2] *= scale
             fused_cov[:2, 2] *= scale
