@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from rclpy.serialization import deserialize_message, serialize_message
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -31,11 +31,14 @@ def message_class(name: str) -> type:
 
 
 class BagWriter:
-    """Writes rclpy messages to a new rosbag2 (format 9, MCAP storage) at `path`."""
+    """Writes rclpy messages to a new rosbag2 (format 9, MCAP storage) at `path`; with
+    `compress`, MCAP chunks are zstd-compressed (storage-level, as rosbag2's MCAP presets do)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, compress: bool = False) -> None:
         self.path = Path(path)
         self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        if compress:
+            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         self._connections: dict[str, Any] = {}
         self.counts: dict[str, int] = {}
 

@@ -114,9 +114,8 @@ class ComplementaryFusionNode(Node):
         stamp = stamp_to_ns(msg.header.stamp)
         name = INPUT_NAMES[source]
         self._received[source] += 1
-        reading = self._reading(source, msg)
-        if reading is None:
-            return
+        # Before the message is read: reading it uses per-timeline state (a source's starting
+        # pose), which must already be the new timeline's.
         previous = self._arrived[source]
         if previous is not None and previous - stamp > self._reset_jump_s * 1e9:
             self.get_logger().warn(
@@ -125,6 +124,9 @@ class ComplementaryFusionNode(Node):
             self.diagnostics.count('resets')
             self._process(self._buffer.flush())  # what was held belongs to the old timeline
             self._reset()
+        reading = self._reading(source, msg)
+        if reading is None:
+            return
         if not self._buffer.push(stamp, source, reading):
             self.diagnostics.count(f'{name}_dropped_late')
             self._warnings.warn(

@@ -60,6 +60,11 @@ class GyroIntegratorNode(Node):
                 self, 'wheel_still_angular_rad_s', d.wheel_still_angular_rad_s,
                 '/wheel/odom reports zero motion when |wz| is at most this (rad/s)'),
         )
+        self._restart_on_backwards = declare(
+            self, 'restart_on_backwards', True,
+            'a stamp going backwards (looping bag) restarts the integrator from scratch, bias '
+            'estimate included, so a replayed bag gives its first outputs again; false: reset '
+            'the heading only and keep the bias estimate')
         use_wheels = declare(self, 'use_wheel_odom', True,
                              'veto stillness while /wheel/odom reports motion (slow turns)')
         self._frame_id = declare(self, 'frame_id', '',
@@ -67,6 +72,7 @@ class GyroIntegratorNode(Node):
         for name, problem, value in config.problems():
             require(False, {'noise_density': 'gyro_noise_density'}.get(name, name), problem, value)
 
+        self._config = config
         self._integrator = GyroIntegrator(config)
         self._warnings = ThrottledWarnings(self)
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
@@ -90,6 +96,14 @@ class GyroIntegratorNode(Node):
         stamp = stamp_to_ns(msg.header.stamp)
         w, a = msg.angular_velocity, msg.linear_acceleration
         gi = self._integrator
+        if self._restart_on_backwards and gi.stamp_ns is not None and stamp < gi.stamp_ns:
+            self.diagnostics.count(StampStep.BACKWARDS.value)
+            self._warnings.warn(StampStep.BACKWARDS.value, (
+                f'Imu at {stamp * 1e-9:.3f} s: time went backwards by '
+                f'{(gi.stamp_ns - stamp) * 1e-9:.3f} s (looping bag?): integrator restarted '
+                '(heading 0, bias estimate from scratch)'))
+            gi = self._integrator = GyroIntegrator(self._config)
+            self._was_still = False
         result = gi.update(stamp, (w.x, w.y, w.z), (a.x, a.y, a.z))
         diag = self.diagnostics
         if result.rejection is not None:

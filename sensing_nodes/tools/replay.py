@@ -1,0 +1,675 @@
+"""sensing_replay: play a bag's input topics into the running nodes over DDS and record what
+they publish into a new bag.
+
+Lockstep (default): publish one input message, wait until the nodes have published what it
+causes (the expectation table: input topic -> output topics, each carrying the input's stamp),
+then the next; deterministic. Timed: respects the stamps, scaled by --rate, and publishes /clock.
+With --launch the package's processing nodes are started (with their config/ parameter files)
+and stopped by the tool itself; --make-bags DIR regenerates the project's bags in bags/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+# Input topic -> output topics that carry its stamp (one message each), for this package's graph.
+DEFAULT_EXPECTATIONS: dict[str, tuple[str, ...]] = {
+    '/joint_states': ('/wheel/odom',),
+    '/imu/data_raw': ('/imu/data',),
+    '/scan': ('/scan/lines', '/scan/lines/table', '/scan_match/odom'),
+}
+# Inputs whose outputs feed another node that acts on them at its next input without ordering
+# by stamp (/wheel/odom: the gyro's stillness veto, the scan matcher's initial guess). Their
+# outputs reach the replay and those nodes over separate DDS paths, so after them the replay
+# lets the fan-out land (settle) before it publishes the next input.
+DEFAULT_SETTLE_AFTER = ('/joint_states',)
+# Outputs that are not 1:1 with an input: recorded as they come.
+DEFAULT_EXTRA_OUTPUTS = ('/odometry/filtered', '/diagnostics')
+# Message type each node input takes (a bag topic of another type is refused).
+NODE_INPUT_TYPES = {
+    '/joint_states': 'sensor_msgs/msg/JointState',
+    '/imu/data_raw': 'sensor_msgs/msg/Imu',
+    '/scan': 'sensor_msgs/msg/LaserScan',
+    '/wheel/odom': 'nav_msgs/msg/Odometry',
+    '/imu/data': 'sensor_msgs/msg/Imu',
+    '/scan_match/odom': 'nav_msgs/msg/Odometry',
+    '/cmd_vel': 'geometry_msgs/msg/Twist',
+}
+# Raw sensor streams: published best effort, as a driver would (SENSOR_QOS); the rest reliable.
+SENSOR_TOPICS = {'/joint_states', '/imu/data_raw', '/scan'}
+# Published on a wall-clock timer whatever the input: never waited for, not part of "quiet".
+WALL_PERIODIC_TOPICS = {'/diagnostics'}
+PROCESSING_NODES = ('wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
+                    'complementary_fusion')
+
+# The project's bags: name -> (sensor_sim parameter file in config/, seed, simulated seconds).
+BAG_SPECS = {
+    'nominal': ('bags_nominal.yaml', 1, 22.0),
+    'strong_errors': ('bags_strong_errors.yaml', 2, 22.0),
+}
+
+EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1
+
+
+class ReplayError(Exception):
+    """Bad input or a graph that did not come up: the message names the file and topic."""
+
+
+@dataclass
+class InputBag:
+    """Every message of a bag, loaded up front (so a truncated bag fails before any is sent)."""
+
+    path: Path
+    types: dict[str, str]
+    messages: list[tuple[str, int, bytes]]  # (topic, bag time ns, CDR bytes), in bag order
+
+
+@dataclass
+class PassResult:
+    """What one pass over the bag produced."""
+
+    outputs: dict[str, list[tuple[int, bytes]]] = field(default_factory=lambda: defaultdict(list))
+    inputs_published: int = 0
+    missing: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    wall_s: float = 0.0
+    wait_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))  # per input topic
+
+
+def load_bag(path: str | Path) -> InputBag:
+    """Read a whole rosbag2 bag; ReplayError (naming the file) when it is missing or unreadable."""
+    from rosbags.rosbag2 import Reader
+
+    path = Path(path)
+    if not path.exists():
+        raise ReplayError(f'{path}: no such bag')
+    if not (path / 'metadata.yaml').is_file():
+        raise ReplayError(f'{path}: not a rosbag2 bag (no metadata.yaml)')
+    messages = []
+    try:
+        with Reader(path) as reader:
+            types = {c.topic: c.msgtype for c in reader.connections}
+            expected = {c.topic: c.msgcount for c in reader.connections}
+            for connection, stamp, raw in reader.messages():
+                messages.append((connection.topic, stamp, bytes(raw)))
+    except ReplayError:
+        raise
+    except Exception as exc:  # rosbags raises several types for damaged files
+        raise ReplayError(f'{path}: cannot read the bag ({type(exc).__name__}: {exc}); '
+                          'truncated or damaged?') from None
+    got = defaultdict(int)
+    for topic, _, _ in messages:
+        got[topic] += 1
+    short = {t: (got[t], n) for t, n in expected.items() if got[t] != n}
+    if short:
+        detail = ', '.join(f'{t}: {g} of {n}' for t, (g, n) in sorted(short.items()))
+        raise ReplayError(f'{path}: bag holds fewer messages than its metadata says ({detail}); '
+                          'truncated?')
+    # Bag order: stamp order, ties in the order the bag stores them (a stable sort).
+    order = sorted(range(len(messages)), key=lambda i: messages[i][1])
+    return InputBag(path, types, [messages[i] for i in order])
+
+
+def check_inputs(bag: InputBag, inputs: list[str], remaps: dict[str, str]) -> None:
+    """Every input topic is in the bag with a type the receiving node takes."""
+    for topic in inputs:
+        if topic not in bag.types:
+            raise ReplayError(f'{bag.path}: topic {topic} is not in the bag (it has: '
+                              f'{", ".join(sorted(bag.types))})')
+        published = remaps.get(topic, topic)
+        wanted = NODE_INPUT_TYPES.get(published)
+        if wanted is not None and bag.types[topic] != wanted:
+            raise ReplayError(f'{bag.path}: topic {topic} holds {bag.types[topic]}, but the nodes '
+                              f'take {wanted} on {published}')
+        if not any(t == topic for t, _, _ in bag.messages):
+            raise ReplayError(f'{bag.path}: topic {topic} has no messages')
+
+
+def parse_expectations(specs: list[str]) -> dict[str, tuple[str, ...]]:
+    """['/scan=/a,/b', '/odom='] -> {'/scan': ('/a', '/b'), '/odom': ()}."""
+    table = {}
+    for spec in specs:
+        topic, sep, outputs = spec.partition('=')
+        if not sep or not topic.startswith('/'):
+            raise ReplayError(f"--expect {spec!r}: write INPUT=OUTPUT[,OUTPUT...] (OUTPUT may be "
+                              "empty), e.g. /scan=/scan_match/odom")
+        table[topic] = tuple(o for o in outputs.split(',') if o)
+    return table
+
+
+def parse_node_params(specs: list[str]) -> dict[str, list[str]]:
+    """['icp_matcher:laser_x_m:=0.0'] -> {'icp_matcher': ['-p', 'laser_x_m:=0.0']}."""
+    extra: dict[str, list[str]] = defaultdict(list)
+    for spec in specs:
+        node, sep, assignment = spec.partition(':')
+        if not sep or ':=' not in assignment or node not in PROCESSING_NODES:
+            raise ReplayError(f'--param {spec!r}: write NODE:NAME:=VALUE with NODE one of '
+                              f'{", ".join(PROCESSING_NODES)}')
+        extra[node] += ['-p', assignment]
+    return extra
+
+
+def marker_array_stamp_ns(raw: bytes, fallback_ns: int) -> int:
+    """Stamp of a CDR MarkerArray: its first marker's header (after the encapsulation header and
+    the sequence length), or fallback_ns when it has no marker."""
+    order = '<' if raw[1] == 1 else '>'
+    (count,) = struct.unpack_from(order + 'I', raw, 4)
+    if count == 0:
+        return fallback_ns
+    sec, nanosec = struct.unpack_from(order + 'iI', raw, 8)
+    return sec * 1_000_000_000 + nanosec
+
+
+class Replayer:
+    """One rclpy node publishing a bag's inputs and recording the graph's outputs."""
+
+    def __init__(self, inputs: dict[str, str], input_types: dict[str, str],
+                 outputs: set[str], expectations: dict[str, tuple[str, ...]]) -> None:
+        import rclpy
+        from rclpy.node import Node
+
+        from sensing_nodes.bag import message_class
+        from sensing_nodes.recorder import TopicRecorder
+        from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
+        from sensing_nodes.ros.run import make_executor
+
+        self._rclpy = rclpy
+        rclpy.init()
+        self.node = Node('sensing_replay')
+        self.executor = make_executor()
+        self.executor.add_node(self.node)
+        self.expectations = expectations
+        self.publishers = {}
+        for topic, published in inputs.items():
+            qos = SENSOR_QOS if published in SENSOR_TOPICS else ESTIMATE_QOS
+            self.publishers[topic] = self.node.create_publisher(
+                message_class(input_types[topic]), published, qos)
+        from rosgraph_msgs.msg import Clock
+        self.clock_publisher = None
+        self._clock_class = Clock
+        self._clock_qos = CLOCK_QOS
+        self.outputs = outputs
+        self.seen: dict[tuple[str, int], int] = defaultdict(int)
+        self.arrivals = 0
+        self.current: PassResult | None = None
+        listeners = {t: (lambda raw, stamp, wall, t=t: self._on_output(t, raw, stamp))
+                     for t in outputs}
+        self.recorder = TopicRecorder(self.node, None, listeners, only=outputs)
+        self.diagnostics_seen: dict[str, float] = {}  # node name -> wall time of its last status
+        self.marker_topics: set[str] = set()   # MarkerArray outputs: stamp of their first marker
+        self.input_stamp_ns = 0
+        self.subscribed: set[str] = set()
+
+    def _on_output(self, topic: str, raw: bytes, stamp: int) -> None:
+        if topic in self.marker_topics:
+            stamp = marker_array_stamp_ns(raw, self.input_stamp_ns)
+        if topic == '/diagnostics':
+            from diagnostic_msgs.msg import DiagnosticArray
+            from rclpy.serialization import deserialize_message
+
+            now = time.monotonic()
+            for status in deserialize_message(raw, DiagnosticArray).status:
+                self.diagnostics_seen[status.name] = now
+        if topic not in WALL_PERIODIC_TOPICS:
+            self.arrivals += 1
+        self.seen[(topic, stamp)] += 1
+        if self.current is not None:
+            self.current.outputs[topic].append((stamp, bytes(raw)))
+
+    def spin(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while True:
+            self.executor.spin_once(timeout_sec=min(0.01, max(0.0, deadline - time.monotonic())))
+            if time.monotonic() >= deadline:
+                return
+
+    def wait_for_graph(self, required_outputs: set[str], timeout_s: float,
+                       failed=lambda: [], nodes: tuple[str, ...] = ()) -> None:
+        """Until every required output is subscribed, every input publisher is matched, the
+        graph has been stable (no new subscriptions or publishers) for a second and each of
+        `nodes` has published diagnostics since (so its executor runs and has had time to match
+        its own subscriptions; a message sent before two nodes match is lost)."""
+        deadline = time.monotonic() + timeout_s
+        stable_since, last = time.monotonic(), None
+        while time.monotonic() < deadline:
+            self.spin(0.1)
+            if failed():
+                raise ReplayError(f'node(s) exited at start-up: {", ".join(failed())}')
+            for topic in self.recorder.discover():
+                self.subscribed.add(topic)
+                types = [p.topic_type for p in self.node.get_publishers_info_by_topic(topic)]
+                if 'visualization_msgs/msg/MarkerArray' in types:
+                    self.marker_topics.add(topic)
+            subscribed = self.subscribed
+            matched = all(p.get_subscription_count() > 0 for t, p in self.publishers.items()
+                          if self.expectations.get(t))
+            graph = tuple(sorted((t, len(self.node.get_publishers_info_by_topic(t)),
+                                  len(self.node.get_subscriptions_info_by_topic(t)))
+                                 for t, _ in self.node.get_topic_names_and_types()))
+            if graph != last:
+                stable_since, last = time.monotonic(), graph
+            spoken = all(self.diagnostics_seen.get(n, -math.inf) > stable_since for n in nodes)
+            if required_outputs <= subscribed and matched and spoken \
+                    and time.monotonic() - stable_since >= 1.0:
+                return
+        missing = sorted(required_outputs - self.subscribed)
+        unmatched = sorted(t for t, p in self.publishers.items()
+                           if self.expectations.get(t) and p.get_subscription_count() == 0)
+        silent = sorted(n for n in nodes if n not in self.diagnostics_seen)
+        raise ReplayError(f'the graph did not come up within {timeout_s:g} s: no publisher of '
+                          f'{missing or "-"}; no subscriber of {unmatched or "-"}; no diagnostics '
+                          f'from {silent or "-"}')
+
+    def publish_clock(self, stamp_ns: int) -> None:
+        if self.clock_publisher is None:
+            self.clock_publisher = self.node.create_publisher(
+                self._clock_class, '/clock', self._clock_qos)
+        msg = self._clock_class()
+        msg.clock.sec, msg.clock.nanosec = divmod(stamp_ns, 1_000_000_000)
+        self.clock_publisher.publish(msg)
+
+    def drain(self, quiet_s: float, timeout_s: float = 60.0) -> None:
+        """Until nothing has arrived for quiet_s (the fusion's idle flush included)."""
+        deadline = time.monotonic() + timeout_s
+        quiet_since, seen = time.monotonic(), self.arrivals
+        while time.monotonic() - quiet_since < quiet_s and time.monotonic() < deadline:
+            self.spin(0.02)
+            if self.arrivals != seen:
+                quiet_since, seen = time.monotonic(), self.arrivals
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        self._rclpy.try_shutdown()
+
+
+def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, rate: float,
+              timeout_s: float, quiet_s: float, progress: str | None,
+              settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
+              settle_s: float = 0.002) -> PassResult:
+    """One pass over the bag's inputs; returns what the graph published during it."""
+    result = PassResult()
+    replayer.current = result
+    started = time.monotonic()
+    todo = [(t, s, raw) for t, s, raw in bag.messages if t in inputs]
+    first_stamp = todo[0][1] if todo else 0
+    next_report = started + 2.0
+    for i, (topic, stamp, raw) in enumerate(todo):
+        if mode == 'timed':
+            due = started + (stamp - first_stamp) * 1e-9 / rate
+            while time.monotonic() < due:
+                replayer.spin(min(0.005, max(0.0, due - time.monotonic())))
+            replayer.publish_clock(stamp)
+        replayer.input_stamp_ns = stamp
+        replayer.publishers[topic].publish(raw)
+        result.inputs_published += 1
+        if mode == 'lockstep':
+            expected = replayer.expectations.get(topic, ())
+            waited_from = time.monotonic()
+            deadline = waited_from + timeout_s
+            while True:
+                pending = [o for o in expected if replayer.seen[(o, stamp)] < 1]
+                if not pending:
+                    break
+                if time.monotonic() >= deadline:
+                    for o in pending:
+                        result.missing[o] += 1
+                    print(f'sensing_replay: warning: no {", ".join(pending)} stamped '
+                          f'{stamp} ns within {timeout_s:g} s of publishing {topic}; going on',
+                          file=sys.stderr, flush=True)
+                    break
+                replayer.executor.spin_once(timeout_sec=0.005)
+            for o in expected:
+                replayer.seen.pop((o, stamp), None)
+            if topic in settle_after and settle_s > 0:
+                replayer.spin(settle_s)
+            result.wait_s[topic] += time.monotonic() - waited_from
+        else:
+            replayer.executor.spin_once(timeout_sec=0.0)
+        if progress is not None and time.monotonic() >= next_report:
+            next_report = time.monotonic() + 2.0
+            outputs = sum(len(v) for v in result.outputs.values())
+            print(f'  {progress}{i + 1:6d} / {len(todo)} inputs ({100 * (i + 1) / len(todo):3.0f} %), '
+                  f'{(stamp - first_stamp) * 1e-9:6.1f} s of bag time, {outputs} outputs',
+                  file=sys.stderr, flush=True)
+    replayer.drain(quiet_s)
+    replayer.seen.clear()
+    replayer.current = None
+    result.wall_s = time.monotonic() - started
+    return result
+
+
+def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types: dict[str, str],
+                     outputs: set[str], compress: bool = False) -> dict[str, int]:
+    """The input bag's topics (all but the graph's outputs) plus what the graph published."""
+    from sensing_nodes.bag import BagWriter
+
+    with BagWriter(path, compress=compress) as out:
+        for topic, msg_type in bag.types.items():
+            if topic not in outputs:
+                out.add_topic(topic, msg_type)
+        for topic in sorted(result.outputs):
+            out.add_topic(topic, output_types[topic])
+        merged = [(s, 0, t, raw) for t, s, raw in bag.messages if t not in outputs]
+        merged += [(s, 1, t, raw) for t in sorted(result.outputs) for s, raw in result.outputs[t]]
+        # Outputs after the input of the same stamp; each topic keeps its arrival order.
+        merged.sort(key=lambda row: (row[0], row[1]))
+        for stamp, _, topic, raw in merged:
+            out.write_raw(topic, raw, stamp)
+        return dict(out.counts)
+
+
+def _discard(path: Path) -> None:
+    if path.exists():
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockstep',
+           rate: float = 1.0, expectations: dict[str, tuple[str, ...]] | None = None,
+           extra_outputs: tuple[str, ...] = DEFAULT_EXTRA_OUTPUTS, remaps: dict[str, str] | None = None,
+           launch: bool = False, nodes: tuple[str, ...] = PROCESSING_NODES,
+           node_params: dict[str, list[str]] | None = None, loops: int = 1,
+           timeout_s: float = 10.0, quiet_s: float = 1.5, startup_timeout_s: float = 60.0,
+           progress: bool = True, logs: Path | None = None,
+           compress: bool = False, settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
+           settle_s: float = 0.002, warmup_s: float = 2.0) -> list[PassResult]:
+    """Replay a bag through the graph (started here when `launch`), `loops` times back to back;
+    writes `out` (one pass) or out/pass-K (several), complete or not at all."""
+    expectations = dict(DEFAULT_EXPECTATIONS if expectations is None else expectations)
+    remaps = dict(remaps or {})
+    bag = load_bag(bag_path)
+    check_inputs(bag, list(expectations), remaps)
+    published_names = {remaps.get(t, t) for t in expectations}
+    outputs = ({o for outs in expectations.values() for o in outs} | set(extra_outputs)) \
+        - published_names
+    required = {o for outs in expectations.values() for o in outs}
+    out = Path(out) if out is not None else None
+    if out is not None and out.exists():
+        raise ReplayError(f'{out}: already exists; choose a new output folder')
+    partial = out.with_name(out.name + '.partial') if out is not None else None
+    if partial is not None:
+        _discard(partial)
+
+    graph = None
+    log_dir = Path(tempfile.mkdtemp(prefix='sensing_replay-')) if logs is None else Path(logs)
+    replayer = None
+    try:
+        replayer = Replayer({t: remaps.get(t, t) for t in expectations},
+                            {t: bag.types[t] for t in expectations}, outputs, expectations)
+        if launch:
+            from sensing_nodes.tools.demo import Graph
+
+            (log_dir / 'logs').mkdir(parents=True, exist_ok=True)
+            graph = Graph(log_dir, dict(os.environ))
+            for name in nodes:
+                graph.start(name, list((node_params or {}).get(name, [])))
+        replayer.wait_for_graph(
+            required, startup_timeout_s, failed=(graph.failed if graph is not None else lambda: []),
+            nodes=nodes if launch and '/diagnostics' in outputs else ())
+        if warmup_s > 0 and launch:
+            # Two nodes that have just discovered each other may still be matching: a message
+            # sent then is lost. So the first warmup_s of the bag goes through first and is
+            # discarded; the pass proper then starts with time jumping backwards, which resets
+            # every node (the same path every later loop takes).
+            inputs_sorted = [m for m in bag.messages if m[0] in expectations]
+            start = inputs_sorted[0][1]
+            warm = InputBag(bag.path, bag.types, [m for m in bag.messages
+                                                  if m[1] <= start + int(warmup_s * 1e9)])
+            play_pass(replayer, warm, set(expectations), 'lockstep', rate, timeout_s, quiet_s,
+                      'warm-up: ' if progress else None, settle_after, settle_s)
+        results = []
+        for k in range(loops):
+            label = f'pass {k + 1}/{loops}: ' if loops > 1 else ''
+            results.append(play_pass(replayer, bag, set(expectations), mode, rate, timeout_s,
+                                     quiet_s, label if progress else None, settle_after,
+                                     settle_s))
+            if graph is not None and graph.failed():
+                raise ReplayError(f'node(s) exited during the replay: {", ".join(graph.failed())}; '
+                                  f'logs in {log_dir / "logs"}')
+        output_types = {t: replayer.node.get_publishers_info_by_topic(t)[0].topic_type
+                        for t in replayer.subscribed
+                        if replayer.node.get_publishers_info_by_topic(t)}
+        for r in results:
+            for t in r.outputs:
+                if t not in output_types:
+                    raise ReplayError(f'output {t}: its publisher vanished before its type was read')
+        if partial is not None:
+            if loops == 1:
+                write_output_bag(partial, bag, results[0], output_types, outputs, compress)
+            else:
+                partial.mkdir(parents=True)
+                for k, r in enumerate(results):
+                    write_output_bag(partial / f'pass-{k + 1}', bag, r, output_types, outputs,
+                                     compress)
+            partial.rename(out)
+        return results
+    except BaseException:
+        if partial is not None:
+            _discard(partial)
+        raise
+    finally:
+        if graph is not None:
+            graph.stop()
+        if replayer is not None:
+            replayer.close()
+        if logs is None and graph is None:
+            shutil.rmtree(log_dir, ignore_errors=True)
+
+
+# -- comparing outputs ----------------------------------------------------------------------
+def output_messages(path: str | Path, topics: set[str]) -> dict[str, list[tuple[int, bytes]]]:
+    """topic -> [(bag time ns, CDR bytes)] in bag order, for the given topics."""
+    from rosbags.rosbag2 import Reader
+
+    out: dict[str, list[tuple[int, bytes]]] = {t: [] for t in topics}
+    with Reader(Path(path)) as reader:
+        connections = [c for c in reader.connections if c.topic in topics]
+        for connection, stamp, raw in reader.messages(connections=connections):
+            out[connection.topic].append((stamp, bytes(raw)))
+    return out
+
+
+def _largest_difference(a, b, path: str = '') -> tuple[float, str]:
+    """Largest absolute difference between two decoded messages' numbers, and where;
+    inf when they differ in anything that is not a number."""
+    import numpy as np
+
+    if hasattr(a, 'get_fields_and_field_types'):
+        worst = (0.0, '')
+        for name in a.get_fields_and_field_types():
+            d = _largest_difference(getattr(a, name), getattr(b, name), f'{path}.{name}')
+            worst = max(worst, d, key=lambda x: x[0])
+        return worst
+    if isinstance(a, (list, tuple)) or hasattr(a, '__array__') or type(a).__name__ == 'array':
+        if len(a) != len(b):
+            return math.inf, f'{path} (length {len(a)} vs {len(b)})'
+        if len(a) and isinstance(a[0], (int, float)):
+            x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+            same = (x == y) | (np.isnan(x) & np.isnan(y))
+            if same.all():
+                return 0.0, ''
+            i = int(np.argmax(np.where(same, 0.0, np.abs(x - y))))
+            return float(np.nan_to_num(abs(x[i] - y[i]), nan=math.inf)), f'{path}[{i}]'
+        worst = (0.0, '')
+        for i, (u, v) in enumerate(zip(a, b)):
+            worst = max(worst, _largest_difference(u, v, f'{path}[{i}]'), key=lambda x: x[0])
+        return worst
+    if isinstance(a, float) and isinstance(b, float):
+        if a == b or (math.isnan(a) and math.isnan(b)):
+            return 0.0, ''
+        return abs(a - b), path
+    return (0.0, '') if a == b else (math.inf, path)
+
+
+def compare_outputs(expected: dict[str, list[tuple[int, bytes]]],
+                    actual: dict[str, list[tuple[int, bytes]]],
+                    types: dict[str, str]) -> dict[str, dict]:
+    """Per topic: message counts, how many are byte-identical, and the largest numeric
+    difference (with where) among the others."""
+    from rclpy.serialization import deserialize_message
+
+    from sensing_nodes.bag import message_class
+
+    report = {}
+    for topic in sorted(set(expected) | set(actual)):
+        a, b = expected.get(topic, []), actual.get(topic, [])
+        entry = {'expected': len(a), 'actual': len(b), 'identical': 0, 'max_difference': 0.0,
+                 'where': ''}
+        cls = message_class(types[topic])
+        for (sa, ra), (sb, rb) in zip(a, b):
+            if sa == sb and ra == rb:
+                entry['identical'] += 1
+                continue
+            if sa != sb:
+                d, where = math.inf, f'bag time {sa} vs {sb}'
+            else:
+                d, where = _largest_difference(deserialize_message(ra, cls),
+                                               deserialize_message(rb, cls))
+            if d >= entry['max_difference']:
+                entry['max_difference'], entry['where'] = d, f'stamp {sa}: {where}'
+        report[topic] = entry
+    return report
+
+
+# -- the project's bags ---------------------------------------------------------------------
+def make_bags(folder: str | Path, names: list[str] | None = None, progress: bool = True) -> None:
+    """Regenerate bags/<name>: inputs recorded with `sensor_sim --record`, outputs by a lockstep
+    replay through the real node processes."""
+    from sensing_nodes.paths import config_file
+    from sensing_nodes.tools.demo import executable
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names or list(BAG_SPECS):
+        params_file, seed, duration = BAG_SPECS[name]
+        with tempfile.TemporaryDirectory(prefix='sensing_bags-') as tmp:
+            inputs = Path(tmp) / 'inputs'
+            subprocess.run([executable('sensor_sim'), '--record', str(inputs), '--duration',
+                            str(duration), '--seed', str(seed), '--params-file',
+                            str(config_file(params_file)), '--quiet'], check=True)
+            target = folder / name
+            _discard(target)
+            results = replay(inputs, target, launch=True, progress=progress, compress=True)
+            missing = dict(results[0].missing)
+            if missing:
+                _discard(target)
+                raise ReplayError(f'{name}: outputs missing in the lockstep replay: {missing}')
+        size = sum(p.stat().st_size for p in target.iterdir())
+        print(f'sensing_replay: wrote {target} ({size / 1e6:.2f} MB)')
+
+
+# -- command line ---------------------------------------------------------------------------
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog='sensing_replay', description=__doc__.split('\n\n')[0])
+    parser.add_argument('bag', nargs='?', help='input rosbag2 bag (folder with metadata.yaml)')
+    parser.add_argument('out', nargs='?', help='output bag folder to create (inputs + outputs)')
+    parser.add_argument('--mode', choices=('lockstep', 'timed'), default='lockstep')
+    parser.add_argument('--rate', type=float, default=1.0,
+                        help='timed mode: bag seconds per wall second (default 1)')
+    parser.add_argument('--expect', action='append', default=[], metavar='IN=OUT[,OUT]',
+                        help='expectation table entry (replaces the default table when given): '
+                             'an input topic and the outputs carrying its stamp; OUT may be empty')
+    parser.add_argument('--record', action='append', default=None, metavar='TOPIC',
+                        help='further outputs recorded as they come (default: '
+                             + ' '.join(DEFAULT_EXTRA_OUTPUTS) + ')')
+    parser.add_argument('--remap', action='append', default=[], metavar='BAG_TOPIC:=TOPIC',
+                        help='publish a bag topic under another name')
+    parser.add_argument('--launch', action='store_true',
+                        help="start the package's processing nodes (config/ parameter files)")
+    parser.add_argument('--nodes', default=','.join(PROCESSING_NODES),
+                        help='with --launch: which nodes (comma separated)')
+    parser.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
+                        help='with --launch: a parameter override for one node')
+    parser.add_argument('--loops', type=int, default=1,
+                        help='play the bag this many times back to back (time jumps backwards); '
+                             'outputs go to OUT/pass-K')
+    parser.add_argument('--timeout', type=float, default=10.0,
+                        help='lockstep: wall seconds to wait for an input\'s outputs (default 10)')
+    parser.add_argument('--quiet-s', type=float, default=1.5,
+                        help='end of a pass: wall seconds without output before it is over '
+                             '(longer than the fusion\'s flush_after_s)')
+    parser.add_argument('--settle-ms', type=float, default=2.0,
+                        help='lockstep: wall ms to spin after the outputs of a --settle-after '
+                             'input arrived (default 2)')
+    parser.add_argument('--settle-after', action='append', default=None, metavar='TOPIC',
+                        help='inputs followed by the settle time (default: '
+                             + ' '.join(DEFAULT_SETTLE_AFTER) + ')')
+    parser.add_argument('--warmup-s', type=float, default=2.0,
+                        help='with --launch: first play this much of the bag (bag seconds) and '
+                             'discard the outputs, so every link of the graph is matched before '
+                             'the pass that counts (0: no warm-up)')
+    parser.add_argument('--logs', type=Path, default=None, help='with --launch: keep node logs here')
+    parser.add_argument('--make-bags', metavar='DIR', default=None,
+                        help="regenerate the project's bags (" + ', '.join(BAG_SPECS) + ') in DIR')
+    parser.add_argument('--compress', action='store_true',
+                        help='zstd-compress the output bag\'s MCAP chunks')
+    parser.add_argument('--no-progress', action='store_true')
+    args = parser.parse_args(argv)
+    if args.make_bags is None and (args.bag is None or args.out is None):
+        parser.error('give BAG and OUT (or --make-bags DIR)')
+    if not (args.rate > 0 and args.timeout > 0 and args.loops >= 1 and args.quiet_s > 0):
+        parser.error('--rate, --timeout and --quiet-s must be > 0 and --loops >= 1')
+    return args
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    signal.signal(signal.SIGTERM, _interrupt)  # a killed replay still stops its nodes
+    try:
+        if args.make_bags is not None:
+            make_bags(args.make_bags, progress=not args.no_progress)
+            return 0
+        remaps = {}
+        for spec in args.remap:
+            src, sep, dst = spec.partition(':=')
+            if not sep or not src.startswith('/') or not dst.startswith('/'):
+                raise ReplayError(f'--remap {spec!r}: write /BAG_TOPIC:=/TOPIC')
+            remaps[src] = dst
+        nodes = tuple(n for n in args.nodes.split(',') if n)
+        unknown = [n for n in nodes if n not in PROCESSING_NODES]
+        if unknown:
+            raise ReplayError(f'--nodes: unknown node(s) {unknown}; known: {PROCESSING_NODES}')
+        results = replay(
+            args.bag, args.out, mode=args.mode, rate=args.rate,
+            expectations=parse_expectations(args.expect) if args.expect else None,
+            extra_outputs=tuple(args.record) if args.record is not None else DEFAULT_EXTRA_OUTPUTS,
+            remaps=remaps, launch=args.launch, nodes=nodes,
+            node_params=parse_node_params(args.param), loops=args.loops, timeout_s=args.timeout,
+            quiet_s=args.quiet_s, progress=not args.no_progress, logs=args.logs,
+            compress=args.compress, settle_s=args.settle_ms * 1e-3, warmup_s=args.warmup_s,
+            settle_after=(tuple(args.settle_after) if args.settle_after is not None
+                          else DEFAULT_SETTLE_AFTER))
+    except ReplayError as exc:
+        print(f'sensing_replay: error: {exc}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print('sensing_replay: interrupted; no output written', file=sys.stderr)
+        return 130
+    for k, r in enumerate(results):
+        counts = ', '.join(f'{t} {len(v)}' for t, v in sorted(r.outputs.items()))
+        missing = sum(r.missing.values())
+        print(f'sensing_replay: pass {k + 1}: {r.inputs_published} inputs in {r.wall_s:.1f} s; '
+              f'outputs: {counts}' + (f'; MISSING {dict(r.missing)}' if missing else ''))
+        print('  waiting for outputs per input topic: ' + ', '.join(
+            f'{t} {s:.1f} s' for t, s in sorted(r.wait_s.items())))
+    print(f'sensing_replay: wrote {args.out}')
+    return EXIT_FAILED if any(r.missing for r in results) else 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
