@@ -41,6 +41,9 @@ class Target:
     planarity: NDArray[np.float64]
     information: NDArray[np.float64]
     dropped: int = 0          # non-finite rows removed from the input
+    # (N, 2, 3) residual rows [U | U·q] per point q with UᵀU = its information: the residual of a
+    # pair is U·(p - q) and its Jacobian rows follow from U; None = derived when first matched.
+    rows: NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass
@@ -134,25 +137,45 @@ def _line_normals(points: NDArray[np.float64], tree: cKDTree, neighbours: int,
     distance, index = tree.query(points, k=k, distance_upper_bound=radius)
     if k == 1:
         distance, index = distance[:, None], index[:, None]
-    present = np.isfinite(distance)
+    present = distance <= radius
     index = np.where(present, index, np.arange(n)[:, None])
-    neighbourhood = points[index]                                   # (N, k, 2)
-    count = present.sum(axis=1)
-    weights = present.astype(float)
-    mean = (neighbourhood * weights[..., None]).sum(axis=1) / count[:, None]
-    d = (neighbourhood - mean[:, None, :]) * weights[..., None]
-    sxx = (d[..., 0] ** 2).sum(axis=1)
-    syy = (d[..., 1] ** 2).sum(axis=1)
-    sxy = (d[..., 0] * d[..., 1]).sum(axis=1)
+    # Offsets from each point to its neighbours: small numbers, so the one-pass scatter
+    # Σ d·dᵀ - (Σ d)(Σ d)ᵀ / count loses no precision; an absent neighbour is the point itself.
+    offsets = points.take(index, axis=0)
+    offsets -= points[:, None, :]
+    dx, dy = offsets[..., 0], offsets[..., 1]
+    count = np.count_nonzero(present, axis=1)
+    sx, sy = dx.sum(axis=1), dy.sum(axis=1)
+    sxx = np.einsum('ij,ij->i', dx, dx) - sx * sx / count
+    syy = np.einsum('ij,ij->i', dy, dy) - sy * sy / count
+    sxy = np.einsum('ij,ij->i', dx, dy) - sx * sy / count
     # Principal axis of a 2x2 scatter in closed form; the normal is perpendicular to it.
     theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-    normals = np.column_stack((-np.sin(theta), np.cos(theta)))
+    normals = np.empty((n, 2))
+    np.sin(theta, out=normals[:, 0])
+    normals[:, 0] *= -1.0
+    np.cos(theta, out=normals[:, 1])
     half_trace = 0.5 * (sxx + syy)
-    spread = np.sqrt((0.5 * (sxx - syy)) ** 2 + sxy ** 2)
+    spread = np.hypot(0.5 * (sxx - syy), sxy)
     with np.errstate(invalid='ignore', divide='ignore'):
         planarity = np.where(half_trace > 0, spread / half_trace, 0.0)   # (λ1-λ2)/(λ1+λ2)
     planarity[count < 3] = 0.0
     return normals, np.clip(planarity, 0.0, 1.0)
+
+
+def _residual_rows(points: NDArray[np.float64],
+                   information: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 2, 3) rows [U | U·q] with UᵀU = M for each point q and information M (rows m00, m01,
+    m11): U = diag(√λ)·Vᵀ from M's eigen-decomposition."""
+    n = points.shape[0]
+    m = np.empty((n, 2, 2))
+    m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1] = (information[:, 0], information[:, 1],
+                                                      information[:, 1], information[:, 2])
+    values, vectors = np.linalg.eigh(m)
+    rows = np.empty((n, 2, 3))
+    rows[:, :, :2] = np.sqrt(np.clip(values, 0.0, None))[:, :, None] * vectors.transpose(0, 2, 1)
+    rows[:, :, 2] = np.einsum('nij,nj->ni', rows[:, :, :2], points)
+    return rows
 
 
 def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius: float = 1.0,
@@ -168,15 +191,24 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     if array.shape[0] == 0:
         return Target(array, cKDTree(np.zeros((0, 2))), np.zeros((0, 2)), np.zeros(0),
                       np.zeros((0, 3)), dropped)
+    array = np.ascontiguousarray(array)
     tree = cKDTree(array)
     normals, planarity = _line_normals(array, tree, normal_neighbours, normal_radius)
     line = planarity >= min_planarity
-    information = np.column_stack((
-        np.where(line, normals[:, 0] ** 2 + tangent_weight, 1.0),
-        np.where(line, normals[:, 0] * normals[:, 1], 0.0),
-        np.where(line, normals[:, 1] ** 2 + tangent_weight, 1.0),
-    ))
-    return Target(array, tree, normals, planarity, information, dropped)
+    nx, ny = normals[:, 0], normals[:, 1]
+    information = np.empty((array.shape[0], 3))
+    information[:, 0] = np.where(line, nx * nx + tangent_weight, 1.0)
+    information[:, 1] = np.where(line, nx * ny, 0.0)
+    information[:, 2] = np.where(line, ny * ny + tangent_weight, 1.0)
+    # Residual rows: on a line √(1+w)·n and √w·tangent (n·nᵀ + w·I), elsewhere the unit axes (I).
+    rows = np.zeros((array.shape[0], 2, 3))
+    normal_scale, tangent_scale = math.sqrt(1.0 + tangent_weight), math.sqrt(tangent_weight)
+    rows[:, 0, 0] = np.where(line, normal_scale * nx, 1.0)
+    rows[:, 0, 1] = np.where(line, normal_scale * ny, 0.0)
+    rows[:, 1, 0] = np.where(line, tangent_scale * ny, 0.0)
+    rows[:, 1, 1] = np.where(line, -tangent_scale * nx, 1.0)
+    rows[:, :, 2] = np.einsum('nij,nj->ni', rows[:, :, :2], array)
+    return Target(array, tree, normals, planarity, information, dropped, rows)
 
 
 def voxel_downsample(points: ArrayLike, voxel_size: float) -> NDArray[np.float64]:
@@ -212,8 +244,18 @@ class _Loop:
     error: float = math.nan
     inliers: int = 0
     history: list[float] = field(default_factory=list)
-    p: NDArray[np.float64] | None = None          # moved inlier source points (last iteration)
-    matched: NDArray[np.intp] | None = None       # index of each one's target neighbour
+    matched: NDArray[np.intp] | None = None       # target index of each inlier pair (last iteration)
+    # The last iteration's gated pairs: their target residual rows (K, 2, 3), their design blocks
+    # (K, 3, 4) (see _design_map) and which of them the robust rule chose (None = all).
+    rows: NDArray[np.float64] | None = None
+    design: NDArray[np.float64] | None = None
+    chosen: NDArray[np.bool_] | NDArray[np.intp] | None = None
+
+    def inlier_pairs(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Residual rows and design blocks of the last iteration's inlier pairs."""
+        if self.chosen is None:
+            return self.rows, self.design
+        return self.rows[self.chosen], self.design[self.chosen]
 
 
 def _median(values: NDArray[np.float64]) -> float:
@@ -221,24 +263,76 @@ def _median(values: NDArray[np.float64]) -> float:
     return float(np.partition(values, k)[k])
 
 
-def _icp_loop(src, tgt: Target, pose, *, point_to_line: bool, max_iterations: int, gate: float,
-              min_gate: float, tolerance: float, robust: str, trim_fraction: float,
+def _design_map(c: float, s: float, x: float, y: float) -> NDArray[np.float64]:
+    """(3, 12) map taking a source point [sx, sy, 1] to its design block B (3x4, row-major) =
+    [[1, 0, -ly, px], [0, 1, lx, py], [0, 0, 0, -1]], with p = R·s + (x, y) the moved point and
+    l = p - (x, y) its lever: for target rows W = [U | U·q], W·B = [U | U·J·l | U·(p - q)] are the
+    whitened Jacobian over (x, y, yaw) (J = 90° rotation) and the whitened residual."""
+    return np.array([
+        [0.0, 0.0, -s, c, 0.0, 0.0, c, s, 0.0, 0.0, 0.0, 0.0],
+        [0.0, 0.0, -c, -s, 0.0, 0.0, -s, c, 0.0, 0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0, x, 0.0, 1.0, 0.0, y, 0.0, 0.0, 0.0, -1.0]])
+
+
+def _identity_rows(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Residual rows of plain point-to-point pairs (information I): [[1, 0, qx], [0, 1, qy]]."""
+    rows = np.zeros((points.shape[0], 2, 3))
+    rows[:, 0, 0] = rows[:, 1, 1] = 1.0
+    rows[:, :, 2] = points
+    return rows
+
+
+def _solve_step(normal: NDArray[np.float64], radius: float,
+                solve_ratio: float) -> tuple[float, float, float]:
+    """Gauss-Newton increment (dx, dy, dyaw) = -H⁻¹·g from the 4x4 [[H, g], [gᵀ, Σr²]], truncated
+    to the directions whose eigenvalue (yaw as arc length at radius) exceeds solve_ratio × the
+    largest: the others get no step."""
+    (h00, h01, h02, g0), (_, h11, h12, g1), (_, _, h22, g2), _ = normal.tolist()
+    k = 1.0 / radius
+    s02, s12, s22, b2 = h02 * k, h12 * k, h22 * k * k, g2 * k     # S = D·H·D, D = diag(1, 1, k)
+    c00 = h11 * s22 - s12 * s12
+    c01 = s02 * s12 - h01 * s22
+    c02 = h01 * s12 - h11 * s02
+    det = h00 * c00 + h01 * c01 + s02 * c02
+    trace = h00 + h11 + s22
+    # λmin ≥ det / (trace/2)² and λmax ≤ trace for a positive semi-definite 3x3: when this bound
+    # already clears the ratio every direction is strong and the plain solve is the answer.
+    if det > 0.0 and 4.0 * det > solve_ratio * trace ** 3:
+        c11 = h00 * s22 - s02 * s02
+        c12 = h01 * s02 - h00 * s12
+        c22 = h00 * h11 - h01 * h01
+        return (-(c00 * g0 + c01 * g1 + c02 * b2) / det,
+                -(c01 * g0 + c11 * g1 + c12 * b2) / det,
+                -(c02 * g0 + c12 * g1 + c22 * b2) / det * k)
+    scale = np.array([1.0, 1.0, k])
+    values, vectors = np.linalg.eigh(normal[:3, :3] * scale[:, None] * scale[None, :])
+    if values[-1] <= 0:
+        return 0.0, 0.0, 0.0
+    strong = values > solve_ratio * values[-1]
+    g = vectors.T @ (normal[:3, 3] * scale)
+    g[strong] /= values[strong]
+    g[~strong] = 0.0
+    dx, dy, dyaw = -(vectors @ g) * scale
+    return float(dx), float(dy), float(dyaw)
+
+
+def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterations: int,
+              gate: float, min_gate: float, tolerance: float, robust: str, trim_fraction: float,
               adaptive_factor: float, min_inliers: int, radius: float,
               solve_ratio: float, error_tolerance: float, stall_iterations: int) -> _Loop:
-    """Iterate correspondences and closed-form / Gauss-Newton steps from pose (x, y, yaw)."""
+    """Iterate correspondences and closed-form / Gauss-Newton steps from pose (x, y, yaw);
+    src_h = source points as (N, 3) rows [x, y, 1], rows = the target's residual rows."""
     state = _Loop(*pose, reason=f'max_iterations ({max_iterations}) reached')
     x, y, yaw = pose
     previous: NDArray[np.intp] | None = None
     best_error, stalled = math.inf, 0
-    scale = np.array([1.0, 1.0, 1.0 / radius])
-    outer = scale[:, None] * scale[None, :]
     floor_sq = (0.25 * min_gate) ** 2
+    robust_sq = (adaptive_factor * 1.4826) ** 2
     for iteration in range(1, max_iterations + 1):
         state.iterations = iteration
-        c, s = math.cos(yaw), math.sin(yaw)
-        moved = src @ np.array([[c, s], [-s, c]])
-        moved += (x, y)
-        distance, index = tgt.tree.query(moved, k=1, distance_upper_bound=gate)
+        # One product gives every source point's moved position and design block.
+        blocks = src_h @ _design_map(math.cos(yaw), math.sin(yaw), x, y)
+        distance, index = tgt.tree.query(blocks[:, 3:8:4], k=1, distance_upper_bound=gate)
         keep = distance < gate
         count = int(np.count_nonzero(keep))
         if count < min_inliers:
@@ -247,76 +341,52 @@ def _icp_loop(src, tgt: Target, pose, *, point_to_line: bool, max_iterations: in
             state.inliers = count
             break
         if count < keep.size:
-            p, matched = moved[keep], index[keep]
-        else:
-            p, matched = moved, index
-        e = p - tgt.points[matched]
-        ex, ey = e[:, 0], e[:, 1]
-        if point_to_line:
-            info = tgt.information[matched]
-            m00, m01, m11 = info[:, 0], info[:, 1], info[:, 2]
-            me0 = m00 * ex + m01 * ey
-            me1 = m01 * ex + m11 * ey
-            size_sq = ex * me0 + ey * me1          # squared Mahalanobis-like residual (m²)
-        else:
-            size_sq = distance[keep] ** 2
+            blocks, index = blocks[keep], index[keep]
+        design = blocks.reshape(-1, 3, 4)
+        pair_rows = rows.take(index, axis=0)
+        whitened = np.matmul(pair_rows, design)       # (K, 2, 4): Jacobian rows | residual
+        residual = whitened[..., 3]
+        size_sq = np.einsum('ki,ki->k', residual, residual)   # squared Mahalanobis-like (m²)
         # Robust rule: which of the gated pairs enter the estimate.
         median_sq = _median(size_sq)
-        chosen: NDArray[np.bool_] | NDArray[np.intp] | None
+        chosen: NDArray[np.bool_] | NDArray[np.intp] | None = None
         if robust == 'trim' and count > min_inliers:
             n_keep = max(min_inliers, int(trim_fraction * count))
             chosen = np.argpartition(size_sq, n_keep - 1)[:n_keep]
         elif robust == 'adaptive':
-            threshold_sq = max((adaptive_factor * 1.4826) ** 2 * median_sq, floor_sq)
-            chosen = size_sq <= threshold_sq
-            if np.count_nonzero(chosen) < min_inliers:
+            chosen = size_sq <= max(robust_sq * median_sq, floor_sq)
+            n_chosen = int(np.count_nonzero(chosen))
+            if n_chosen < min_inliers:
                 chosen = np.argpartition(size_sq, min_inliers - 1)[:min_inliers]
-        else:
-            chosen = None
+            elif n_chosen == count:
+                chosen = None
         if chosen is not None:
-            p, matched, size_sq = p[chosen], matched[chosen], size_sq[chosen]
-            ex, ey = ex[chosen], ey[chosen]
-        state.inliers = p.shape[0]
-        state.error = float(np.sqrt(size_sq).mean())
-        state.history.append(state.error)
-        state.p, state.matched = p, matched
-        if point_to_line:
-            if chosen is not None:
-                m00, m01, m11, me0, me1 = m00[chosen], m01[chosen], m11[chosen], me0[chosen], \
-                    me1[chosen]
-            c0 = y - p[:, 1]                     # J·(p - t), J = 90° rotation
-            c1 = p[:, 0] - x
-            mc0 = m00 * c0 + m01 * c1
-            mc1 = m01 * c0 + m11 * c1
-            h02, h12 = mc0.sum(), mc1.sum()
-            s01 = m01.sum()
-            hessian = np.array([[m00.sum(), s01, h02], [s01, m11.sum(), h12],
-                                [h02, h12, c0 @ mc0 + c1 @ mc1]])
-            gradient = np.array([me0.sum(), me1.sum(), c0 @ me0 + c1 @ me1])
-            values, vectors = np.linalg.eigh(hessian * outer)
-            if values[-1] <= 0:
-                dx = dy = dyaw = 0.0
-            else:
-                strong = values > solve_ratio * values[-1]
-                g = vectors.T @ (gradient * scale)
-                g[strong] /= values[strong]
-                g[~strong] = 0.0
-                dx, dy, dyaw = -(vectors @ g) * scale
+            whitened, size_sq, matched = whitened[chosen], size_sq[chosen], index[chosen]
         else:
-            r_step, t_step = align_paired(p, tgt.points[matched])
+            matched = index
+        state.inliers = size_sq.size
+        state.error = float(np.sqrt(size_sq).sum()) / size_sq.size
+        state.history.append(state.error)
+        state.matched, state.rows, state.design, state.chosen = matched, pair_rows, design, chosen
+        if point_to_line:
+            flat = whitened.reshape(-1, 4)
+            dx, dy, dyaw = _solve_step(flat.T @ flat, radius, solve_ratio)
+        else:
+            p = (design if chosen is None else design[chosen])[:, 0:2, 3]
+            r_step, t_step = align_paired(p, tgt.points.take(matched, axis=0))
             dyaw = math.atan2(r_step[1, 0], r_step[0, 0])
             # The SVD step is exact for these pairs; compose it with the current transform.
             new_xy = r_step @ np.array([x, y]) + t_step
-            dx, dy = new_xy[0] - x, new_xy[1] - y
+            dx, dy = float(new_xy[0]) - x, float(new_xy[1]) - y
         x, y = x + dx, y + dy
         yaw = math.remainder(yaw + dyaw, 2.0 * math.pi)
         state.x, state.y, state.yaw = x, y, yaw
         if robust == 'adaptive':
             gate = max(min_gate, min(gate, 2.0 * adaptive_factor * 1.4826 * math.sqrt(median_sq)))
-        same_pairs = previous is not None and previous.size == matched.size \
-            and np.array_equal(previous, matched)
-        previous = matched
         step = math.hypot(dx, dy) + abs(dyaw) * radius
+        same_pairs = step < 10.0 * tolerance and previous is not None \
+            and previous.size == matched.size and np.array_equal(previous, matched)
+        previous = matched
         settled = len(state.history) >= 2 and \
             abs(state.history[-2] - state.history[-1]) <= error_tolerance * state.history[-1]
         # Correspondences that flip back and forth keep the step from vanishing; when the error
@@ -325,25 +395,18 @@ def _icp_loop(src, tgt: Target, pose, *, point_to_line: bool, max_iterations: in
             best_error, stalled = state.error, 0
         else:
             stalled += 1
-        if step < tolerance or (same_pairs and step < 10.0 * tolerance) or settled \
-                or stalled >= stall_iterations:
+        if step < tolerance or same_pairs or settled or stalled >= stall_iterations:
             state.converged = True
             state.reason = ''
             break
     return state
 
 
-def _normal_equations(lever, info, me0, me1):
-    """Σ Gᵢᵀ Mᵢ Gᵢ and Σ Gᵢᵀ Mᵢ eᵢ over pairs, with Gᵢ = [I | J·leverᵢ] the Jacobian of the
-    moved point over (x, y, yaw) and Mᵢ the 2x2 information (rows m00, m01, m11)."""
-    c0, c1 = -lever[:, 1], lever[:, 0]                   # J·lever, J = 90° rotation
-    mc0 = info[:, 0] * c0 + info[:, 1] * c1
-    mc1 = info[:, 1] * c0 + info[:, 2] * c1
-    s00, s01, s11 = info.sum(axis=0)
-    h02, h12, h22 = mc0.sum(), mc1.sum(), float(c0 @ mc0 + c1 @ mc1)
-    hessian = np.array([[s00, s01, h02], [s01, s11, h12], [h02, h12, h22]])
-    gradient = np.array([me0.sum(), me1.sum(), float(c0 @ me0 + c1 @ me1)])
-    return hessian, gradient
+def _homogeneous(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 3) rows [x, y, 1]."""
+    out = np.ones((points.shape[0], 3))
+    out[:, :2] = points
+    return out
 
 
 def _score(src, tgt: Target, pose, inlier_distance: float) -> float:
@@ -433,6 +496,10 @@ def match(
         adaptive_factor=adaptive_factor, radius=radius,
         solve_ratio=degeneracy_ratio, error_tolerance=error_tolerance,
         stall_iterations=stall_iterations)
+    if point_to_line:
+        rows = tgt.rows if tgt.rows is not None else _residual_rows(tgt.points, tgt.information)
+    else:
+        rows = _identity_rows(tgt.points)
     start = (float(guess[0]), float(guess[1]), float(guess[2]))
     if yaw_hypotheses:
         coarse = voxel_downsample(src, coarse_voxel_size) if coarse_voxel_size > 0 else src
@@ -442,35 +509,37 @@ def match(
         best, best_score = start, -1.0
         for offset in (0.0, *yaw_hypotheses):
             seed = (start[0], start[1], start[2] + float(offset))
-            state = _icp_loop(coarse, tgt, seed, max_iterations=coarse_iterations,
-                              gate=max_correspondence_distance, min_inliers=coarse_min, **settings)
-            candidate = (state.x, state.y, state.yaw) if state.p is not None else seed
+            state = _icp_loop(_homogeneous(coarse), rows, tgt, seed,
+                              max_iterations=coarse_iterations, gate=max_correspondence_distance,
+                              min_inliers=coarse_min, **settings)
+            candidate = (state.x, state.y, state.yaw) if state.design is not None else seed
             score = _score(coarse, tgt, candidate, score_distance)
             # The guess's own result wins unless a hypothesis explains clearly more points.
             if score > best_score + (hypothesis_margin if offset else 0.0):
                 best, best_score = candidate, score
         start = best
-    state = _icp_loop(src, tgt, start, max_iterations=max_iterations,
+    state = _icp_loop(_homogeneous(src), rows, tgt, start, max_iterations=max_iterations,
                       gate=max_correspondence_distance, min_inliers=min_inliers, **settings)
     x, y, yaw = state.x, state.y, state.yaw
-    if state.p is None or state.inliers < min_inliers:
+    if state.design is None or state.inliers < min_inliers:
         return MatchResult(x, y, yaw, np.eye(3) * FAILED_VARIANCE, state.iterations, False,
                            state.error, state.reason, source_points=src.shape[0],
                            dropped_points=dropped, history=state.history, inliers=state.inliers)
 
-    # Final linearised system over the last iteration's inlier pairs (converged: a tiny step).
-    p = state.p
-    q = tgt.points[state.matched]
-    lever = p - (x, y)
-    e = p - q
-    info = tgt.information[state.matched] if point_to_line else np.tile((1.0, 0.0, 1.0), (len(p), 1))
-    me0 = info[:, 0] * e[:, 0] + info[:, 1] * e[:, 1]
-    me1 = info[:, 1] * e[:, 0] + info[:, 2] * e[:, 1]
-    hessian, _ = _normal_equations(lever, info, me0, me1)
-    # Each pair gives rank(Mᵢ) residuals: 1 on a line (tangent weight aside), 2 point-to-point.
-    residual_count = float((info[:, 0] + info[:, 2]).sum())
+    # Final linearised system over the last iteration's inlier pairs (converged: a tiny step),
+    # with the levers taken about the final translation.
+    pair_rows, design = state.inlier_pairs()
+    design = design.copy()
+    design[:, 0, 2] = y - design[:, 1, 3]
+    design[:, 1, 2] = design[:, 0, 3] - x
+    flat = np.matmul(pair_rows, design).reshape(-1, 4)
+    normal = flat.T @ flat
+    hessian = normal[:3, :3]
+    # Each pair gives rank(Mᵢ) residuals: 1 on a line (tangent weight aside), 2 point-to-point;
+    # trace(Mᵢ) = |Uᵢ|² counts them.
+    residual_count = float(np.einsum('kij,kij->', pair_rows[:, :, :2], pair_rows[:, :, :2]))
     dof = max(1.0, residual_count - 3.0)
-    variance = max(float(e[:, 0] @ me0 + e[:, 1] @ me1) / dof, min_residual_std ** 2)
+    variance = max(float(normal[3, 3]) / dof, min_residual_std ** 2)
     covariance, degenerate, direction, condition = _covariance(
         hessian, variance, radius, degeneracy_ratio)
     reason = state.reason
