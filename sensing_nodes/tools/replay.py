@@ -397,9 +397,13 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
     out = Path(out) if out is not None else None
     if out is not None and out.exists():
         raise ReplayError(f'{out}: already exists; choose a new output folder')
-    partial = out.with_name(out.name + '.partial') if out is not None else None
-    if partial is not None:
-        _discard(partial)
+    # Written under a hidden sibling folder and moved into place only when complete (rosbag2
+    # names the .mcap after its folder, so the folder already has its final name there).
+    staging = out.with_name(f'.{out.name}.partial') if out is not None else None
+    partial = staging / out.name if staging is not None else None
+    if staging is not None:
+        _discard(staging)
+        staging.mkdir(parents=True)
 
     graph = None
     log_dir = Path(tempfile.mkdtemp(prefix='sensing_replay-')) if logs is None else Path(logs)
@@ -454,11 +458,9 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                                      compress)
             partial.rename(out)
         return results
-    except BaseException:
-        if partial is not None:
-            _discard(partial)
-        raise
     finally:
+        if staging is not None:
+            _discard(staging)   # empty after success; a partial bag after a failure
         if graph is not None:
             graph.stop()
         if replayer is not None:
@@ -540,6 +542,14 @@ def compare_outputs(expected: dict[str, list[tuple[int, bytes]]],
                 entry['max_difference'], entry['where'] = d, f'stamp {sa}: {where}'
         report[topic] = entry
     return report
+
+
+def _find_executables_next_to_python() -> None:
+    """`python -m sensing_nodes.tools.replay` from a venv: its bin/ holds the node executables
+    (demo.executable looks next to sys.argv[0], then on PATH)."""
+    bin_dir = Path(sys.executable).parent
+    if (bin_dir / 'wheel_odometry').is_file() and str(bin_dir) not in os.environ['PATH'].split(os.pathsep):
+        os.environ['PATH'] = str(bin_dir) + os.pathsep + os.environ.get('PATH', '')
 
 
 # -- the project's bags ---------------------------------------------------------------------
@@ -629,6 +639,7 @@ def _interrupt(signum, frame):
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    _find_executables_next_to_python()
     signal.signal(signal.SIGTERM, _interrupt)  # a killed replay still stops its nodes
     try:
         if args.make_bags is not None:
