@@ -5,8 +5,11 @@ distance to it is x·cos(alpha) + y·sin(alpha) - r (for a beam (rho, theta): rh
 
 Every least-squares fit during splitting and merging is O(1) from prefix sums of
 (x, y, x², y², xy) prepared once per scan, and the splitting works on all segments of a scan at once
-(one numpy pass per level of the split tree), so a scan costs O(n log n) array work and a few
-dozen numpy calls per level, with no Python recursion. The (r, alpha) covariance of each line
+(one numpy pass per level of the split tree), so a scan costs O(n log n) array work. As numpy's
+cost per call (about a microsecond) dominates at a few hundred beams, work whose size is the
+number of segments or lines (a dozen or so), and the last few dozen points of the split, runs on
+plain floats with the same arithmetic, and the cos and sin of the beam angles are cached across
+scans with the same angles. The (r, alpha) covariance of each line
 propagates every point's distance variance sigma_r²·cos²(theta_i - alpha) (range noise seen along
 the normal, the noise model of Pfister et al. 2003) through the least-squares fit. (A fit weighted
 by the inverse of those variances, as Pfister et al. propose, was tried: on the real CARMEN logs it
@@ -21,7 +24,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sensing_nodes.core.scan import scan_to_points
 
 # cos²(incidence) is floored here: at grazing incidence the real error is dominated by beam width
 # and mixed returns, not by the range noise (which would give a vanishing distance variance).
@@ -31,6 +33,9 @@ _MIN_COS2 = 0.05
 # of this one. A split point within noise of both walls stays in both lines.
 _END_SIGMAS = 3.0
 _SMALLEST_RANGE = 1e-9
+# Splitting ranges of this many points in all or fewer is cheaper on plain floats than in numpy
+# (a numpy pass over the ranges costs about sixty calls of a microsecond or so each).
+_FLOAT_SPLIT_POINTS = 48
 
 
 @dataclass(slots=True)
@@ -109,21 +114,11 @@ class _PolarFits:
         return 1.0 / self.w + tm * tm / stt, tm / stt, 1.0 / stt
 
 
-def _ranges_within(lengths: NDArray[np.intp], starts: NDArray[np.intp]):
-    """Concatenated index ranges [starts[k], starts[k] + lengths[k]) and the owner k of each."""
-    offsets = np.cumsum(lengths) - lengths
-    owner = np.repeat(np.arange(len(lengths)), lengths)
-    index = np.arange(int(lengths.sum())) - np.repeat(offsets - starts, lengths)
-    return index, owner, offsets
-
-
 class _Scan:
     """Valid points of one scan in processing order, with prefix sums for O(1) segment fits."""
 
-    def __init__(self, points: NDArray[np.float64], beams: NDArray[np.intp]) -> None:
-        self.x = np.ascontiguousarray(points[:, 0])
-        self.y = np.ascontiguousarray(points[:, 1])
-        self.beams = beams
+    def __init__(self, x: NDArray[np.float64], y: NDArray[np.float64], beams: NDArray[np.intp]) -> None:
+        self.x, self.y, self.beams = x, y, beams
         prefix = np.empty((len(self.x) + 1, 6))
         prefix[0] = 0.0
         terms = prefix[1:]
@@ -133,8 +128,21 @@ class _Scan:
         np.multiply(self.x, self.x, out=terms[:, 3])
         np.multiply(self.y, self.y, out=terms[:, 4])
         np.multiply(self.x, self.y, out=terms[:, 5])
+        self.rho2 = terms[:, 3] + terms[:, 4]           # squared range of each point (m²)
         np.cumsum(terms, axis=0, out=terms)
         self.prefix = prefix
+        self.counter = np.arange(2 * len(self.x) + 1)   # indices: a range list holds < 2n points
+
+    def ranges(self, s: NDArray[np.intp], counts: NDArray[np.intp], cumulative=None):
+        """Point indices of the ranges [s, s + counts) one after another, the range each comes
+        from, and where each range begins in that list (cumulative: counts.cumsum(), if known)."""
+        offsets = counts.cumsum() if cumulative is None else cumulative
+        total = int(offsets[-1])
+        offsets -= counts
+        owner = self.counter[:len(counts)].repeat(counts)
+        index = (s - offsets).repeat(counts)
+        index += self.counter[:total]
+        return index, owner, offsets
 
     def fit(self, s: NDArray[np.intp], e: NDArray[np.intp]):
         """Unweighted fits of the inclusive point ranges [s, e] as (cos alpha, sin alpha, r);
@@ -147,10 +155,6 @@ class _Scan:
         c, sn = np.cos(alpha), np.sin(alpha)
         return c, sn, xm * c + ym * sn
 
-    def distances(self, index, c, sn, r):
-        """Signed distances (m) of points `index` to lines (cos alpha, sin alpha, r) given per point."""
-        return self.x[index] * c + self.y[index] * sn - r
-
 
 def _split(scan: _Scan, s: NDArray[np.intp], e: NDArray[np.intp], split_distance: float,
            min_points: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -162,39 +166,76 @@ def _split(scan: _Scan, s: NDArray[np.intp], e: NDArray[np.intp], split_distance
     """
     done_s, done_e = [], []
     smallest = max(min_points, 3)
-    while len(s):
+    x, y = scan.x, scan.y
+    while True:
         n = e - s + 1
-        small = n < smallest
-        if small.any():
-            done_s.append(s[small])
-            done_e.append(e[small])
-            s, e, n = s[~small], e[~small], n[~small]
-            if not len(s):
-                break
+        offsets = n.cumsum()
+        if offsets[-1] <= _FLOAT_SPLIT_POINTS:
+            _split_floats(scan, s.tolist(), e.tolist(), split_distance, smallest, done_s, done_e)
+            break
         c, sn, r = scan.fit(s, e)
-        index, owner, offsets = _ranges_within(n, s)
-        xi, yi = scan.x[index], scan.y[index]
-        far = np.maximum.reduceat(np.abs(xi * c[owner] + yi * sn[owner] - r[owner]), offsets)
-        final = far <= split_distance
+        index, owner, offsets = scan.ranges(s, n, offsets)
+        xi, yi = x[index], y[index]
+        # Fewer points than `smallest` are never split (their fit is computed but not used).
+        final = n < smallest
+        dist = xi * c[owner]
+        dist += yi * sn[owner]
+        dist -= r[owner]
+        final |= np.maximum.reduceat(np.abs(dist, out=dist), offsets) <= split_distance
         done_s.append(s[final])
         done_e.append(e[final])
-        if final.all():
+        if np.count_nonzero(final) == len(final):
             break
         # Distance to the chord through each range's first and last point, times the chord's
         # length (which does not move the argmax); computed for every range, used for the others.
-        x0, y0 = scan.x[s], scan.y[s]
-        dx, dy = scan.x[e] - x0, scan.y[e] - y0
-        chord = np.abs(xi * dy[owner] - yi * dx[owner] - (x0 * dy - y0 * dx)[owner])
-        hits = np.flatnonzero(chord == np.maximum.reduceat(chord, offsets)[owner])
-        hit_owner = owner[hits]
-        first = np.ones(len(hits), dtype=bool)
-        np.not_equal(hit_owner[1:], hit_owner[:-1], out=first[1:])
+        x0, y0 = x[s], y[s]
+        dx, dy = x[e] - x0, y[e] - y0
+        chord = xi * dy[owner]
+        chord -= yi * dx[owner]
+        chord -= (x0 * dy - y0 * dx)[owner]
+        np.abs(chord, out=chord)
+        top = np.maximum.reduceat(chord, offsets)[owner]
+        # The first point of each range at its maximum (index grows within a range).
+        at = np.minimum.reduceat(np.where(chord == top, index, len(scan.counter)), offsets)
         split = ~final
-        at = np.clip(index[hits[first]], s + 1, e - 1)[split]
-        s, e = np.concatenate((s[split], at)), np.concatenate((at, e[split]))
+        s, e, at = s[split], e[split], at[split]
+        np.maximum(at, s + 1, out=at)
+        np.minimum(at, e - 1, out=at)
+        s, e = np.concatenate((s, at)), np.concatenate((at, e))
     s, e = np.concatenate(done_s), np.concatenate(done_e)
     order = np.lexsort((e, s))
     return s[order], e[order]
+
+
+def _split_floats(scan: _Scan, s: list[int], e: list[int], split_distance: float, smallest: int,
+                  done_s: list, done_e: list) -> None:
+    """_split for a few dozen points in all, range by range on plain floats (same arithmetic,
+    same first farthest point), appending the final ranges as arrays to done_s and done_e."""
+    x, y, prefix = scan.x, scan.y, scan.prefix
+    todo = list(zip(s, e))
+    out_s, out_e = [], []
+    while todo:
+        lo, hi = todo.pop()
+        if hi - lo + 1 >= smallest:
+            c, sn, r = _fit_floats((prefix[hi + 1] - prefix[lo]).tolist())
+            xs, ys = x[lo:hi + 1].tolist(), y[lo:hi + 1].tolist()
+            if max(abs(px * c + py * sn - r) for px, py in zip(xs, ys)) > split_distance:
+                x0, y0 = xs[0], ys[0]
+                dx, dy = xs[-1] - x0, ys[-1] - y0
+                k0 = x0 * dy - y0 * dx
+                top, at = -1.0, 0
+                for i, (px, py) in enumerate(zip(xs, ys)):
+                    chord = abs(px * dy - py * dx - k0)
+                    if chord > top:
+                        top, at = chord, i
+                at = min(max(lo + at, lo + 1), hi - 1)
+                todo.append((lo, at))
+                todo.append((at, hi))
+                continue
+        out_s.append(lo)
+        out_e.append(hi)
+    done_s.append(np.array(out_s, dtype=np.intp))
+    done_e.append(np.array(out_e, dtype=np.intp))
 
 
 def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: float,
@@ -206,43 +247,82 @@ def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: 
     Also returns the ranges' fits (cos, sin, r) when they were computed and nothing merged."""
     if len(s) < 2:
         return s, e, None
-    gap = np.hypot(scan.x[s[1:]] - scan.x[e[:-1]], scan.y[s[1:]] - scan.y[e[:-1]])
-    near = (gap <= max_gap) & (s[1:] >= e[:-1])
+    xs, ys, xe, ye = scan.x[s], scan.y[s], scan.x[e], scan.y[e]
+    near = np.hypot(xs[1:] - xe[:-1], ys[1:] - ye[:-1]) <= max_gap
+    near &= s[1:] >= e[:-1]
     if not near.any():
         return s, e, None
-    fit = _PolarFits(scan.prefix[e + 1] - scan.prefix[s])
-    rr, ra, aa = fit.covariance()
-    # Unweighted fits: information scaled by 1 / sigma² (the distance noise is at most sigma).
-    rr, ra, aa = (rr[1:] + rr[:-1]) * sigma2, (ra[1:] + ra[:-1]) * sigma2, (aa[1:] + aa[:-1]) * sigma2
-    dr = fit.r[1:] - fit.r[:-1]
-    da = fit.alpha[1:] - fit.alpha[:-1]
-    da = np.where(da > np.pi, da - 2.0 * np.pi, np.where(da <= -np.pi, da + 2.0 * np.pi, da))
-    chi2 = (aa * dr * dr - 2.0 * ra * dr * da + rr * da * da) / (rr * aa - ra * ra)
-    small = e - s + 1 < min_points
-    small_l, small_r = small[:-1], small[1:]
-    # A small range joins a neighbour only when its far end is within split_distance of the
-    # neighbour's line (the merged fit is checked below); two small ones are checked directly.
-    x, y, c, sn, r = scan.x, scan.y, fit.c, fit.s, fit.r
-    right_fits_left = np.abs(x[e[1:]] * c[:-1] + y[e[1:]] * sn[:-1] - r[:-1]) <= split_distance
-    left_fits_right = np.abs(x[s[:-1]] * c[1:] + y[s[:-1]] * sn[1:] - r[1:]) <= split_distance
-    candidate = near & np.where(
-        small_l | small_r,
-        (small_l & small_r) | (small_r & right_fits_left) | (small_l & left_fits_right),
-        chi2 <= merge_chi2)
-    if not candidate.any():
-        return s, e, (fit.c, fit.s, fit.r)
-    out_s, out_e = [int(s[0])], [int(e[0])]
-    for k in range(1, len(s)):
-        if candidate[k - 1] and out_e[-1] == e[k - 1]:
-            ms, me = np.array([out_s[-1]]), np.array([int(e[k])])
-            cm, sm, rm = scan.fit(ms, me)
-            index = np.arange(ms[0], me[0] + 1)
-            if np.abs(scan.distances(index, cm[0], sm[0], rm[0])).max() <= split_distance:
-                out_e[-1] = int(e[k])
+    # A scan has a dozen ranges or so: per range and per pair, plain floats cost less than
+    # numpy calls. The arithmetic is that of _PolarFits and its covariance, term for term.
+    fits = [_polar_fit_floats(row) for row in (scan.prefix[e + 1] - scan.prefix[s]).tolist()]
+    s_l, e_l, near_l = s.tolist(), e.tolist(), near.tolist()
+    xs_l, ys_l, xe_l, ye_l = xs.tolist(), ys.tolist(), xe.tolist(), ye.tolist()
+    candidate = [False] * (len(s_l) - 1)
+    for k in range(1, len(s_l)):
+        if not near_l[k - 1]:
+            continue
+        left, right = fits[k - 1], fits[k]
+        small_l, small_r = e_l[k - 1] - s_l[k - 1] + 1 < min_points, e_l[k] - s_l[k] + 1 < min_points
+        if small_l or small_r:
+            # A small range joins a neighbour only when its far end is within split_distance of
+            # the neighbour's line (the merged fit is checked below); two small ones directly.
+            candidate[k - 1] = (small_l and small_r) or (
+                small_r and abs(xe_l[k] * left[0] + ye_l[k] * left[1] - left[2]) <= split_distance
+            ) or (
+                small_l and abs(xs_l[k - 1] * right[0] + ys_l[k - 1] * right[1] - right[2])
+                <= split_distance)
+            continue
+        # Unweighted fits: information scaled by 1 / sigma² (the distance noise is at most sigma).
+        rr, ra, aa = ((right[j] + left[j]) * sigma2 for j in (4, 5, 6))
+        dr = right[2] - left[2]
+        da = right[3] - left[3]
+        if da > math.pi:
+            da -= 2.0 * math.pi
+        elif da <= -math.pi:
+            da += 2.0 * math.pi
+        candidate[k - 1] = _divide(aa * dr * dr - 2.0 * ra * dr * da + rr * da * da,
+                                   rr * aa - ra * ra) <= merge_chi2
+    if not any(candidate):
+        return s, e, tuple(np.array([f[j] for f in fits]) for j in range(3))
+    out_s, out_e = [s_l[0]], [e_l[0]]
+    for k in range(1, len(s_l)):
+        if candidate[k - 1] and out_e[-1] == e_l[k - 1]:
+            lo, hi = out_s[-1], e_l[k]
+            cm, sm, rm = _fit_floats((scan.prefix[hi + 1] - scan.prefix[lo]).tolist())
+            if np.abs(scan.x[lo:hi + 1] * cm + scan.y[lo:hi + 1] * sm - rm).max() <= split_distance:
+                out_e[-1] = hi
                 continue
-        out_s.append(int(s[k]))
-        out_e.append(int(e[k]))
+        out_s.append(s_l[k])
+        out_e.append(e_l[k])
     return np.array(out_s), np.array(out_e), None
+
+
+def _polar_fit_floats(d: list[float]) -> tuple[float, ...]:
+    """_PolarFits for one row of sums on plain floats: (cos alpha, sin alpha, r, alpha) and the
+    (var r, cov r-alpha, var alpha) of _PolarFits.covariance."""
+    w, sx, sy, sxx, syy, sxy = d
+    xm, ym = sx / w, sy / w
+    sxx, syy, sxy = sxx - xm * sx, syy - ym * sy, sxy - xm * sy
+    alpha = 0.5 * math.atan2(-2.0 * sxy, syy - sxx)
+    c, sn = math.cos(alpha), math.sin(alpha)
+    r = xm * c + ym * sn
+    if r < 0.0:
+        alpha = alpha - math.pi if alpha > 0.0 else alpha + math.pi
+        c, sn, r = -c, -sn, -r
+    if alpha <= -math.pi:
+        alpha += 2.0 * math.pi
+    stt = max(sn * sn * sxx + c * c * syy - 2.0 * sn * c * sxy, 1e-12)
+    tm = c * ym - sn * xm
+    return c, sn, r, alpha, 1.0 / w + tm * tm / stt, tm / stt, 1.0 / stt
+
+
+def _divide(a: float, b: float) -> float:
+    """a / b with numpy's result for b == 0 (±inf, or nan for 0 / 0)."""
+    if b != 0.0:
+        return a / b
+    if a == 0.0 or math.isnan(a):
+        return math.nan
+    return math.copysign(math.inf, a) * math.copysign(1.0, b)
 
 
 def _is_full_circle(angles: NDArray[np.float64]) -> bool:
@@ -259,10 +339,42 @@ def _breaks(x, y, beams, beam_count: int, circular: bool, max_gap: float) -> NDA
     """brk[i]: no line may run from point i to point i+1 (the last entry: from the last point
     back to the first, only possible on a full-circle scan)."""
     brk = np.empty(len(x), dtype=bool)
-    brk[:-1] = (np.diff(beams) != 1) | (np.hypot(np.diff(x), np.diff(y)) > max_gap)
+    np.not_equal(beams[1:] - beams[:-1], 1, out=brk[:-1])
+    brk[:-1] |= np.hypot(x[1:] - x[:-1], y[1:] - y[:-1]) > max_gap
     brk[-1] = not (circular and beams[0] == 0 and beams[-1] == beam_count - 1
                    and math.hypot(x[0] - x[-1], y[0] - y[-1]) <= max_gap)
     return brk
+
+
+@dataclass(frozen=True, slots=True)
+class _Beams:
+    """What depends only on a scan's beam angles: cos and sin of each, which are finite (None
+    when all are), and whether the scan covers the full circle."""
+
+    cos: NDArray[np.float64]
+    sin: NDArray[np.float64]
+    finite: NDArray[np.bool_] | None
+    circular: bool
+
+
+# A scan stream repeats the same angles scan after scan: computing their cos and sin once saves
+# two of the per-scan array passes. Keyed by the angles' bytes, a few angle sets at most.
+_BEAMS_CACHE: dict[bytes, _Beams] = {}
+_BEAMS_CACHE_SIZE = 8
+
+
+def _beams(angles: NDArray[np.float64]) -> _Beams:
+    """The _Beams of these angles (rad), from the cache when seen recently."""
+    key = angles.tobytes()
+    beams = _BEAMS_CACHE.get(key)
+    if beams is None:
+        finite = np.isfinite(angles)
+        beams = _Beams(np.cos(angles), np.sin(angles), None if finite.all() else finite,
+                       _is_full_circle(angles))
+        if len(_BEAMS_CACHE) >= _BEAMS_CACHE_SIZE:
+            del _BEAMS_CACHE[next(iter(_BEAMS_CACHE))]
+        _BEAMS_CACHE[key] = beams
+    return beams
 
 
 def extract_lines(
@@ -294,29 +406,38 @@ def extract_lines(
                    min_range, max_range, range_sigma, merge_chi2)
     r_in = np.asarray(ranges, dtype=float).ravel()
     a_in = np.asarray(angles, dtype=float).ravel()
-    # A zero range is no point on a surface, whatever min_range says.
-    points, beams = scan_to_points(r_in, a_in, max(min_range, _SMALLEST_RANGE), max_range)
+    if r_in.shape != a_in.shape:
+        raise ValueError(f'ranges ({r_in.size}) and angles ({a_in.size}) differ in length')
+    table = _beams(a_in)
+    # Valid as in core.scan.valid_ranges (REP 117); a zero range is no point on a surface,
+    # whatever min_range says. NaN fails every comparison; +inf fails the second.
+    valid = r_in >= max(min_range, _SMALLEST_RANGE)
+    valid &= r_in <= max_range if math.isfinite(max_range) else r_in < math.inf
+    if table.finite is not None:
+        valid &= table.finite
+    beams = np.flatnonzero(valid)
     min_points = max(int(min_line_points), 2)
-    if len(points) < min_points:
+    if len(beams) < min_points:
         return []
-    circular = _is_full_circle(a_in)
-    x, y = points[:, 0], points[:, 1]
+    rho = r_in[beams]
+    x, y = rho * table.cos[beams], rho * table.sin[beams]
+    circular = table.circular
     brk = _breaks(x, y, beams, r_in.size, circular, max_line_gap)
     if circular and not brk[-1]:
         if brk.any():
             # Start just after a break so that no wall is cut in two by where the list starts.
             shift = int(np.flatnonzero(brk)[0]) + 1
-            points, beams, brk = (np.concatenate((a[shift:], a[:shift])) for a in (points, beams, brk))
+            x, y, beams, brk = (np.concatenate((a[shift:], a[:shift])) for a in (x, y, beams, brk))
         else:
             # A closed ring of points: start at a split point found on a first pass.
-            scan = _Scan(points, beams)
-            s, _ = _split(scan, np.array([0]), np.array([len(points) - 1]), split_distance, min_points)
+            scan = _Scan(x, y, beams)
+            s, _ = _split(scan, np.array([0]), np.array([len(x) - 1]), split_distance, min_points)
             if len(s) > 1:
                 shift = int(s[1])
-                points, beams = (np.concatenate((a[shift:], a[:shift])) for a in (points, beams))
-            brk = np.zeros(len(points), dtype=bool)
+                x, y, beams = (np.concatenate((a[shift:], a[:shift])) for a in (x, y, beams))
+            brk = np.zeros(len(x), dtype=bool)
             brk[-1] = True
-    scan = _Scan(points, beams)
+    scan = _Scan(x, y, beams)
     ends = np.flatnonzero(brk)
     starts = np.concatenate(([0], ends[:-1] + 1))
     s, e = _split(scan, starts, ends, split_distance, min_points)
@@ -334,23 +455,57 @@ def _trim_ends(scan: _Scan, s, e, range_sigma: float, min_points: int, fits=None
     normal) from their range's refitted line until none is; ranges left with fewer than
     min_points points are dropped.
     fits, if given, are the ranges' unweighted fits (cos alpha, sin alpha, r)."""
-    # Each pass removes at least one point, so this ends; on a straight wall it takes one or two.
-    while len(s):
-        c, sn, r = fits if fits is not None else scan.fit(s, e)
-        fits = None
-        ends = np.stack((s, e), axis=1)
-        x, y = scan.x[ends], scan.y[ends]
-        d = x * c[:, None] + y * sn[:, None] - r[:, None]
-        # cos of the incidence angle: (beam direction . normal), beam direction = point / range.
-        cos2 = np.maximum((x * c[:, None] + y * sn[:, None]) ** 2 / (x * x + y * y), _MIN_COS2)
-        bad = d * d > (_END_SIGMAS * range_sigma) ** 2 * cos2
-        if not bad.any():
-            break
-        s = s + bad[:, 0]
-        e = e - bad[:, 1]
-        keep = e - s + 1 >= min_points
-        s, e = s[keep], e[keep]
-    return s, e
+    if not len(s):
+        return s, e
+    c, sn, r = fits if fits is not None else scan.fit(s, e)
+    ends = np.stack((s, e), axis=1)
+    x, y = scan.x[ends], scan.y[ends]
+    c2, s2 = c[:, None], sn[:, None]
+    along = x * c2 + y * s2
+    d = along - r[:, None]
+    # cos of the incidence angle: (beam direction . normal), beam direction = point / range.
+    limit2 = (_END_SIGMAS * range_sigma) ** 2
+    bad = d * d > limit2 * np.maximum(along * along / scan.rho2[ends], _MIN_COS2)
+    if not bad.any():
+        return s, e
+    # A range whose ends all fit keeps its fit; the few others are trimmed one at a time, on
+    # plain floats (each step removes at least one point, so this ends; a wall takes one or two).
+    s_out, e_out = s.tolist(), e.tolist()
+    kept = [True] * len(s_out)
+    x, y, rho2, prefix = scan.x, scan.y, scan.rho2, scan.prefix
+    for k in np.flatnonzero(bad.any(axis=1)).tolist():
+        lo, hi = s_out[k], e_out[k]
+        bad_lo, bad_hi = bool(bad[k, 0]), bool(bad[k, 1])
+        while True:
+            lo, hi = lo + bad_lo, hi - bad_hi
+            if hi - lo + 1 < min_points:
+                kept[k] = False
+                break
+            ck, sk, rk = _fit_floats((prefix[hi + 1] - prefix[lo]).tolist())
+            bad_lo = bad_hi = False
+            for end in (lo, hi):
+                xe, ye = float(x[end]), float(y[end])
+                along_e = xe * ck + ye * sk
+                de = along_e - rk
+                if de * de > limit2 * max(along_e * along_e / float(rho2[end]), _MIN_COS2):
+                    if end == lo:
+                        bad_lo = True
+                    else:
+                        bad_hi = True
+            if not (bad_lo or bad_hi):
+                break
+        s_out[k], e_out[k] = lo, hi
+    keep = np.array(kept)
+    return np.array(s_out)[keep], np.array(e_out)[keep]
+
+
+def _fit_floats(d: list[float]) -> tuple[float, float, float]:
+    """_Scan.fit of one range from its row of sums (n, Σx, Σy, Σx², Σy², Σxy), on plain floats."""
+    w, sx, sy, sxx, syy, sxy = d
+    xm, ym = sx / w, sy / w
+    alpha = 0.5 * math.atan2(-2.0 * (sxy - xm * sy), (syy - ym * sy) - (sxx - xm * sx))
+    c, sn = math.cos(alpha), math.sin(alpha)
+    return c, sn, xm * c + ym * sn
 
 
 def _final_lines(scan: _Scan, s, e, sigma2: float, min_length: float) -> list[Line]:
@@ -361,36 +516,37 @@ def _final_lines(scan: _Scan, s, e, sigma2: float, min_length: float) -> list[Li
     sums = scan.prefix[e + 1] - scan.prefix[s]
     fit = _PolarFits(sums)
     c, sn, n = fit.c, fit.s, sums[:, 0]
-    index, owner, offsets = _ranges_within(e - s + 1, s)
+    counts = e - s + 1
+    index, owner, offsets = scan.ranges(s, counts)
     x, y = scan.x[index], scan.y[index]
     co, so = c[owner], sn[owner]
     # Only the range is noisy, so a point's distance noise is sigma·|cos(incidence)|.
-    v = sigma2 * np.maximum((x * co + y * so) ** 2 / (x * x + y * y), _MIN_COS2)
+    along = x * co + y * so
+    terms = np.empty((len(index), 3))
+    v = np.multiply(sigma2, np.maximum(along * along / scan.rho2[index], _MIN_COS2), out=terms[:, 0])
     tm = c * fit.ym - sn * fit.xm                       # centroid's along-line coordinate
     u = y * co - x * so - tm[owner]                     # along-line coordinate about it
-    vu = v * u
-    terms = np.column_stack((v, vu, vu * u))
-    sv, svu, svuu = np.add.reduceat(terms, offsets, axis=0).T
-    suu = np.maximum(sn * sn * fit.sxx + c * c * fit.syy - 2.0 * sn * c * fit.sxy, 1e-12)
-    # Covariance of (offset at the centroid q, alpha), then r = q + tm·alpha to first order.
-    qq, qa, aa = sv / (n * n), -svu / (n * suu), svuu / (suu * suu)
-    rr, ra = qq + 2.0 * tm * qa + tm * tm * aa, qa + tm * aa
-    ends = np.stack((s, e), axis=1)
-    px, py = scan.x[ends], scan.y[ends]
-    c2, s2, r2 = c[:, None], sn[:, None], fit.r[:, None]
-    dist = px * c2 + py * s2 - r2
-    qx, qy = px - dist * c2, py - dist * s2
-    keep = np.hypot(qx[:, 1] - qx[:, 0], qy[:, 1] - qy[:, 0]) >= min_length
-    if not keep.any():
-        return []
-    rows = np.column_stack((fit.r, fit.alpha, rr, ra, aa, qx, qy))[keep].tolist()
-    beams = np.column_stack((scan.beams[ends], e - s + 1))[keep].tolist()
-    lines = [
-        Line(r=row[0], alpha=row[1], covariance=np.array([[row[2], row[3]], [row[3], row[4]]]),
-             start=(row[5], row[7]), end=(row[6], row[8]),
-             first=b[0], last=b[1], point_count=b[2])
-        for row, b in zip(rows, beams)
-    ]
+    vu = np.multiply(v, u, out=terms[:, 1])
+    np.multiply(vu, u, out=terms[:, 2])
+    sums_v = np.add.reduceat(terms, offsets, axis=0)
+    # A dozen lines or so: the rest is per line, on plain floats (the same arithmetic).
+    per_line = np.array((n, c, sn, fit.r, fit.alpha, tm, fit.sxx, fit.syy, fit.sxy,
+                         scan.x[s], scan.y[s], scan.x[e], scan.y[e])).T.tolist()
+    first, last, counts = scan.beams[s].tolist(), scan.beams[e].tolist(), counts.tolist()
+    lines = []
+    for k, ((w, ck, sk, rk, ak, tk, sxx, syy, sxy, x0, y0, x1, y1), (sv, svu, svuu)) in enumerate(
+            zip(per_line, sums_v.tolist())):
+        # End points projected onto the line.
+        d0, d1 = x0 * ck + y0 * sk - rk, x1 * ck + y1 * sk - rk
+        start, end = (x0 - d0 * ck, y0 - d0 * sk), (x1 - d1 * ck, y1 - d1 * sk)
+        if not math.hypot(end[0] - start[0], end[1] - start[1]) >= min_length:
+            continue
+        suu = max(sk * sk * sxx + ck * ck * syy - 2.0 * sk * ck * sxy, 1e-12)
+        # Covariance of (offset at the centroid q, alpha), then r = q + tm·alpha to first order.
+        qq, qa, aa = sv / (w * w), -svu / (w * suu), svuu / (suu * suu)
+        rr, ra = qq + 2.0 * tk * qa + tk * tk * aa, qa + tk * aa
+        lines.append(Line(r=rk, alpha=ak, covariance=np.array(((rr, ra), (ra, aa))), start=start,
+                          end=end, first=first[k], last=last[k], point_count=counts[k]))
     # A 360-degree scan was processed from a break, not from beam 0.
     lines.sort(key=lambda line: line.first)
     return lines
