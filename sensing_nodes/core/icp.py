@@ -483,8 +483,8 @@ def match(
         return _failed(guess, f'too few valid points (source {src.shape[0]}, target '
                        f'{tgt.points.shape[0]}, need {min_points})', src.shape[0], dropped)
     centred = src - src.mean(axis=0)
-    radius = float(np.sqrt((centred ** 2).sum(axis=1).mean()))
-    if radius < 1e-9 or np.ptp(tgt.points, axis=0).max() < 1e-9:
+    radius = math.sqrt(float(np.einsum('ij,ij->', centred, centred)) / src.shape[0])
+    if radius < 1e-9 or float((tgt.points.max(axis=0) - tgt.points.min(axis=0)).max()) < 1e-9:
         return _failed(guess, 'all points identical: rotation undefined', src.shape[0], dropped)
 
     point_to_line = method == 'point_to_line'
@@ -552,24 +552,21 @@ def match(
         dropped_points=dropped, condition=condition, history=state.history)
 
 
-def _scaled(info: NDArray[np.float64], radius: float) -> NDArray[np.float64]:
-    """The normal matrix with yaw expressed as arc length at the scan radius, so its eigenvalues
-    compare metres with metres."""
-    scale = np.array([1.0, 1.0, 1.0 / radius])
-    return info * scale[:, None] * scale[None, :]
-
-
 def _covariance(info, variance, radius, degeneracy_ratio):
-    """variance · info⁻¹ over (x, y, yaw); an unconstrained direction gets DEGENERATE_VARIANCE."""
-    scaled = _scaled(info, radius)
-    values, vectors = np.linalg.eigh(scaled)
-    top = max(values[-1], 1e-300)
-    condition = float(max(values[0], 0.0) / top)
+    """variance · info⁻¹ over (x, y, yaw); an unconstrained direction gets DEGENERATE_VARIANCE.
+    Eigenvalues are compared with yaw as arc length at the scan radius (metres with metres)."""
+    scale = np.array([1.0, 1.0, 1.0 / radius])
+    outer = scale[:, None] * scale[None, :]
+    values, vectors = np.linalg.eigh(info * outer)
+    top = max(float(values[-1]), 1e-300)
+    condition = max(float(values[0]), 0.0) / top
     weak = values <= degeneracy_ratio * top
+    if not weak.any():
+        cov = (vectors * (variance / values)) @ vectors.T
+        cov *= outer
+        return 0.5 * (cov + cov.T), False, None, condition
     inverse_values = np.where(weak, 0.0, 1.0 / np.where(weak, 1.0, values))
     cov_scaled = variance * (vectors * inverse_values) @ vectors.T
     cov_scaled += DEGENERATE_VARIANCE * (vectors[:, weak] @ vectors[:, weak].T)
-    scale = np.array([1.0, 1.0, 1.0 / radius])
-    cov = cov_scaled * scale[:, None] * scale[None, :]
-    direction = vectors[:, 0].copy() if weak.any() else None
-    return 0.5 * (cov + cov.T), bool(weak.any()), direction, condition
+    cov = cov_scaled * outer
+    return 0.5 * (cov + cov.T), True, vectors[:, 0].copy(), condition
