@@ -186,7 +186,7 @@ class Replayer:
         from sensing_nodes.ros.run import make_executor
 
         self._rclpy = rclpy
-        rclpy.init()
+        rclpy.init(args=['sensing_replay'])  # never the tool's own argv (its ':=' are not ROS's)
         self.node = Node('sensing_replay')
         self.executor = make_executor()
         self.executor.add_node(self.node)

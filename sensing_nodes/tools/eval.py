@@ -1,0 +1,221 @@
+"""sensing_eval: relative pose error (Kümmerle et al. 2009) and absolute trajectory error of
+estimate topics in a bag, against the bag's /ground_truth/odom or a relations file.
+
+Relations from the reference trajectory pair each reference sample with the first one at least
+--delta-s later (0: the next sample, e.g. consecutive scans of a CARMEN log). A relations file
+(`t1 t2 x y z roll pitch yaw`, seconds, pose of t2 in the frame of t1) is used as it is, its
+times shifted by --time-offset to match the bag's stamps. Estimates are interpolated at the
+relation times (linear in x, y, unwrapped yaw); where one stamp carries several messages the
+last one counts (the fusion publishes its scan-match update after the odometry update).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from sensing_nodes.core.evaluation import (
+    Relations,
+    absolute_trajectory_error,
+    read_relations,
+    relations_from_trajectory,
+    relative_pose_errors,
+)
+
+EXIT_BAD_INPUT = 2
+ODOMETRY = 'nav_msgs/msg/Odometry'
+REFERENCE = '/ground_truth/odom'
+
+
+class EvalError(Exception):
+    """Bad input: the message names the file and topic."""
+
+
+def load_trajectories(bag: Path, topics: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """topic -> (stamps ns, poses (N, 3)) from Odometry topics (header stamps, sorted, the last
+    message of a repeated stamp kept)."""
+    from sensing_nodes.bag import read_messages, topic_counts
+    from sensing_nodes.ros.conversions import odometry_pose, stamp_to_ns
+
+    if not (bag / 'metadata.yaml').is_file():
+        raise EvalError(f'{bag}: no such bag (no metadata.yaml)')
+    try:
+        available = topic_counts(bag)
+    except Exception as exc:
+        raise EvalError(f'{bag}: cannot read the bag ({type(exc).__name__}: {exc})') from None
+    for topic in topics:
+        if topic not in available:
+            raise EvalError(f'{bag}: topic {topic} is not in the bag (Odometry topics: '
+                            f'{", ".join(t for t, (ty, _) in sorted(available.items()) if ty == ODOMETRY)})')
+        if available[topic][0] != ODOMETRY:
+            raise EvalError(f'{bag}: topic {topic} holds {available[topic][0]}, not {ODOMETRY}')
+        if available[topic][1] < 2:
+            raise EvalError(f'{bag}: topic {topic} has {available[topic][1]} messages (need 2)')
+    rows: dict[str, dict[int, tuple]] = {t: {} for t in topics}
+    try:
+        for topic, _, msg in read_messages(bag, topics):
+            pose, _ = odometry_pose(msg)
+            rows[topic][stamp_to_ns(msg.header.stamp)] = pose  # a later message at a stamp wins
+    except Exception as exc:
+        raise EvalError(f'{bag}: cannot read the bag ({type(exc).__name__}: {exc}); '
+                        'truncated?') from None
+    out = {}
+    for topic, by_stamp in rows.items():
+        stamps = np.array(sorted(by_stamp), dtype=np.int64)
+        out[topic] = (stamps, np.array([by_stamp[s] for s in stamps.tolist()], dtype=float))
+    return out
+
+
+def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: str | None = None,
+             reference: str = REFERENCE, delta_s: float = 0.0,
+             time_offset_s: float = 0.0) -> dict:
+    """{'reference': ..., 'estimates': {topic: RPE and ATE figures}} (ATE needs the reference
+    trajectory in the bag)."""
+    from sensing_nodes.bag import topic_counts
+
+    bag = Path(bag)
+    if not bag.exists():
+        raise EvalError(f'{bag}: no such bag')
+    if topics is None:
+        try:
+            available = topic_counts(bag)
+        except Exception as exc:
+            raise EvalError(f'{bag}: cannot read the bag ({type(exc).__name__}: {exc})') from None
+        topics = sorted(t for t, (ty, n) in available.items() if ty == ODOMETRY and t != reference)
+    has_reference = reference in topic_counts(bag) if (bag / 'metadata.yaml').is_file() else False
+    wanted = list(topics) + ([reference] if has_reference else [])
+    trajectories = load_trajectories(bag, wanted)
+    if relations_file is not None:
+        try:
+            relations = read_relations(relations_file, int(round(time_offset_s * 1e9)))
+        except OSError as exc:
+            raise EvalError(f'{relations_file}: {exc.strerror}') from None
+        except ValueError as exc:
+            raise EvalError(str(exc)) from None
+        source = f'relations file {relations_file}'
+    else:
+        if not has_reference:
+            raise EvalError(f'{bag}: topic {reference} is not in the bag and no --relations given')
+        relations = relations_from_trajectory(*trajectories[reference], delta_s)
+        source = f'{reference} (delta {delta_s:g} s)' if delta_s > 0 else f'{reference} (consecutive)'
+    report = {'bag': str(bag), 'reference': source, 'estimates': {}}
+    for topic in topics:
+        t, poses = trajectories[topic]
+        errors = relative_pose_errors(relations, t, poses)
+        if errors.translation_m.size == 0:
+            raise EvalError(f'{bag}: topic {topic} spans no relation of the {source} '
+                            '(stamps do not overlap; --time-offset?)')
+        entry = errors.summary()
+        if has_reference:
+            entry.update(absolute_trajectory_error(*trajectories[reference], t, poses))
+        report['estimates'][topic] = entry
+        report.setdefault('_errors', {})[topic] = errors
+    report['_trajectories'] = trajectories
+    return report
+
+
+def table(report: dict) -> str:
+    lines = [f"{report['bag']}: relative pose error against {report['reference']}", '',
+             f"{'estimate':<22}{'relations':>10}{'RPE translation (m)':>24}{'RPE rotation (deg)':>22}"
+             f"{'ATE rmse (m)':>14}"]
+    for topic, e in report['estimates'].items():
+        ate = f"{e['ate_rmse_m']:14.3f}" if 'ate_rmse_m' in e else f"{'-':>14}"
+        lines.append(f"{topic:<22}{e['relations']:>10}"
+                     f"{e['rpe_translation_mean_m']:>13.3f} ± {e['rpe_translation_std_m']:<8.3f}"
+                     f"{e['rpe_rotation_mean_deg']:>11.2f} ± {e['rpe_rotation_std_deg']:<8.2f}{ate}")
+    return '\n'.join(lines)
+
+
+def plot(report: dict, path: Path, reference: str = REFERENCE) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    from sensing_nodes.core import se2
+    from sensing_nodes.core.evaluation import align_rigid_2d, interpolate_poses
+
+    trajectories = report['_trajectories']
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 5.5))
+    if reference in trajectories:
+        t_ref, ref = trajectories[reference]
+        ax.plot(ref[:, 0], ref[:, 1], 'k-', lw=2, label=f'{reference} (reference)')
+    for topic in report['estimates']:
+        t, est = trajectories[topic]
+        xy = est[:, :2]
+        if reference in trajectories:
+            at = interpolate_poses(t_ref, ref, t)
+            keep = np.all(np.isfinite(at), axis=1)
+            xy = se2.transform_points(align_rigid_2d(at[keep, :2], est[keep, :2]), est[:, :2])
+        ax.plot(xy[:, 0], xy[:, 1], '-', lw=1.2, label=topic)
+        errors = report['_errors'][topic]
+        t0 = errors.t1[0] if errors.t1.size else 0
+        bx.plot((errors.t1 - t0) * 1e-9, errors.translation_m, '.', ms=3, label=topic)
+    ax.set_aspect('equal')
+    ax.set_xlabel('x (m)')
+    ax.set_ylabel('y (m)')
+    ax.set_title('trajectories (estimates rigidly aligned to the reference)')
+    ax.legend(fontsize=8)
+    bx.set_xlabel('relation start (s from the first)')
+    bx.set_ylabel('relative translation error (m)')
+    bx.set_title(f"RPE per relation against {report['reference']}")
+    bx.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Write through a temporary file in the same folder, so a failure leaves no partial file."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix=path.suffix)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='sensing_eval', description=__doc__.split('\n\n')[0])
+    parser.add_argument('bag', help='rosbag2 bag with the estimate topics (nav_msgs/Odometry)')
+    parser.add_argument('--topic', action='append', default=None,
+                        help='estimate topic (repeat; default: every Odometry topic but the reference)')
+    parser.add_argument('--reference', default=REFERENCE, help=f'reference topic (default {REFERENCE})')
+    parser.add_argument('--relations', default=None,
+                        help='relations file (t1 t2 x y z roll pitch yaw) instead of the reference')
+    parser.add_argument('--delta-s', type=float, default=0.0,
+                        help='relations from the reference: pair samples this far apart (s); '
+                             '0 = consecutive samples')
+    parser.add_argument('--time-offset', type=float, default=0.0,
+                        help='seconds added to the relation file times (carmen_to_bag --time-offset)')
+    parser.add_argument('--json', type=Path, default=None, help='write the figures as JSON here')
+    parser.add_argument('--png', type=Path, default=None, help='write a plot here')
+    args = parser.parse_args(argv)
+    if args.delta_s < 0:
+        parser.error('--delta-s must be >= 0')
+    try:
+        report = evaluate(args.bag, args.topic, args.relations, args.reference, args.delta_s,
+                          args.time_offset)
+    except EvalError as exc:
+        print(f'sensing_eval: error: {exc}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(table(report))
+    if args.png is not None:
+        _atomic_write(args.png, lambda p: plot(report, p, args.reference))
+        print(f'wrote {args.png}')
+    if args.json is not None:
+        public = {k: v for k, v in report.items() if not k.startswith('_')}
+        _atomic_write(args.json, lambda p: p.write_text(json.dumps(public, indent=2) + '\n'))
+        print(f'wrote {args.json}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
