@@ -1,10 +1,13 @@
 """Speed of line extraction: scans per second at 360, 720 and 1080 beams, for core.lines and for
-a textbook implementation of the same split-and-merge (every fit from the O(n²) double sums of
-the polar least-squares formula, dense O(n²) covariance propagation, plain recursion), measured
-in the same run on the same simulated scans of the default world. Neither uses BLAS, so both run
-on one core. Rates are per CPU second of this process (time.process_time), so time the shared
-machine gives to other processes is not counted; the 360-beam rates are also given on the wall
-clock.
+two textbook implementations of the same split-and-merge (every fit from the O(n²) double sums
+of the polar least-squares formula, dense O(n²) covariance propagation, plain recursion), all
+measured in the same run on the same simulated scans of the default world:
+- textbook_numpy: those sums and products as numpy array expressions;
+- textbook_loops: as a lesson writes it, Python lists and loops, no numpy.
+None uses BLAS, so all run on one core. Rates are per CPU second of this process
+(time.process_time), so time the shared machine gives to other processes is not counted; the
+methods are measured in alternating rounds, so that load hits them alike; the 360-beam rates
+are also given on the wall clock.
 """
 
 from __future__ import annotations
@@ -142,65 +145,215 @@ def textbook_extract_lines(ranges, angles, split_distance=0.05, max_line_gap=0.5
     return lines
 
 
+# ------------------------------------------------------------------ the lesson's version
+
+def _lesson_fit(rho, theta):
+    """alpha, r of the polar least-squares line, the same formula with its sums written as the
+    lesson writes them: loops, the double sums as two nested loops."""
+    n = len(rho)
+    sin2 = cos2 = cross = pair = 0.0
+    for i in range(n):
+        sin2 += rho[i] * rho[i] * math.sin(2 * theta[i])
+        cos2 += rho[i] * rho[i] * math.cos(2 * theta[i])
+        for j in range(n):
+            cross += rho[i] * rho[j] * math.cos(theta[i]) * math.sin(theta[j])
+            pair += rho[i] * rho[j] * math.cos(theta[i] + theta[j])
+    alpha = 0.5 * math.atan2(sin2 - 2.0 / n * cross, cos2 - 1.0 / n * pair) + math.pi / 2
+    r = 0.0
+    for i in range(n):
+        r += rho[i] * math.cos(theta[i] - alpha)
+    r /= n
+    if r < 0:
+        r, alpha = -r, alpha + math.pi
+    return math.remainder(alpha, 2 * math.pi), r
+
+
+def _lesson_covariance(rho, theta, alpha, sigma):
+    """F·C·Fᵀ with the dense n×n C = sigma²·I, F = d(r, alpha)/d(rho), in loops (2×2 list)."""
+    n = len(rho)
+    c, s = math.cos(alpha), math.sin(alpha)
+    a = [(-1.0, rho[k] * math.sin(theta[k]) * c - rho[k] * math.cos(theta[k]) * s) for k in range(n)]
+    info = [[sum(a[k][i] * a[k][j] for k in range(n)) for j in range(2)] for i in range(2)]
+    det = info[0][0] * info[1][1] - info[0][1] * info[1][0]
+    inv = [[info[1][1] / det, -info[0][1] / det], [-info[1][0] / det, info[0][0] / det]]
+    d = [math.sqrt(max(math.cos(theta[k] - alpha) ** 2, 0.05)) for k in range(n)]
+    f = [[(inv[i][0] * a[k][0] + inv[i][1] * a[k][1]) * d[k] for k in range(n)] for i in range(2)]
+    cov_c = [[sigma * sigma if j == k else 0.0 for k in range(n)] for j in range(n)]
+    cov = [[0.0, 0.0], [0.0, 0.0]]
+    for i in range(2):
+        for m in range(2):
+            total = 0.0
+            for j in range(n):
+                for k in range(n):
+                    total += f[i][j] * cov_c[j][k] * f[m][k]
+            cov[i][m] = total
+    return cov
+
+
+def _lesson_max_distance(rho, theta, alpha, r):
+    worst = 0.0
+    for i in range(len(rho)):
+        worst = max(worst, abs(rho[i] * math.cos(theta[i] - alpha) - r))
+    return worst
+
+
+def _lesson_split(rho, theta, x, y, lo, hi, split_distance, min_points, out):
+    """Recursive split of the inclusive index range [lo, hi]."""
+    if hi - lo + 1 < max(min_points, 3):
+        out.append((lo, hi))
+        return
+    alpha, r = _lesson_fit(rho[lo:hi + 1], theta[lo:hi + 1])
+    if _lesson_max_distance(rho[lo:hi + 1], theta[lo:hi + 1], alpha, r) <= split_distance:
+        out.append((lo, hi))
+        return
+    far, k = -1.0, lo
+    for i in range(lo, hi + 1):
+        chord = abs((x[i] - x[lo]) * (y[hi] - y[lo]) - (y[i] - y[lo]) * (x[hi] - x[lo]))
+        if chord > far:
+            far, k = chord, i
+    k = min(max(k, lo + 1), hi - 1)
+    _lesson_split(rho, theta, x, y, lo, k, split_distance, min_points, out)
+    _lesson_split(rho, theta, x, y, k, hi, split_distance, min_points, out)
+
+
+def textbook_loops_extract_lines(ranges, angles, split_distance=0.05, max_line_gap=0.5,
+                                 min_line_points=6, min_line_length=0.2, range_sigma=0.01,
+                                 merge_chi2=9.21):
+    """textbook_extract_lines as a lesson writes it: Python lists and loops, no numpy (the O(n²)
+    fit sums and the dense covariance as nested loops), plain recursion."""
+    valid = [i for i in range(len(ranges)) if math.isfinite(ranges[i])]
+    rho = [float(ranges[i]) for i in valid]
+    theta = [float(angles[i]) for i in valid]
+    x = [rho[i] * math.cos(theta[i]) for i in range(len(rho))]
+    y = [rho[i] * math.sin(theta[i]) for i in range(len(rho))]
+    pieces: list[tuple[int, int]] = []
+    start = 0
+    for i in range(1, len(rho) + 1):
+        if i == len(rho) or valid[i] != valid[i - 1] + 1 \
+                or math.hypot(x[i] - x[i - 1], y[i] - y[i - 1]) > max_line_gap:
+            _lesson_split(rho, theta, x, y, start, i - 1, split_distance, min_line_points, pieces)
+            start = i
+    pieces.sort()
+    merged: list[tuple[int, int]] = []
+    for lo, hi in pieces:
+        if merged:
+            plo, phi = merged[-1]
+            near = lo >= phi and math.hypot(x[lo] - x[phi], y[lo] - y[phi]) <= max_line_gap
+            small = (hi - lo + 1 < min_line_points) or (phi - plo + 1 < min_line_points)
+            if near:
+                ok = small
+                if not small:
+                    a1, r1 = _lesson_fit(rho[plo:phi + 1], theta[plo:phi + 1])
+                    a2, r2 = _lesson_fit(rho[lo:hi + 1], theta[lo:hi + 1])
+                    c1 = _lesson_covariance(rho[plo:phi + 1], theta[plo:phi + 1], a1, range_sigma)
+                    c2 = _lesson_covariance(rho[lo:hi + 1], theta[lo:hi + 1], a2, range_sigma)
+                    c = [[c1[i][j] + c2[i][j] for j in range(2)] for i in range(2)]
+                    dr, da = r2 - r1, math.remainder(a2 - a1, 2 * math.pi)
+                    det = c[0][0] * c[1][1] - c[0][1] * c[1][0]
+                    chi2 = (c[1][1] * dr * dr - (c[0][1] + c[1][0]) * dr * da + c[0][0] * da * da) / det
+                    ok = chi2 <= merge_chi2
+                if ok:
+                    am, rm = _lesson_fit(rho[plo:hi + 1], theta[plo:hi + 1])
+                    if _lesson_max_distance(rho[plo:hi + 1], theta[plo:hi + 1], am, rm) <= split_distance:
+                        merged[-1] = (plo, hi)
+                        continue
+        merged.append((lo, hi))
+    lines = []
+    for lo, hi in merged:
+        while hi - lo + 1 >= min_line_points:
+            alpha, r = _lesson_fit(rho[lo:hi + 1], theta[lo:hi + 1])
+            bad = []
+            for i in (lo, hi):
+                d = rho[i] * math.cos(theta[i] - alpha) - r
+                bad.append(abs(d) > 3.0 * range_sigma * max(abs(math.cos(theta[i] - alpha)), math.sqrt(0.05)))
+            if not (bad[0] or bad[1]):
+                break
+            lo, hi = lo + int(bad[0]), hi - int(bad[1])
+        if hi - lo + 1 < min_line_points:
+            continue
+        alpha, r = _lesson_fit(rho[lo:hi + 1], theta[lo:hi + 1])
+        c, s = math.cos(alpha), math.sin(alpha)
+        d0, d1 = x[lo] * c + y[lo] * s - r, x[hi] * c + y[hi] * s - r
+        q0, q1 = (x[lo] - d0 * c, y[lo] - d0 * s), (x[hi] - d1 * c, y[hi] - d1 * s)
+        if math.hypot(q1[0] - q0[0], q1[1] - q0[1]) < min_line_length:
+            continue
+        cov = _lesson_covariance(rho[lo:hi + 1], theta[lo:hi + 1], alpha, range_sigma)
+        lines.append(Line(r, alpha, np.array(cov), q0, q1, valid[lo], valid[hi], hi - lo + 1))
+    return lines
+
+
 # ------------------------------------------------------------------ measurement
 
-def _rate(fn, scans, min_seconds: float, repeats: int, clock=time.process_time) -> float:
-    """Scans per second: the best of `repeats` passes over the scans (least disturbed by load),
-    each pass repeated until it lasts at least min_seconds on `clock`."""
-    best = 0.0
-    for _ in range(repeats):
-        count, started = 0, clock()
-        while True:
-            for ranges, angles in scans:
-                fn(ranges, angles)
-            count += len(scans)
-            elapsed = clock() - started
-            if elapsed >= min_seconds:
-                break
-        best = max(best, count / elapsed)
+METHODS = {'ours': extract_lines, 'textbook_numpy': textbook_extract_lines,
+           'textbook_loops': textbook_loops_extract_lines}
+
+
+def _rates(methods: dict, scans, min_seconds: float, rounds: int,
+           clock=time.process_time) -> dict[str, float]:
+    """Scans per second of each method: in each of `rounds` rounds every method in turn passes
+    over the scans until it has run at least min_seconds on `clock`; the best round counts
+    (the least disturbed by load)."""
+    best = dict.fromkeys(methods, 0.0)
+    for _ in range(rounds):
+        for name, fn in methods.items():
+            count, started = 0, clock()
+            while True:
+                for ranges, angles in scans:
+                    fn(ranges, angles)
+                count += len(scans)
+                elapsed = clock() - started
+                if elapsed >= min_seconds:
+                    break
+            best[name] = max(best[name], count / elapsed)
     return best
 
 
-def _agreement(scans) -> tuple[float, float]:
-    """Largest |dr| (m) and |dalpha| (rad) between the two implementations' lines on scans
-    where both find the same lines (full-circle scans cut at beam 0 differ by design)."""
+def _agreement(scans, textbook) -> tuple[float, float]:
+    """Largest |dr| (m) and |dalpha| (rad) between core.lines and a textbook version on the lines
+    both find (full-circle scans cut at beam 0 differ by design), and how many of ours they
+    found too (fraction)."""
     dr = da = 0.0
+    found = total = 0
     for ranges, angles in scans:
         ours = [ln for ln in extract_lines(ranges, angles) if ln.first <= ln.last]
-        theirs = textbook_extract_lines(ranges, angles)
-        pairs = {(ln.first, ln.last): ln for ln in theirs}
+        pairs = {(ln.first, ln.last): ln for ln in textbook(ranges, angles)}
         for line in ours:
+            total += 1
             other = pairs.get((line.first, line.last))
             if other is not None:
+                found += 1
                 dr = max(dr, abs(line.r - other.r))
                 da = max(da, abs(math.remainder(line.alpha - other.alpha, 2 * math.pi)))
-    return dr, da
+    return dr, da, found / max(total, 1)
 
 
 def run(quick: bool = False) -> dict:
-    """Measure and return a flat dict of figures."""
+    """Measure and return a flat dict of figures (ratios: ours / textbook, same run)."""
     figures: dict[str, float] = {}
-    min_seconds, repeats = (0.3, 1) if quick else (1.0, 3)
+    min_seconds, rounds = (0.2, 1) if quick else (1.0, 3)
     for beams in (360, 720, 1080):
-        scans = simulated_scans(beams)
-        ours = _rate(extract_lines, scans, min_seconds, repeats)
-        textbook = _rate(textbook_extract_lines, scans, min_seconds, repeats)
-        figures[f'lines_scans_per_s_{beams}'] = round(ours, 1)
-        figures[f'lines_textbook_scans_per_s_{beams}'] = round(textbook, 2)
-        figures[f'lines_speedup_{beams}'] = round(ours / textbook, 1)
+        scans = simulated_scans(beams)[:2] if quick else simulated_scans(beams)
+        rates = _rates(METHODS, scans, min_seconds, rounds)
+        figures[f'lines_scans_per_s_{beams}'] = round(rates['ours'], 1)
+        for name in ('textbook_numpy', 'textbook_loops'):
+            figures[f'lines_{name}_scans_per_s_{beams}'] = round(rates[name], 2)
+            figures[f'lines_speedup_vs_{name}_{beams}'] = round(rates['ours'] / rates[name], 1)
         figures[f'lines_per_scan_{beams}'] = round(
             sum(len(extract_lines(r, a)) for r, a in scans) / len(scans), 2)
     # The same at 360 beams on the wall clock, which counts time lost to other load too.
-    scans = simulated_scans(360)
-    figures['lines_scans_per_s_360_wall'] = round(
-        _rate(extract_lines, scans, min_seconds, repeats, time.perf_counter), 1)
-    figures['lines_textbook_scans_per_s_360_wall'] = round(
-        _rate(textbook_extract_lines, scans, min_seconds, repeats, time.perf_counter), 2)
-    dr, da = _agreement(scans)
-    figures['lines_textbook_max_dr_m'] = float(f'{dr:.3g}')
-    figures['lines_textbook_max_dalpha_rad'] = float(f'{da:.3g}')
+    scans = simulated_scans(360)[:2] if quick else simulated_scans(360)
+    for name, rate in _rates(METHODS, scans, min_seconds, rounds, time.perf_counter).items():
+        figures[f'lines_{name}_scans_per_s_360_wall' if name != 'ours'
+                else 'lines_scans_per_s_360_wall'] = round(rate, 2 if name != 'ours' else 1)
+    for name in ('textbook_numpy', 'textbook_loops'):
+        dr, da, found = _agreement(scans, METHODS[name])
+        figures[f'lines_{name}_max_dr_m'] = float(f'{dr:.3g}')
+        figures[f'lines_{name}_max_dalpha_rad'] = float(f'{da:.3g}')
+        figures[f'lines_{name}_same_lines_fraction'] = round(found, 3)
     return figures
 
 
 if __name__ == '__main__':
-    print(json.dumps(run(), indent=2))
+    import sys
+
+    print(json.dumps(run(quick='--quick' in sys.argv), indent=2))
