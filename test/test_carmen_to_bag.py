@@ -1,0 +1,122 @@
+"""carmen_to_bag: both shared CARMEN logs convert (scan geometry, no-return values, odometry,
+reference poses); a bad line is reported with its number and the rest converts."""
+
+from __future__ import annotations
+
+import gzip
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from harness import run_to_exit
+
+from sensing_nodes.bag import read_messages, topic_counts
+from sensing_nodes.core.carmen import read_carmen
+from sensing_nodes.ros.conversions import odometry_pose, scan_arrays
+
+CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'
+needs_logs = pytest.mark.skipif(not CARMEN.is_dir(), reason=f'CARMEN logs not found in {CARMEN}')
+
+# file -> (scans, beams, no-return value) from ../shared/datasets/carmen/README.md
+LOGS = {
+    'aces-corrected.log.gz': (440, 180, 50.0),
+    'freiburg-101-corrected.log.gz': (292, 360, 81.91),
+}
+
+
+@needs_logs
+@pytest.mark.parametrize('name', sorted(LOGS))
+def test_shared_log_converts(tmp_path, name):
+    scans, beams, no_return = LOGS[name]
+    out = tmp_path / 'bag'
+    result = run_to_exit('carmen_to_bag', [str(CARMEN / name), str(out)])
+    assert result.returncode == 0, result.stderr
+    assert '0 bad lines' in result.stdout
+    counts = topic_counts(out)
+    assert counts['/scan'] == ('sensor_msgs/msg/LaserScan', scans)
+    assert counts['/ground_truth/odom'] == ('nav_msgs/msg/Odometry', scans)
+    log = read_carmen(CARMEN / name)
+    # Every ODOM line stamped 0 repeats the reference pose; the others are odometry.
+    real_odometry = int(np.sum(log.odom_time_s > 0))
+    assert 0 < counts['/odom'][1] <= real_odometry
+
+    messages = list(read_messages(out, ['/scan', '/ground_truth/odom', '/odom']))
+    stamps = [s for _, s, _ in messages]
+    assert stamps == sorted(stamps)
+    first_scan = next(m for t, _, m in messages if t == '/scan')
+    ranges, angles = scan_arrays(first_scan)
+    assert first_scan.header.frame_id == 'laser' and len(ranges) == beams
+    # Beams at -90 deg + i * 180 deg / beams, counter-clockwise (the README's layout).
+    np.testing.assert_allclose(angles, -math.pi / 2 + math.pi * np.arange(beams) / beams,
+                               atol=1e-6)
+    assert first_scan.range_max == pytest.approx(no_return)
+    raw = log.scans[0].ranges
+    np.testing.assert_array_equal(np.isinf(ranges), raw >= no_return)
+    np.testing.assert_allclose(ranges[np.isfinite(ranges)], raw[raw < no_return], rtol=1e-6)
+    assert first_scan.header.stamp.sec + first_scan.header.stamp.nanosec * 1e-9 == \
+        pytest.approx(log.scans[0].time_s, abs=1e-6)
+
+    truth = [m for t, _, m in messages if t == '/ground_truth/odom']
+    for k in (0, len(truth) // 2, -1):
+        pose, _ = odometry_pose(truth[k])
+        np.testing.assert_allclose(pose, log.scans[k].pose, atol=1e-9)
+    odom = [m for t, _, m in messages if t == '/odom']
+    covariance = [odometry_pose(m)[1] for m in odom]
+    # The fusion takes only odometry with a positive covariance after moving: it grows.
+    assert np.all(np.diff([c[0, 0] for c in covariance]) >= 0) and covariance[-1][0, 0] > 0
+
+
+@needs_logs
+def test_laser_offset_moves_the_reference_back_to_base_link(tmp_path):
+    out = tmp_path / 'bag'
+    name = 'freiburg-101-corrected.log.gz'
+    assert run_to_exit('carmen_to_bag', [str(CARMEN / name), str(out), '--laser-x', '0.5']
+                       ).returncode == 0
+    log = read_carmen(CARMEN / name)
+    truth = next(m for t, _, m in read_messages(out, ['/ground_truth/odom']))
+    (x, y, yaw), _ = odometry_pose(truth)
+    lx, ly, lyaw = log.scans[0].pose
+    assert (x, y, yaw) == pytest.approx((lx - 0.5 * math.cos(lyaw), ly - 0.5 * math.sin(lyaw), lyaw))
+
+
+def _write_log(path: Path, lines: list[str]) -> Path:
+    with gzip.open(path, 'wt') as handle:
+        handle.write('\n'.join(lines) + '\n')
+    return path
+
+
+def test_bad_lines_are_reported_with_their_number_and_the_rest_converts(tmp_path):
+    ranges = ' '.join(['2.0'] * 178 + ['50.0', '50.0'])
+    log = _write_log(tmp_path / 'small.log.gz', [
+        '# a comment',
+        'ODOM 0.0 0.0 0.0 0 0 0 1.0 host 1.0',
+        f'FLASER 180 {ranges} 1.0 2.0 0.5 1.0 2.0 0.5 1.1 host 1.1',
+        'FLASER 180 1.0 2.0 garbage',
+        'ODOM 0.1 0.0 0.0 0.2 0 0 1.5 host 1.5',
+        'ODOM 1.0 2.0 0.5 0 0 0 0 host 0',
+        f'FLASER 180 {ranges} 1.1 2.0 0.5 1.1 2.0 0.5 2.1 host 2.1',
+        'BOGUS 1 2 3',
+    ])
+    out = tmp_path / 'bag'
+    result = run_to_exit('carmen_to_bag', [str(log), str(out)])
+    assert result.returncode == 0, result.stderr
+    assert f'{log}:4: skipped: FLASER' in result.stderr
+    assert f'{log}:8: skipped: BOGUS' in result.stderr
+    assert '2 bad lines' in result.stdout and '1 stamped 0' in result.stdout
+    counts = topic_counts(out)
+    assert counts['/scan'][1] == 2 and counts['/ground_truth/odom'][1] == 2
+    assert counts['/odom'][1] == 2
+    scan = next(m for _, _, m in read_messages(out, ['/scan']))
+    ranges_out, _ = scan_arrays(scan)
+    assert np.isinf(ranges_out[-2:]).all() and np.all(ranges_out[:-2] == 2.0)
+
+
+def test_unusable_input_is_refused_without_output(tmp_path):
+    out = tmp_path / 'bag'
+    missing = run_to_exit('carmen_to_bag', [str(tmp_path / 'none.log'), str(out)])
+    assert missing.returncode == 2 and 'none.log' in missing.stderr and not out.exists()
+    empty = _write_log(tmp_path / 'empty.log.gz', ['ODOM 0 0 0 0 0 0 1.0 h 1.0', 'FLASER x'])
+    result = run_to_exit('carmen_to_bag', [str(empty), str(out)])
+    assert result.returncode == 2 and 'no FLASER line parsed' in result.stderr
+    assert not out.exists() and not list(tmp_path.glob('.bag*'))
