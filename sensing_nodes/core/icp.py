@@ -258,11 +258,6 @@ class _Loop:
         return self.rows[self.chosen], self.design[self.chosen]
 
 
-def _median(values: NDArray[np.float64]) -> float:
-    k = values.size // 2
-    return float(np.partition(values, k)[k])
-
-
 def _design_map(c: float, s: float, x: float, y: float) -> NDArray[np.float64]:
     """(3, 12) map taking a source point [sx, sy, 1] to its design block B (3x4, row-major) =
     [[1, 0, -ly, px], [0, 1, lx, py], [0, 0, 0, -1]], with p = R·s + (x, y) the moved point and
@@ -340,16 +335,20 @@ def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterat
             state.converged = False
             state.inliers = count
             break
-        if count < keep.size:
-            blocks, index = blocks[keep], index[keep]
         design = blocks.reshape(-1, 3, 4)
-        pair_rows = rows.take(index, axis=0)
-        whitened = np.matmul(pair_rows, design)       # (K, 2, 4): Jacobian rows | residual
+        # Pairs beyond the gate get a clipped (wrong but finite) target row and an infinite size,
+        # which keeps them out of the median and of every rule below without copying the rest.
+        pair_rows = rows.take(index, axis=0, mode='clip')
+        whitened = np.matmul(pair_rows, design)       # (N, 2, 4): Jacobian rows | residual
         residual = whitened[..., 3]
         size_sq = np.einsum('ki,ki->k', residual, residual)   # squared Mahalanobis-like (m²)
+        gated = count < keep.size
+        if gated:
+            size_sq[~keep] = math.inf
         # Robust rule: which of the gated pairs enter the estimate.
-        median_sq = _median(size_sq)
-        chosen: NDArray[np.bool_] | NDArray[np.intp] | None = None
+        k = count // 2
+        median_sq = float(np.partition(size_sq, k)[k])
+        chosen: NDArray[np.bool_] | NDArray[np.intp] | None = keep if gated else None
         if robust == 'trim' and count > min_inliers:
             n_keep = max(min_inliers, int(trim_fraction * count))
             chosen = np.argpartition(size_sq, n_keep - 1)[:n_keep]
@@ -358,7 +357,7 @@ def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterat
             n_chosen = int(np.count_nonzero(chosen))
             if n_chosen < min_inliers:
                 chosen = np.argpartition(size_sq, min_inliers - 1)[:min_inliers]
-            elif n_chosen == count:
+            elif n_chosen == keep.size:
                 chosen = None
         if chosen is not None:
             whitened, size_sq, matched = whitened[chosen], size_sq[chosen], index[chosen]
