@@ -1,0 +1,148 @@
+"""Every kind of bag the project writes opens with rosbags and with mcap-ros2-support, and its
+metadata.yaml has the fields, types and values rosbag2 (Jazzy, metadata version 9) reads.
+
+rosbag2's reader (rosbag2_storage/yaml.hpp, version 9) decodes: version, storage_identifier,
+duration.nanoseconds, starting_time.nanoseconds_since_epoch, message_count,
+topics_with_message_count[{topic_metadata{name, type, serialization_format,
+offered_qos_profiles (a YAML sequence from version 9 on), type_description_hash}, message_count}],
+relative_file_paths, compression_format, compression_mode, files[{path, starting_time, duration,
+message_count}], custom_data (a map), ros_distro.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+import yaml
+from harness import REPO, run_to_exit
+from rclpy.serialization import deserialize_message
+
+from sensing_nodes.bag import BagWriter, message_class
+
+CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'
+TOP_KEYS = {'version', 'storage_identifier', 'duration', 'starting_time', 'message_count',
+            'topics_with_message_count', 'compression_format', 'compression_mode',
+            'relative_file_paths', 'files', 'custom_data', 'ros_distro'}
+TOPIC_KEYS = {'name', 'type', 'serialization_format', 'offered_qos_profiles',
+              'type_description_hash'}
+FILE_KEYS = {'path', 'starting_time', 'duration', 'message_count'}
+
+
+@pytest.fixture(scope='module')
+def written_bags(tmp_path_factory):
+    """One bag of each writer: the shipped bags (replay output), sensor_sim --record, a plain
+    BagWriter, carmen_to_bag (when the shared logs are there)."""
+    from nav_msgs.msg import Odometry
+
+    tmp = tmp_path_factory.mktemp('bags')
+    bags = {'nominal': REPO / 'bags' / 'nominal', 'strong_errors': REPO / 'bags' / 'strong_errors'}
+    record = run_to_exit('sensor_sim', ['--record', str(tmp / 'sim'), '--duration', '1.0',
+                                        '--quiet'])
+    assert record.returncode == 0, record.stderr
+    bags['sensor_sim'] = tmp / 'sim'
+    with BagWriter(tmp / 'writer') as writer:
+        msg = Odometry()
+        for k in range(3):
+            msg.header.stamp.sec = 10 + k
+            writer.write('/odom', msg, (10 + k) * 1_000_000_000)
+    bags['bag_writer'] = tmp / 'writer'
+    log = CARMEN / 'freiburg-101-corrected.log.gz'
+    if log.is_file():
+        assert run_to_exit('carmen_to_bag', [str(log), str(tmp / 'carmen')]).returncode == 0
+        bags['carmen_to_bag'] = tmp / 'carmen'
+    return bags
+
+
+def _metadata(bag: Path) -> dict:
+    return yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+
+
+@pytest.mark.parametrize('name', ['nominal', 'strong_errors', 'sensor_sim', 'bag_writer',
+                                  'carmen_to_bag'])
+def test_opens_with_rosbags_and_mcap_ros2(written_bags, name):
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    from rosbags.rosbag2 import Reader
+
+    if name not in written_bags:
+        pytest.skip(f'CARMEN logs not found in {CARMEN}')
+    bag = written_bags[name]
+    info = _metadata(bag)
+    expected = {t['topic_metadata']['name']: t['message_count']
+                for t in info['topics_with_message_count']}
+    with Reader(bag) as reader:
+        counted = Counter()
+        for connection, _, raw in reader.messages():
+            deserialize_message(raw, message_class(connection.msgtype))
+            counted[connection.topic] += 1
+    assert dict(counted) == {t: n for t, n in expected.items() if n}
+    for path in info['relative_file_paths']:
+        with open(bag / path, 'rb') as handle:
+            reader = make_reader(handle)
+            assert reader.get_header().profile == 'ros2'
+            summary = reader.get_summary()
+            assert {s.encoding for s in summary.schemas.values()} == {'ros2msg'}
+            assert {c.message_encoding for c in summary.channels.values()} == {'cdr'}
+        with open(bag / path, 'rb') as handle:
+            reader = make_reader(handle, decoder_factories=[DecoderFactory()])
+            decoded = Counter(channel.topic for _, channel, _, _ in reader.iter_decoded_messages())
+        assert dict(decoded) == dict(counted)
+
+
+@pytest.mark.parametrize('name', ['nominal', 'strong_errors', 'sensor_sim', 'bag_writer',
+                                  'carmen_to_bag'])
+def test_metadata_follows_rosbag2_version_9(written_bags, name, probe):
+    from rosbags.rosbag2 import Reader
+
+    if name not in written_bags:
+        pytest.skip(f'CARMEN logs not found in {CARMEN}')
+    bag = written_bags[name]
+    info = _metadata(bag)
+    assert set(info) == TOP_KEYS
+    assert info['version'] == 9
+    assert info['storage_identifier'] == 'mcap'
+    # MCAP chunk compression is inside the file (storage level): rosbag2's own fields stay empty.
+    assert info['compression_format'] == '' and info['compression_mode'] == ''
+    assert info['custom_data'] is None or isinstance(info['custom_data'], dict)
+    assert isinstance(info['ros_distro'], str)
+    with Reader(bag) as reader:
+        stamps = [t for _, t, _ in reader.messages()]
+    assert info['message_count'] == len(stamps)
+    assert info['starting_time'] == {'nanoseconds_since_epoch': min(stamps)}
+    assert info['duration'] == {'nanoseconds': max(stamps) - min(stamps)}
+    assert [f['path'] for f in info['files']] == info['relative_file_paths']
+    for entry in info['files']:
+        assert set(entry) == FILE_KEYS and (bag / entry['path']).is_file()
+        assert entry['message_count'] == info['message_count']
+        assert entry['starting_time'] == info['starting_time']
+    assert sum(t['message_count'] for t in info['topics_with_message_count']) == info['message_count']
+    for topic in info['topics_with_message_count']:
+        assert set(topic) == {'topic_metadata', 'message_count'}
+        meta = topic['topic_metadata']
+        assert set(meta) == TOPIC_KEYS
+        assert meta['serialization_format'] == 'cdr'
+        assert isinstance(meta['offered_qos_profiles'], list)  # a sequence from version 9 on
+        assert re.fullmatch(r'[a-z_]+/msg/[A-Za-z0-9]+', meta['type'])
+        # The hash ROS 2 computes for the type (what `ros2 bag play` compares).
+        assert meta['type_description_hash'] == _live_type_hash(probe, meta['type'])
+
+
+_HASHES: dict[str, str] = {}
+
+
+def _live_type_hash(probe, type_name: str) -> str:
+    if type_name not in _HASHES:
+        topic = '/interop_hash_' + type_name.replace('/', '_')
+        publisher = probe.create_publisher(message_class(type_name), topic, 1)
+        deadline = time.monotonic() + 10.0
+        infos = []
+        while not infos and time.monotonic() < deadline:
+            infos = probe.get_publishers_info_by_topic(topic)
+            time.sleep(0.05)
+        _HASHES[type_name] = str(infos[0].topic_type_hash)
+        probe.destroy_publisher(publisher)
+    return _HASHES[type_name]
