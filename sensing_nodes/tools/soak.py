@@ -1,0 +1,271 @@
+"""sensing_soak: the whole graph for a long simulated run; memory growth and dropped scans as JSON.
+
+Starts sensor_sim and the five processing nodes (as sensing_demo does: each executable with its
+config file) and drives the default route for --duration simulated seconds. By default the
+simulator is paced by the graph (sensor_sim pace_topic=/odometry/filtered: a scan goes out only
+once the fused output for the previous one is back), i.e. the highest rate the graph keeps up
+with; --rate X runs at a fixed X times real time instead. Each node's resident memory (VmRSS of
+/proc/<pid>/status) is sampled every simulated minute; the run passes when every node's RSS at
+the end is within --rss-tolerance (10 %) of its value after the first simulated minute and every
+scan the simulator published was processed by icp_matcher and line_extractor.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+NS = 1_000_000_000
+PROCESSING_NODES = ['wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
+                    'complementary_fusion']
+COUNTED = {'/scan': 'sensor_msgs/msg/LaserScan',
+           '/scan_match/odom': 'nav_msgs/msg/Odometry',
+           '/scan/lines/table': 'sensor_msgs/msg/PointCloud2',
+           '/odometry/filtered': 'nav_msgs/msg/Odometry'}
+
+
+def rss_kb(pid: int) -> int | None:
+    """Resident set size (kB) of a process from /proc/<pid>/status, None if it is gone."""
+    try:
+        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+            if line.startswith('VmRSS:'):
+                return int(line.split()[1])
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+    return None
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog='sensing_soak', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--duration', type=float, default=1800.0,
+                        help='simulated seconds (default 1800 = 30 min)')
+    parser.add_argument('--rate', default='paced',
+                        help="'paced' (default: as fast as the graph keeps up) or a fixed "
+                             'real-time factor')
+    parser.add_argument('--out', type=Path, default=None,
+                        help='output folder for soak.json and logs/ (default soak_out/run-<time>)')
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--rss-tolerance', type=float, default=0.10,
+                        help='allowed relative RSS change from minute 1 to the end (default 0.10)')
+    parser.add_argument('--domain-id', type=int, default=None,
+                        help="ROS_DOMAIN_ID (default: one of this run's own)")
+    parser.add_argument('--quiet', action='store_true')
+    args = parser.parse_args(argv)
+    if args.rate != 'paced':
+        try:
+            args.rate = float(args.rate)
+        except ValueError:
+            parser.error("--rate must be 'paced' or a number")
+        if args.rate <= 0:
+            parser.error('--rate must be > 0')
+    if args.duration <= 60.0:
+        parser.error('--duration must be longer than the first simulated minute (60 s)')
+    return args
+
+
+def run(args: argparse.Namespace, out: Path) -> dict:
+    """Run the graph for the simulated duration; return the soak report."""
+    env = dict(os.environ)
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    env['ROS_DOMAIN_ID'] = str(args.domain_id if args.domain_id is not None
+                               else 100 + (os.getpid() + 37) % 100)
+    os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.node import Node
+
+    from sensing_nodes.bag import message_class
+    from sensing_nodes.recorder import leading_stamp_ns
+    from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+    from sensing_nodes.ros.run import make_executor
+    from sensing_nodes.tools.demo import Graph
+
+    (out / 'logs').mkdir(parents=True, exist_ok=True)
+    graph = Graph(out, env)
+    rclpy.init()
+    node = Node('sensing_soak')
+    executor = make_executor()
+    executor.add_node(node)
+    counts = {topic: 0 for topic in COUNTED}
+    stamps_by_topic: dict[str, set[int]] = {topic: set() for topic in COUNTED if topic != '/odometry/filtered'}
+    stamps = {'first': None, 'newest': 0}
+    diagnostics: dict[str, dict[str, str]] = {}
+
+    def counter(topic):
+        def on_message(raw):
+            counts[topic] += 1
+            if topic in stamps_by_topic:
+                stamps_by_topic[topic].add(leading_stamp_ns(raw))
+            if topic == '/scan':
+                stamp = leading_stamp_ns(raw)
+                stamps['first'] = stamp if stamps['first'] is None else stamps['first']
+                stamps['newest'] = max(stamps['newest'], stamp)
+        return on_message
+
+    def on_diagnostics(msg):
+        for status in msg.status:
+            diagnostics[status.name] = {'message': status.message,
+                                        **{kv.key: kv.value for kv in status.values}}
+
+    for topic, type_name in COUNTED.items():
+        qos = SENSOR_QOS if topic == '/scan' else ESTIMATE_QOS
+        node.create_subscription(message_class(type_name), topic, counter(topic), qos, raw=True)
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 50)
+
+    samples: list[dict] = []        # {'sim_s', 'wall_s', 'rss_kb': {node: kB}}
+
+    def sample(sim_s: float, wall_s: float) -> None:
+        samples.append({'sim_s': round(sim_s, 1), 'wall_s': round(wall_s, 1),
+                        'rss_kb': {n: rss_kb(p.pid) for n, p in graph.processes.items()}})
+
+    try:
+        for name in PROCESSING_NODES:
+            graph.start(name, [])
+        deadline = time.monotonic() + 90.0
+        while not set(PROCESSING_NODES) <= set(node.get_node_names()):
+            executor.spin_once(timeout_sec=0.1)
+            if graph.failed() or time.monotonic() > deadline:
+                raise SystemExit(f'sensing_soak: the graph did not come up (failed: '
+                                 f'{graph.failed()}); see {out / "logs"}')
+        sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}']
+        if args.rate == 'paced':
+            sim_args += ['-p', 'pace_topic:=/odometry/filtered', '-p', 'pace_timeout_s:=5.0']
+        else:
+            sim_args += ['-p', f'real_time_factor:={args.rate}']
+        wall_start = time.monotonic()
+        graph.start('sensor_sim', sim_args)
+        sim = graph.processes['sensor_sim']
+        next_minute, next_progress = 60.0, wall_start + 10.0
+        while sim.poll() is None:
+            executor.spin_once(timeout_sec=0.05)
+            now = time.monotonic()
+            sim_s = ((stamps['newest'] - stamps['first']) / NS) if stamps['first'] else 0.0
+            if sim_s >= next_minute:
+                sample(sim_s, now - wall_start)
+                next_minute += 60.0
+            if now >= next_progress:
+                next_progress = now + 10.0
+                if graph.failed():
+                    raise SystemExit(f'sensing_soak: node(s) exited early: {graph.failed()}; '
+                                     f'see {out / "logs"}')
+                if not args.quiet:
+                    print(f'  simulated {sim_s:7.1f} / {args.duration:.0f} s  '
+                          f'({sim_s / (now - wall_start):4.1f}x real time)  '
+                          f'scans {counts["/scan"]:6d}  matched {counts["/scan_match/odom"]:6d}',
+                          flush=True)
+        wall_s = time.monotonic() - wall_start
+        # Let the last scans work through matching and fusion: until nothing arrives for 2 s.
+        quiet_since, seen = time.monotonic(), sum(counts.values())
+        deadline = quiet_since + 60.0
+        while time.monotonic() - quiet_since < 2.0 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+            if sum(counts.values()) != seen:
+                quiet_since, seen = time.monotonic(), sum(counts.values())
+        known = set().union(*stamps_by_topic.values())   # every answer carries its scan's stamp
+        sim_s = (max(known) - min(known)) / NS if known else 0.0
+        stamps['first'] = min(known) if known else None
+        sample(sim_s, wall_s)
+        failed = graph.failed()
+    finally:
+        codes = graph.stop()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return report(args, samples, counts, stamps_by_topic, stamps['first'], diagnostics, wall_s, sim_s,
+                  failed, codes)
+
+
+def report(args, samples, counts, stamps_by_topic, first_stamp, diagnostics, wall_s, sim_s, failed,
+           codes) -> dict:
+    """soak.json's content: RSS after the first simulated minute and at the end, and scans."""
+    first, last = samples[0], samples[-1]
+    nodes = {}
+    for name in PROCESSING_NODES:
+        start_kb, end_kb = first['rss_kb'].get(name), last['rss_kb'].get(name)
+        growth = (end_kb - start_kb) / start_kb if start_kb and end_kb else None
+        nodes[name] = {
+            'rss_kb_after_first_minute': start_kb, 'rss_kb_at_end': end_kb,
+            'rss_change': None if growth is None else round(growth, 4),
+            'within_tolerance': growth is not None and abs(growth) <= args.rss_tolerance,
+            'exit_code': codes.get(name),
+        }
+    sim_diag = diagnostics.get('sensor_sim', {})
+    known = set().union(*stamps_by_topic.values())
+    published = max(int(sim_diag.get('/scan', 0)), len(known))
+    scans = {
+        'published_by_sim': published,
+        'received_by_soak': counts['/scan'],
+        'processed_by_icp_matcher': counts['/scan_match/odom'],
+        'processed_by_line_extractor': counts['/scan/lines/table'],
+        'fused_outputs': counts['/odometry/filtered'],
+        'pace_timeouts': int(sim_diag.get('pace_timeouts', 0)),
+    }
+    # Which scans (by stamp, seconds after the first) got no answer. A reader that had not yet
+    # matched the simulator's writer when the first scan went out misses it: that is start-up,
+    # not a drop, so only misses after the first simulated second count as dropped.
+    for consumer, topic in (('icp_matcher', '/scan_match/odom'),
+                            ('line_extractor', '/scan/lines/table')):
+        missed = sorted(known - stamps_by_topic[topic])
+        missed_s = [round((t - first_stamp) / NS, 1) for t in missed] if first_stamp else []
+        scans[f'unanswered_by_{consumer}_s'] = missed_s[:20]
+        scans[f'dropped_by_{consumer}'] = (sum(1 for t in missed_s if t >= 1.0)
+                                           + published - len(known))
+    fusion = diagnostics.get('complementary_fusion', {})
+    result = {
+        'when': datetime.now().isoformat(timespec='seconds'),
+        'mode': 'paced by /odometry/filtered' if args.rate == 'paced' else f'{args.rate}x real time',
+        'simulated_s': round(sim_s, 1),
+        'wall_s': round(wall_s, 1),
+        'real_time_factor': round(sim_s / wall_s, 2) if wall_s > 0 else None,
+        'rss_tolerance': args.rss_tolerance,
+        'nodes': nodes,
+        'scans': scans,
+        'fusion': {k: fusion.get(k) for k in ('message', 'late_dropped_total', 'resets')},
+        'rss_kb_by_minute': samples,
+        'failed_nodes': failed,
+    }
+    result['ok'] = (not failed and all(n['within_tolerance'] for n in nodes.values())
+                    and scans['dropped_by_icp_matcher'] == 0
+                    and scans['dropped_by_line_extractor'] == 0
+                    and sim_s >= args.duration - 1.0)
+    return result
+
+
+def print_table(result: dict) -> None:
+    print(f"\nsensing_soak: {result['simulated_s']:.0f} s simulated in {result['wall_s']:.0f} s wall "
+          f"({result['real_time_factor']}x real time, {result['mode']})")
+    print(f"{'node':<22}{'RSS min 1 (kB)':>16}{'RSS end (kB)':>14}{'change':>9}")
+    for name, n in result['nodes'].items():
+        change = f"{100 * n['rss_change']:+.1f}%" if n['rss_change'] is not None else '-'
+        print(f"{name:<22}{n['rss_kb_after_first_minute'] or '-':>16}{n['rss_kb_at_end'] or '-':>14}"
+              f"{change:>9}")
+    s = result['scans']
+    print(f"scans: published {s['published_by_sim']}, matched {s['processed_by_icp_matcher']}, "
+          f"lines {s['processed_by_line_extractor']}, pace timeouts {s['pace_timeouts']}")
+    print('PASS' if result['ok'] else 'FAIL')
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    out = args.out or Path('soak_out') / datetime.now().strftime('run-%Y%m%d-%H%M%S')
+    if (out / 'soak.json').exists():
+        print(f'sensing_soak: {out} already holds a run; choose another --out', file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    print(f'sensing_soak: {args.duration:g} s simulated, '
+          f"{'paced by the graph' if args.rate == 'paced' else f'{args.rate:g}x real time'}, "
+          f'output in {out}', flush=True)
+    result = run(args, out)
+    (out / 'soak.json').write_text(json.dumps(result, indent=2) + '\n')
+    print_table(result)
+    print(f'wrote {out / "soak.json"}')
+    return 0 if result['ok'] else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
