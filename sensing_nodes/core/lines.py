@@ -5,13 +5,14 @@ distance to it is x·cos(alpha) + y·sin(alpha) - r (for a beam (rho, theta): rh
 
 Every least-squares fit during splitting and merging is O(1) from prefix sums of
 (x, y, x², y², xy) prepared once per scan, and the splitting works on all segments of a scan at once
-(one numpy pass per level of the split tree), so a scan costs O(n log n) array work. As numpy's
-cost per call (about a microsecond) dominates at a few hundred beams, work whose size is the
-number of segments or lines (a dozen or so), and the last few dozen points of the split, runs on
-plain floats with the same arithmetic, and the cos and sin of the beam angles are cached across
-scans with the same angles. The (r, alpha) covariance of each line
-propagates every point's distance variance sigma_r²·cos²(theta_i - alpha) (range noise seen along
-the normal, the noise model of Pfister et al. 2003) through the least-squares fit. (A fit weighted
+(one numpy pass per level of the split tree) while there are many, then range by range on array
+slices, so a scan costs O(n log n) array work. As numpy's cost per call (about a microsecond)
+dominates at a few hundred beams, work whose size is the number of segments or lines (a dozen or
+so) and the split of short ranges run on plain floats with the same arithmetic, and the cos and
+sin of the beam angles are cached across scans with the same angles. The (r, alpha) covariance
+of each line propagates every point's distance variance sigma_r²·cos²(theta_i - alpha) (range
+noise seen along the normal, the noise model of Pfister et al. 2003) through the least-squares
+fit. (A fit weighted
 by the inverse of those variances, as Pfister et al. propose, was tried: on the real CARMEN logs it
 pulled lines up to 7 cm off their own end points, as the noise there is not range-only.)
 """
@@ -33,9 +34,11 @@ _MIN_COS2 = 0.05
 # of this one. A split point within noise of both walls stays in both lines.
 _END_SIGMAS = 3.0
 _SMALLEST_RANGE = 1e-9
-# Splitting ranges of this many points in all or fewer is cheaper on plain floats than in numpy
-# (a numpy pass over the ranges costs about sixty calls of a microsecond or so each).
-_FLOAT_SPLIT_POINTS = 48
+# numpy costs about a microsecond per call here: the split works on all ranges at once (sixty
+# calls or so per level) while there are more than this many, then range by range (a dozen
+# calls per range on array slices), a range of fewer than this many points on plain floats.
+_BATCH_SPLIT_RANGES = 8
+_FLOAT_SPLIT_POINTS = 16
 
 
 @dataclass(slots=True)
@@ -133,10 +136,10 @@ class _Scan:
         self.prefix = prefix
         self.counter = np.arange(2 * len(self.x) + 1)   # indices: a range list holds < 2n points
 
-    def ranges(self, s: NDArray[np.intp], counts: NDArray[np.intp], cumulative=None):
+    def ranges(self, s: NDArray[np.intp], counts: NDArray[np.intp]):
         """Point indices of the ranges [s, s + counts) one after another, the range each comes
-        from, and where each range begins in that list (cumulative: counts.cumsum(), if known)."""
-        offsets = counts.cumsum() if cumulative is None else cumulative
+        from, and where each range begins in that list."""
+        offsets = counts.cumsum()
         total = int(offsets[-1])
         offsets -= counts
         owner = self.counter[:len(counts)].repeat(counts)
@@ -168,13 +171,12 @@ def _split(scan: _Scan, s: NDArray[np.intp], e: NDArray[np.intp], split_distance
     smallest = max(min_points, 3)
     x, y = scan.x, scan.y
     while True:
-        n = e - s + 1
-        offsets = n.cumsum()
-        if offsets[-1] <= _FLOAT_SPLIT_POINTS:
-            _split_floats(scan, s.tolist(), e.tolist(), split_distance, smallest, done_s, done_e)
+        if len(s) <= _BATCH_SPLIT_RANGES:
+            _split_ranges(scan, s.tolist(), e.tolist(), split_distance, smallest, done_s, done_e)
             break
+        n = e - s + 1
         c, sn, r = scan.fit(s, e)
-        index, owner, offsets = scan.ranges(s, n, offsets)
+        index, owner, offsets = scan.ranges(s, n)
         xi, yi = x[index], y[index]
         # Fewer points than `smallest` are never split (their fit is computed but not used).
         final = n < smallest
@@ -207,31 +209,47 @@ def _split(scan: _Scan, s: NDArray[np.intp], e: NDArray[np.intp], split_distance
     return s[order], e[order]
 
 
-def _split_floats(scan: _Scan, s: list[int], e: list[int], split_distance: float, smallest: int,
+def _split_ranges(scan: _Scan, s: list[int], e: list[int], split_distance: float, smallest: int,
                   done_s: list, done_e: list) -> None:
-    """_split for a few dozen points in all, range by range on plain floats (same arithmetic,
-    same first farthest point), appending the final ranges as arrays to done_s and done_e."""
+    """_split range by range, for a few ranges: a short range on plain floats, a longer one on
+    array slices (no gathers). Same arithmetic and the same first farthest point as _split;
+    appends the final ranges as arrays to done_s and done_e."""
     x, y, prefix = scan.x, scan.y, scan.prefix
     todo = list(zip(s, e))
     out_s, out_e = [], []
     while todo:
         lo, hi = todo.pop()
+        at = None                                   # where to split, from lo, if it must
         if hi - lo + 1 >= smallest:
             c, sn, r = _fit_floats((prefix[hi + 1] - prefix[lo]).tolist())
-            xs, ys = x[lo:hi + 1].tolist(), y[lo:hi + 1].tolist()
-            if max(abs(px * c + py * sn - r) for px, py in zip(xs, ys)) > split_distance:
-                x0, y0 = xs[0], ys[0]
-                dx, dy = xs[-1] - x0, ys[-1] - y0
-                k0 = x0 * dy - y0 * dx
-                top, at = -1.0, 0
-                for i, (px, py) in enumerate(zip(xs, ys)):
-                    chord = abs(px * dy - py * dx - k0)
-                    if chord > top:
-                        top, at = chord, i
-                at = min(max(lo + at, lo + 1), hi - 1)
-                todo.append((lo, at))
-                todo.append((at, hi))
-                continue
+            if hi - lo < _FLOAT_SPLIT_POINTS:
+                xs, ys = x[lo:hi + 1].tolist(), y[lo:hi + 1].tolist()
+                if max(abs(px * c + py * sn - r) for px, py in zip(xs, ys)) > split_distance:
+                    x0, y0 = xs[0], ys[0]
+                    dx, dy = xs[-1] - x0, ys[-1] - y0
+                    k0 = x0 * dy - y0 * dx
+                    top, at = -1.0, 0
+                    for i, (px, py) in enumerate(zip(xs, ys)):
+                        chord = abs(px * dy - py * dx - k0)
+                        if chord > top:
+                            top, at = chord, i
+            else:
+                xs, ys = x[lo:hi + 1], y[lo:hi + 1]
+                along = xs * c
+                along += ys * sn
+                # max |along - r|: rounding is monotonic, so it is at one of the two extremes.
+                if max(float(along.max()) - r, r - float(along.min())) > split_distance:
+                    x0, y0 = float(xs[0]), float(ys[0])
+                    dx, dy = float(xs[-1]) - x0, float(ys[-1]) - y0
+                    chord = xs * dy
+                    chord -= ys * dx
+                    chord -= x0 * dy - y0 * dx
+                    at = int(np.abs(chord, out=chord).argmax())
+        if at is not None:
+            at = min(max(lo + at, lo + 1), hi - 1)
+            todo.append((lo, at))
+            todo.append((at, hi))
+            continue
         out_s.append(lo)
         out_e.append(hi)
     done_s.append(np.array(out_s, dtype=np.intp))
