@@ -12,9 +12,9 @@ so) and the split of short ranges run on plain floats with the same arithmetic, 
 sin of the beam angles are cached across scans with the same angles. The (r, alpha) covariance
 of each line propagates every point's distance variance sigma_r²·cos²(theta_i - alpha) (range
 noise seen along the normal, the noise model of Pfister et al. 2003) through the least-squares
-fit. (A fit weighted
-by the inverse of those variances, as Pfister et al. propose, was tried: on the real CARMEN logs it
-pulled lines up to 7 cm off their own end points, as the noise there is not range-only.)
+fit. (A fit weighted by the inverse of those variances, as Pfister et al. propose, was tried: on
+the real CARMEN logs it pulled lines up to 7 cm off their own end points, as the noise there is
+not range-only.)
 """
 
 from __future__ import annotations
