@@ -1,3 +1,4 @@
+import os
 from glob import glob
 
 from setuptools import find_packages, setup
@@ -23,6 +24,15 @@ EXECUTABLES = {
     'sensing_soak': 'sensing_nodes.tools.soak:main',
 }
 
+def bag_files():
+    """(install folder, files) for bags/ and each bag folder in it, keeping their layout."""
+    folders = {}
+    for path in glob('bags/**/*', recursive=True):
+        if os.path.isfile(path):
+            folders.setdefault(os.path.join('share', PACKAGE, os.path.dirname(path)), []).append(path)
+    return sorted(folders.items())
+
+
 setup(
     name=PACKAGE,
     version='0.1.0',
@@ -32,7 +42,7 @@ setup(
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.py')),
-        ('share/' + PACKAGE + '/bags', glob('bags/**/*', recursive=True)),
+        *bag_files(),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
