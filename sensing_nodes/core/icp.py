@@ -92,6 +92,8 @@ def _as_points(points: ArrayLike, name: str) -> tuple[NDArray[np.float64], int]:
         raise ValueError(f'{name} must be an (N, 2) array of numbers: {exc}') from exc
     if array.ndim != 2 or array.shape[1] != 2:
         raise ValueError(f'{name} must have shape (N, 2), got {array.shape}')
+    if math.isfinite(float(array.sum())):         # one pass for the usual all-finite case
+        return array, 0
     finite = np.isfinite(array).all(axis=1)
     if finite.all():
         return array, 0
@@ -244,18 +246,10 @@ class _Loop:
     error: float = math.nan
     inliers: int = 0
     history: list[float] = field(default_factory=list)
-    matched: NDArray[np.intp] | None = None       # target index of each inlier pair (last iteration)
-    # The last iteration's gated pairs: their target residual rows (K, 2, 3), their design blocks
-    # (K, 3, 4) (see _design_map) and which of them the robust rule chose (None = all).
-    rows: NDArray[np.float64] | None = None
-    design: NDArray[np.float64] | None = None
-    chosen: NDArray[np.bool_] | NDArray[np.intp] | None = None
-
-    def inlier_pairs(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Residual rows and design blocks of the last iteration's inlier pairs."""
-        if self.chosen is None:
-            return self.rows, self.design
-        return self.rows[self.chosen], self.design[self.chosen]
+    # The last iteration's 4x4 [[H, g], [gᵀ, Σr²]] over its inlier pairs, with the levers taken
+    # about `origin` (the translation it started from); None before any iteration ran.
+    normal: NDArray[np.float64] | None = None
+    origin: tuple[float, float] = (0.0, 0.0)
 
 
 def _design_map(c: float, s: float, x: float, y: float) -> NDArray[np.float64]:
@@ -311,6 +305,14 @@ def _solve_step(normal: NDArray[np.float64], radius: float,
     return float(dx), float(dy), float(dyaw)
 
 
+def _same_pairs(a: tuple, b: tuple) -> bool:
+    """Whether two iterations chose the same (source point, target point) pairs."""
+    (index_a, chosen_a), (index_b, chosen_b) = a, b
+    matched_a = index_a if chosen_a is None else index_a[chosen_a]
+    matched_b = index_b if chosen_b is None else index_b[chosen_b]
+    return matched_a.size == matched_b.size and np.array_equal(matched_a, matched_b)
+
+
 def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterations: int,
               gate: float, min_gate: float, tolerance: float, robust: str, trim_fraction: float,
               adaptive_factor: float, min_inliers: int, radius: float,
@@ -319,7 +321,7 @@ def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterat
     src_h = source points as (N, 3) rows [x, y, 1], rows = the target's residual rows."""
     state = _Loop(*pose, reason=f'max_iterations ({max_iterations}) reached')
     x, y, yaw = pose
-    previous: NDArray[np.intp] | None = None
+    previous: tuple | None = None
     best_error, stalled = math.inf, 0
     floor_sq = (0.25 * min_gate) ** 2
     robust_sq = (adaptive_factor * 1.4826) ** 2
@@ -360,17 +362,16 @@ def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterat
             elif n_chosen == keep.size:
                 chosen = None
         if chosen is not None:
-            whitened, size_sq, matched = whitened[chosen], size_sq[chosen], index[chosen]
-        else:
-            matched = index
+            whitened, size_sq = whitened[chosen], size_sq[chosen]
         state.inliers = size_sq.size
         state.error = float(np.sqrt(size_sq).sum()) / size_sq.size
         state.history.append(state.error)
-        state.matched, state.rows, state.design, state.chosen = matched, pair_rows, design, chosen
+        flat = whitened.reshape(-1, 4)
+        state.normal, state.origin = flat.T @ flat, (x, y)
         if point_to_line:
-            flat = whitened.reshape(-1, 4)
-            dx, dy, dyaw = _solve_step(flat.T @ flat, radius, solve_ratio)
+            dx, dy, dyaw = _solve_step(state.normal, radius, solve_ratio)
         else:
+            matched = index if chosen is None else index[chosen]
             p = (design if chosen is None else design[chosen])[:, 0:2, 3]
             r_step, t_step = align_paired(p, tgt.points.take(matched, axis=0))
             dyaw = math.atan2(r_step[1, 0], r_step[0, 0])
@@ -383,9 +384,11 @@ def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterat
         if robust == 'adaptive':
             gate = max(min_gate, min(gate, 2.0 * adaptive_factor * 1.4826 * math.sqrt(median_sq)))
         step = math.hypot(dx, dy) + abs(dyaw) * radius
+        # The pairs (target index per chosen source point) are compared only when it matters.
+        pairs = (index, chosen)
         same_pairs = step < 10.0 * tolerance and previous is not None \
-            and previous.size == matched.size and np.array_equal(previous, matched)
-        previous = matched
+            and _same_pairs(previous, pairs)
+        previous = pairs
         settled = len(state.history) >= 2 and \
             abs(state.history[-2] - state.history[-1]) <= error_tolerance * state.history[-1]
         # Correspondences that flip back and forth keep the step from vanishing; when the error
@@ -481,9 +484,10 @@ def match(
     if src.shape[0] < min_points or tgt.points.shape[0] < min_points:
         return _failed(guess, f'too few valid points (source {src.shape[0]}, target '
                        f'{tgt.points.shape[0]}, need {min_points})', src.shape[0], dropped)
-    centred = src - src.mean(axis=0)
+    centred = src - src.sum(axis=0) / src.shape[0]
     radius = math.sqrt(float(np.einsum('ij,ij->', centred, centred)) / src.shape[0])
-    if radius < 1e-9 or float((tgt.points.max(axis=0) - tgt.points.min(axis=0)).max()) < 1e-9:
+    # The k-d tree already holds the target's bounding box.
+    if radius < 1e-9 or float((tgt.tree.maxes - tgt.tree.mins).max()) < 1e-9:
         return _failed(guess, 'all points identical: rotation undefined', src.shape[0], dropped)
 
     point_to_line = method == 'point_to_line'
@@ -511,7 +515,7 @@ def match(
             state = _icp_loop(_homogeneous(coarse), rows, tgt, seed,
                               max_iterations=coarse_iterations, gate=max_correspondence_distance,
                               min_inliers=coarse_min, **settings)
-            candidate = (state.x, state.y, state.yaw) if state.design is not None else seed
+            candidate = (state.x, state.y, state.yaw) if state.normal is not None else seed
             score = _score(coarse, tgt, candidate, score_distance)
             # The guess's own result wins unless a hypothesis explains clearly more points.
             if score > best_score + (hypothesis_margin if offset else 0.0):
@@ -520,23 +524,22 @@ def match(
     state = _icp_loop(_homogeneous(src), rows, tgt, start, max_iterations=max_iterations,
                       gate=max_correspondence_distance, min_inliers=min_inliers, **settings)
     x, y, yaw = state.x, state.y, state.yaw
-    if state.design is None or state.inliers < min_inliers:
+    if state.normal is None or state.inliers < min_inliers:
         return MatchResult(x, y, yaw, np.eye(3) * FAILED_VARIANCE, state.iterations, False,
                            state.error, state.reason, source_points=src.shape[0],
                            dropped_points=dropped, history=state.history, inliers=state.inliers)
 
     # Final linearised system over the last iteration's inlier pairs (converged: a tiny step),
-    # with the levers taken about the final translation.
-    pair_rows, design = state.inlier_pairs()
-    design = design.copy()
-    design[:, 0, 2] = y - design[:, 1, 3]
-    design[:, 1, 2] = design[:, 0, 3] - x
-    flat = np.matmul(pair_rows, design).reshape(-1, 4)
-    normal = flat.T @ flat
+    # with the levers taken about the final translation: moving the lever origin by Δt changes
+    # each yaw Jacobian U·J·l by -U·J·Δt, i.e. the yaw column by a mix of the x and y columns.
+    jx, jy = state.origin[1] - y, x - state.origin[0]      # J·Δt, Δt = final - origin
+    shift = np.eye(4)
+    shift[0, 2], shift[1, 2] = -jx, -jy
+    normal = shift.T @ state.normal @ shift
     hessian = normal[:3, :3]
     # Each pair gives rank(Mᵢ) residuals: 1 on a line (tangent weight aside), 2 point-to-point;
-    # trace(Mᵢ) = |Uᵢ|² counts them.
-    residual_count = float(np.einsum('kij,kij->', pair_rows[:, :, :2], pair_rows[:, :, :2]))
+    # trace(Mᵢ) = |Uᵢ|², summed over the pairs, is the trace of the x-y block.
+    residual_count = float(normal[0, 0] + normal[1, 1])
     dof = max(1.0, residual_count - 3.0)
     variance = max(float(normal[3, 3]) / dof, min_residual_std ** 2)
     covariance, degenerate, direction, condition = _covariance(
