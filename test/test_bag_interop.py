@@ -30,6 +30,12 @@ TOP_KEYS = {'version', 'storage_identifier', 'duration', 'starting_time', 'messa
 TOPIC_KEYS = {'name', 'type', 'serialization_format', 'offered_qos_profiles',
               'type_description_hash'}
 FILE_KEYS = {'path', 'starting_time', 'duration', 'message_count'}
+SAMPLE = 20
+
+
+def expected_name(info: dict, topic: str) -> str:
+    return next(t['topic_metadata']['type'] for t in info['topics_with_message_count']
+                if t['topic_metadata']['name'] == topic).split('/')[-1]
 
 
 @pytest.fixture(scope='module')
@@ -52,7 +58,9 @@ def written_bags(tmp_path_factory):
     bags['bag_writer'] = tmp / 'writer'
     log = CARMEN / 'freiburg-101-corrected.log.gz'
     if log.is_file():
-        assert run_to_exit('carmen_to_bag', [str(log), str(tmp / 'carmen')]).returncode == 0
+        from sensing_nodes.tools.carmen_to_bag import convert
+
+        convert(log, tmp / 'carmen')
         bags['carmen_to_bag'] = tmp / 'carmen'
     return bags
 
@@ -74,23 +82,33 @@ def test_opens_with_rosbags_and_mcap_ros2(written_bags, name):
     info = _metadata(bag)
     expected = {t['topic_metadata']['name']: t['message_count']
                 for t in info['topics_with_message_count']}
+    # Every message is counted; up to SAMPLE per topic are decoded (rclpy and mcap_ros2).
     with Reader(bag) as reader:
         counted = Counter()
         for connection, _, raw in reader.messages():
-            deserialize_message(raw, message_class(connection.msgtype))
             counted[connection.topic] += 1
+            if counted[connection.topic] <= SAMPLE:
+                deserialize_message(raw, message_class(connection.msgtype))
     assert dict(counted) == {t: n for t, n in expected.items() if n}
     for path in info['relative_file_paths']:
         with open(bag / path, 'rb') as handle:
-            reader = make_reader(handle)
+            reader = make_reader(handle, decoder_factories=[DecoderFactory()])
             assert reader.get_header().profile == 'ros2'
             summary = reader.get_summary()
             assert {s.encoding for s in summary.schemas.values()} == {'ros2msg'}
             assert {c.message_encoding for c in summary.channels.values()} == {'cdr'}
-        with open(bag / path, 'rb') as handle:
-            reader = make_reader(handle, decoder_factories=[DecoderFactory()])
-            decoded = Counter(channel.topic for _, channel, _, _ in reader.iter_decoded_messages())
-        assert dict(decoded) == dict(counted)
+            assert {c.topic: summary.statistics.channel_message_counts[i]
+                    for i, c in summary.channels.items()} == {t: n for t, n in expected.items()}
+        decoded = Counter()
+        for topic in counted:
+            with open(bag / path, 'rb') as handle:
+                reader = make_reader(handle, decoder_factories=[DecoderFactory()])
+                for _, channel, _, msg in reader.iter_decoded_messages(topics=[topic]):
+                    assert type(msg).__name__ == expected_name(info, topic)
+                    decoded[topic] += 1
+                    if decoded[topic] == SAMPLE:
+                        break
+        assert decoded == Counter({t: min(n, SAMPLE) for t, n in counted.items()})
 
 
 @pytest.mark.parametrize('name', ['nominal', 'strong_errors', 'sensor_sim', 'bag_writer',

@@ -14,6 +14,7 @@ from harness import run_to_exit
 from sensing_nodes.bag import read_messages, topic_counts
 from sensing_nodes.core.carmen import read_carmen
 from sensing_nodes.ros.conversions import odometry_pose, scan_arrays
+from sensing_nodes.tools.carmen_to_bag import convert
 
 CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'
 needs_logs = pytest.mark.skipif(not CARMEN.is_dir(), reason=f'CARMEN logs not found in {CARMEN}')
@@ -30,9 +31,8 @@ LOGS = {
 def test_shared_log_converts(tmp_path, name):
     scans, beams, no_return = LOGS[name]
     out = tmp_path / 'bag'
-    result = run_to_exit('carmen_to_bag', [str(CARMEN / name), str(out)])
-    assert result.returncode == 0, result.stderr
-    assert '0 bad lines' in result.stdout
+    summary = convert(CARMEN / name, out)
+    assert summary['errors'] == [] and summary['no_return_value'] == no_return
     counts = topic_counts(out)
     assert counts['/scan'] == ('sensor_msgs/msg/LaserScan', scans)
     assert counts['/ground_truth/odom'] == ('nav_msgs/msg/Odometry', scans)
@@ -71,8 +71,7 @@ def test_shared_log_converts(tmp_path, name):
 def test_laser_offset_moves_the_reference_back_to_base_link(tmp_path):
     out = tmp_path / 'bag'
     name = 'freiburg-101-corrected.log.gz'
-    assert run_to_exit('carmen_to_bag', [str(CARMEN / name), str(out), '--laser-x', '0.5']
-                       ).returncode == 0
+    convert(CARMEN / name, out, laser_x_m=0.5)
     log = read_carmen(CARMEN / name)
     truth = next(m for t, _, m in read_messages(out, ['/ground_truth/odom']))
     (x, y, yaw), _ = odometry_pose(truth)

@@ -88,10 +88,8 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
         except Exception as exc:
             raise EvalError(f'{bag}: cannot read the bag ({type(exc).__name__}: {exc})') from None
         topics = sorted(t for t, (ty, n) in available.items() if ty == ODOMETRY and t != reference)
-    has_reference = reference in topic_counts(bag) if (bag / 'metadata.yaml').is_file() else False
-    wanted = list(topics) + ([reference] if has_reference else [])
-    trajectories = load_trajectories(bag, wanted)
-    if relations_file is not None:
+    relations = None
+    if relations_file is not None:  # read first: a bad file fails before the bag is loaded
         try:
             relations = read_relations(relations_file, int(round(time_offset_s * 1e9)))
         except OSError as exc:
@@ -99,7 +97,10 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
         except ValueError as exc:
             raise EvalError(str(exc)) from None
         source = f'relations file {relations_file}'
-    else:
+    has_reference = reference in topic_counts(bag) if (bag / 'metadata.yaml').is_file() else False
+    wanted = list(topics) + ([reference] if has_reference else [])
+    trajectories = load_trajectories(bag, wanted)
+    if relations is None:
         if not has_reference:
             raise EvalError(f'{bag}: topic {reference} is not in the bag and no --relations given')
         relations = relations_from_trajectory(*trajectories[reference], delta_s)
