@@ -342,27 +342,26 @@ def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterat
         # which keeps them out of the median and of every rule below without copying the rest.
         pair_rows = rows.take(index, axis=0, mode='clip')
         whitened = np.matmul(pair_rows, design)       # (N, 2, 4): Jacobian rows | residual
-        residual = whitened[..., 3]
-        size_sq = np.einsum('ki,ki->k', residual, residual)   # squared Mahalanobis-like (m²)
+        r0, r1 = whitened[:, 0, 3], whitened[:, 1, 3]
+        size_sq = r0 * r0 + r1 * r1                   # squared Mahalanobis-like residual (m²)
         gated = count < keep.size
         if gated:
             size_sq[~keep] = math.inf
         # Robust rule: which of the gated pairs enter the estimate.
         k = count // 2
         median_sq = float(np.partition(size_sq, k)[k])
-        chosen: NDArray[np.bool_] | NDArray[np.intp] | None = keep if gated else None
+        chosen: NDArray[np.intp] | None = np.flatnonzero(keep) if gated else None
         if robust == 'trim' and count > min_inliers:
             n_keep = max(min_inliers, int(trim_fraction * count))
             chosen = np.argpartition(size_sq, n_keep - 1)[:n_keep]
         elif robust == 'adaptive':
-            chosen = size_sq <= max(robust_sq * median_sq, floor_sq)
-            n_chosen = int(np.count_nonzero(chosen))
-            if n_chosen < min_inliers:
+            chosen = np.flatnonzero(size_sq <= max(robust_sq * median_sq, floor_sq))
+            if chosen.size < min_inliers:
                 chosen = np.argpartition(size_sq, min_inliers - 1)[:min_inliers]
-            elif n_chosen == keep.size:
+            elif chosen.size == keep.size:
                 chosen = None
         if chosen is not None:
-            whitened, size_sq = whitened[chosen], size_sq[chosen]
+            whitened, size_sq = whitened.take(chosen, axis=0), size_sq.take(chosen)
         state.inliers = size_sq.size
         state.error = float(np.sqrt(size_sq).sum()) / size_sq.size
         state.history.append(state.error)
