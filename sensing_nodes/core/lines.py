@@ -139,7 +139,7 @@ class _Scan:
     def ranges(self, s: NDArray[np.intp], counts: NDArray[np.intp]):
         """Point indices of the ranges [s, s + counts) one after another, the range each comes
         from, and where each range begins in that list."""
-        offsets = counts.cumsum()
+        offsets = np.add.accumulate(counts)
         total = int(offsets[-1])
         offsets -= counts
         owner = self.counter[:len(counts)].repeat(counts)
@@ -237,8 +237,10 @@ def _split_ranges(scan: _Scan, s: list[int], e: list[int], split_distance: float
                 xs, ys = x[lo:hi + 1], y[lo:hi + 1]
                 along = xs * c
                 along += ys * sn
-                # max |along - r|: rounding is monotonic, so it is at one of the two extremes.
-                if max(float(along.max()) - r, r - float(along.min())) > split_distance:
+                # max |along - r|: rounding is monotonic, so it is at one of the two extremes
+                # (argmax and argmin cost less than max and min here).
+                if max(float(along[along.argmax()]) - r,
+                       r - float(along[along.argmin()])) > split_distance:
                     x0, y0 = float(xs[0]), float(ys[0])
                     dx, dy = float(xs[-1]) - x0, float(ys[-1]) - y0
                     chord = xs * dy
@@ -268,7 +270,7 @@ def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: 
     xs, ys, xe, ye = scan.x[s], scan.y[s], scan.x[e], scan.y[e]
     near = np.hypot(xs[1:] - xe[:-1], ys[1:] - ye[:-1]) <= max_gap
     near &= s[1:] >= e[:-1]
-    if not near.any():
+    if not np.count_nonzero(near):
         return s, e, None
     # A scan has a dozen ranges or so: per range and per pair, plain floats cost less than
     # numpy calls. The arithmetic is that of _PolarFits and its covariance, term for term.
@@ -433,7 +435,7 @@ def extract_lines(
     valid &= r_in <= max_range if math.isfinite(max_range) else r_in < math.inf
     if table.finite is not None:
         valid &= table.finite
-    beams = np.flatnonzero(valid)
+    beams = valid.nonzero()[0]
     min_points = max(int(min_line_points), 2)
     if len(beams) < min_points:
         return []
@@ -442,9 +444,10 @@ def extract_lines(
     circular = table.circular
     brk = _breaks(x, y, beams, r_in.size, circular, max_line_gap)
     if circular and not brk[-1]:
-        if brk.any():
+        ends = brk.nonzero()[0]
+        if len(ends):
             # Start just after a break so that no wall is cut in two by where the list starts.
-            shift = int(np.flatnonzero(brk)[0]) + 1
+            shift = int(ends[0]) + 1
             x, y, beams, brk = (np.concatenate((a[shift:], a[:shift])) for a in (x, y, beams, brk))
         else:
             # A closed ring of points: start at a split point found on a first pass.
@@ -456,13 +459,13 @@ def extract_lines(
             brk = np.zeros(len(x), dtype=bool)
             brk[-1] = True
     scan = _Scan(x, y, beams)
-    ends = np.flatnonzero(brk)
+    ends = brk.nonzero()[0]
     starts = np.concatenate(([0], ends[:-1] + 1))
     s, e = _split(scan, starts, ends, split_distance, min_points)
     sigma2 = range_sigma * range_sigma
     s, e, fits = _merge(scan, s, e, sigma2, merge_chi2, split_distance, max_line_gap, min_points)
     keep = e - s + 1 >= min_points
-    if not keep.all():
+    if np.count_nonzero(keep) < len(keep):
         s, e, fits = s[keep], e[keep], None
     s, e = _trim_ends(scan, s, e, range_sigma, min_points, fits)
     return _final_lines(scan, s, e, sigma2, min_line_length)
@@ -484,7 +487,7 @@ def _trim_ends(scan: _Scan, s, e, range_sigma: float, min_points: int, fits=None
     # cos of the incidence angle: (beam direction . normal), beam direction = point / range.
     limit2 = (_END_SIGMAS * range_sigma) ** 2
     bad = d * d > limit2 * np.maximum(along * along / scan.rho2[ends], _MIN_COS2)
-    if not bad.any():
+    if not np.count_nonzero(bad):
         return s, e
     # A range whose ends all fit keeps its fit; the few others are trimmed one at a time, on
     # plain floats (each step removes at least one point, so this ends; a wall takes one or two).
