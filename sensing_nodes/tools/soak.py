@@ -101,10 +101,11 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         def on_message(raw):
             counts[topic] += 1
             if topic in stamps_by_topic:
-                stamps_by_topic[topic].add(leading_stamp_ns(raw))
-            if topic == '/scan':
+                # Every answer carries its scan's stamp, so simulated time is known even while
+                # this process's own /scan reader is still being matched at the start.
                 stamp = leading_stamp_ns(raw)
-                stamps['first'] = stamp if stamps['first'] is None else stamps['first']
+                stamps_by_topic[topic].add(stamp)
+                stamps['first'] = stamp if stamps['first'] is None else min(stamps['first'], stamp)
                 stamps['newest'] = max(stamps['newest'], stamp)
         return on_message
 
