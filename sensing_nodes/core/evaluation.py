@@ -155,7 +155,9 @@ class RelativeErrors:
         tr, rot = self.translation_m, np.degrees(self.rotation_rad)
         return {'relations': int(tr.size), 'skipped_relations': int(self.skipped),
                 'rpe_translation_mean_m': float(tr.mean()), 'rpe_translation_std_m': float(tr.std()),
-                'rpe_rotation_mean_deg': float(rot.mean()), 'rpe_rotation_std_deg': float(rot.std())}
+                'rpe_rotation_mean_deg': float(rot.mean()), 'rpe_rotation_std_deg': float(rot.std()),
+                'rpe_translation_median_m': float(np.median(tr)),
+                'rpe_rotation_median_deg': float(np.median(rot))}
 
 
 def relative_pose_errors(

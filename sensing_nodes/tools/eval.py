@@ -124,12 +124,13 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
 def table(report: dict) -> str:
     lines = [f"{report['bag']}: relative pose error against {report['reference']}", '',
              f"{'estimate':<22}{'relations':>10}{'RPE translation (m)':>24}{'RPE rotation (deg)':>22}"
-             f"{'ATE rmse (m)':>14}"]
+             f"{'ATE rmse (m)':>14}{'median RPE (m, deg)':>22}"]
     for topic, e in report['estimates'].items():
         ate = f"{e['ate_rmse_m']:14.3f}" if 'ate_rmse_m' in e else f"{'-':>14}"
         lines.append(f"{topic:<22}{e['relations']:>10}"
                      f"{e['rpe_translation_mean_m']:>13.3f} ± {e['rpe_translation_std_m']:<8.3f}"
-                     f"{e['rpe_rotation_mean_deg']:>11.2f} ± {e['rpe_rotation_std_deg']:<8.2f}{ate}")
+                     f"{e['rpe_rotation_mean_deg']:>11.2f} ± {e['rpe_rotation_std_deg']:<8.2f}{ate}"
+                     f"{e['rpe_translation_median_m']:>14.3f}, {e['rpe_rotation_median_deg']:.2f}")
     return '\n'.join(lines)
 
 
