@@ -75,6 +75,9 @@ def publishers(probe):
 
 def _send(probe, publishers, events):
     assert spin_until(probe, lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), 20)
+    # Our writers see the node's readers; give the node's readers a moment to see our writers
+    # too (discovery is not symmetric in time), or the first samples can be missed.
+    spin_until(probe, lambda: False, 1.0)
     for kind, t, value, cov in events:
         publishers[kind].publish(_message(kind, t, value, cov))
         # Paced like a live source: a burst of hundreds of reliable samples makes DDS
