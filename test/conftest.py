@@ -7,7 +7,20 @@ import os
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 200))
 
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
 import pytest  # noqa: E402
+
+
+def pytest_sessionstart(session):
+    """Remove Fast DDS shared-memory ports and segments left by processes that were killed
+    (SIGKILL skips their clean-up); live ones are left alone. Stale ports make new participants
+    log 'open_and_lock_file failed' and can delay their first samples."""
+    fastdds = Path(sys.executable).parent / 'fastdds'
+    if fastdds.is_file():
+        subprocess.run([str(fastdds), 'shm', 'clean'], capture_output=True, timeout=30)
 
 
 @pytest.fixture(scope='session')
