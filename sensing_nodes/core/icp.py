@@ -143,26 +143,29 @@ def _line_normals(points: NDArray[np.float64], tree: cKDTree, neighbours: int,
     index = np.where(present, index, np.arange(n)[:, None])
     # Offsets from each point to its neighbours: small numbers, so the one-pass scatter
     # Σ d·dᵀ - (Σ d)(Σ d)ᵀ / count loses no precision; an absent neighbour is the point itself.
-    offsets = points.take(index, axis=0)
-    offsets -= points[:, None, :]
-    dx, dy = offsets[..., 0], offsets[..., 1]
-    count = np.count_nonzero(present, axis=1)
+    px, py = points[:, 0], points[:, 1]
+    dx = px.take(index)
+    dx -= px[:, None]
+    dy = py.take(index)
+    dy -= py[:, None]
+    count = present.astype(float) @ np.ones(k)                    # exact: a sum of 0s and 1s
     sx, sy = dx.sum(axis=1), dy.sum(axis=1)
     sxx = np.einsum('ij,ij->i', dx, dx) - sx * sx / count
     syy = np.einsum('ij,ij->i', dy, dy) - sy * sy / count
     sxy = np.einsum('ij,ij->i', dx, dy) - sx * sy / count
     # Principal axis of a 2x2 scatter in closed form; the normal is perpendicular to it.
-    theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+    half_difference = 0.5 * (sxx - syy)
+    theta = 0.5 * np.arctan2(sxy, half_difference)
     normals = np.empty((n, 2))
     np.sin(theta, out=normals[:, 0])
-    normals[:, 0] *= -1.0
+    np.negative(normals[:, 0], out=normals[:, 0])
     np.cos(theta, out=normals[:, 1])
     half_trace = 0.5 * (sxx + syy)
-    spread = np.hypot(0.5 * (sxx - syy), sxy)
+    spread = np.hypot(half_difference, sxy)
     with np.errstate(invalid='ignore', divide='ignore'):
-        planarity = np.where(half_trace > 0, spread / half_trace, 0.0)   # (λ1-λ2)/(λ1+λ2)
-    planarity[count < 3] = 0.0
-    return normals, np.clip(planarity, 0.0, 1.0)
+        planarity = spread / half_trace                           # (λ1-λ2)/(λ1+λ2)
+    planarity[(count < 3) | ~(half_trace > 0)] = 0.0
+    return normals, np.clip(planarity, 0.0, 1.0, out=planarity)
 
 
 def _residual_rows(points: NDArray[np.float64],
@@ -196,20 +199,28 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     array = np.ascontiguousarray(array)
     tree = cKDTree(array)
     normals, planarity = _line_normals(array, tree, normal_neighbours, normal_radius)
-    line = planarity >= min_planarity
+    corner = planarity < min_planarity
+    n = array.shape[0]
+    # Information n·nᵀ + w·I on a line, I elsewhere, as rows (m00, m01, m11).
     nx, ny = normals[:, 0], normals[:, 1]
-    information = np.empty((array.shape[0], 3))
-    information[:, 0] = np.where(line, nx * nx + tangent_weight, 1.0)
-    information[:, 1] = np.where(line, nx * ny, 0.0)
-    information[:, 2] = np.where(line, ny * ny + tangent_weight, 1.0)
-    # Residual rows: on a line √(1+w)·n and √w·tangent (n·nᵀ + w·I), elsewhere the unit axes (I).
-    rows = np.zeros((array.shape[0], 2, 3))
-    normal_scale, tangent_scale = math.sqrt(1.0 + tangent_weight), math.sqrt(tangent_weight)
-    rows[:, 0, 0] = np.where(line, normal_scale * nx, 1.0)
-    rows[:, 0, 1] = np.where(line, normal_scale * ny, 0.0)
-    rows[:, 1, 0] = np.where(line, tangent_scale * ny, 0.0)
-    rows[:, 1, 1] = np.where(line, -tangent_scale * nx, 1.0)
-    rows[:, :, 2] = np.einsum('nij,nj->ni', rows[:, :, :2], array)
+    information = np.empty((n, 3))
+    np.multiply(nx, nx, out=information[:, 0])
+    np.multiply(nx, ny, out=information[:, 1])
+    np.multiply(ny, ny, out=information[:, 2])
+    if tangent_weight:
+        information[:, 0::2] += tangent_weight
+    information[corner] = (1.0, 0.0, 1.0)
+    # Residual rows [U | U·q] with UᵀU = information: √(1+w)·n and √w·tangent on a line, the
+    # unit axes elsewhere.
+    rows = np.zeros((n, 2, 3))
+    if tangent_weight:
+        rows[:, 0, :2] = math.sqrt(1.0 + tangent_weight) * normals
+        rows[:, 1, 0] = math.sqrt(tangent_weight) * normals[:, 1]
+        rows[:, 1, 1] = -math.sqrt(tangent_weight) * normals[:, 0]
+    else:
+        rows[:, 0, :2] = normals
+    rows[corner, :, :2] = ((1.0, 0.0), (0.0, 1.0))
+    rows[:, :, 2] = np.matmul(rows[:, :, :2], array[:, :, None])[:, :, 0]
     return Target(array, tree, normals, planarity, information, dropped, rows)
 
 
