@@ -89,7 +89,7 @@ def fit_line(points: ArrayLike) -> PolarFit:
 
 class _PolarFits:
     """Least-squares lines from rows of point sums (n, Σx, Σy, Σx², Σy², Σxy), with r >= 0 and
-    alpha in (-pi, pi]; covariance() is that of (r, alpha) for unit distance variance per point."""
+    alpha in (-pi, pi]."""
 
     def __init__(self, sums: NDArray[np.float64]) -> None:
         w = self.w = sums[:, 0]
@@ -106,15 +106,6 @@ class _PolarFits:
         self.alpha = np.where(alpha <= -np.pi, alpha + 2.0 * np.pi, alpha)   # -pi rounds to pi
         self.c, self.s = np.where(flip, -c, c), np.where(flip, -s, s)
         self.r = np.abs(r)
-
-    def covariance(self):
-        """(var r, cov r-alpha, var alpha), each (k,), for unit distance variance per point."""
-        c, s = self.c, self.s
-        # Along-line coordinate t = p·(-sin, cos): its spread about the centroid and the centroid's t.
-        # Floored so that a degenerate fit (one point) gives a huge but finite covariance.
-        stt = np.maximum(s * s * self.sxx + c * c * self.syy - 2.0 * s * c * self.sxy, 1e-12)
-        tm = c * self.ym - s * self.xm
-        return 1.0 / self.w + tm * tm / stt, tm / stt, 1.0 / stt
 
 
 class _Scan:
@@ -273,7 +264,7 @@ def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: 
     if not np.count_nonzero(near):
         return s, e, None
     # A scan has a dozen ranges or so: per range and per pair, plain floats cost less than
-    # numpy calls. The arithmetic is that of _PolarFits and its covariance, term for term.
+    # numpy calls.
     fits = [_polar_fit_floats(row) for row in (scan.prefix[e + 1] - scan.prefix[s]).tolist()]
     s_l, e_l, near_l = s.tolist(), e.tolist(), near.tolist()
     xs_l, ys_l, xe_l, ye_l = xs.tolist(), ys.tolist(), xe.tolist(), ye.tolist()
@@ -318,8 +309,8 @@ def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: 
 
 
 def _polar_fit_floats(d: list[float]) -> tuple[float, ...]:
-    """_PolarFits for one row of sums on plain floats: (cos alpha, sin alpha, r, alpha) and the
-    (var r, cov r-alpha, var alpha) of _PolarFits.covariance."""
+    """_PolarFits for one row of sums on plain floats: (cos alpha, sin alpha, r, alpha), then
+    (var r, cov r-alpha, var alpha) for unit distance variance per point."""
     w, sx, sy, sxx, syy, sxy = d
     xm, ym = sx / w, sy / w
     sxx, syy, sxy = sxx - xm * sx, syy - ym * sy, sxy - xm * sy
@@ -331,6 +322,8 @@ def _polar_fit_floats(d: list[float]) -> tuple[float, ...]:
         c, sn, r = -c, -sn, -r
     if alpha <= -math.pi:
         alpha += 2.0 * math.pi
+    # Along-line coordinate t = p·(-sin, cos): its spread about the centroid and the centroid's t.
+    # Floored so that a degenerate fit (one point) gives a huge but finite covariance.
     stt = max(sn * sn * sxx + c * c * syy - 2.0 * sn * c * sxy, 1e-12)
     tm = c * ym - sn * xm
     return c, sn, r, alpha, 1.0 / w + tm * tm / stt, tm / stt, 1.0 / stt
