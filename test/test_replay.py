@@ -82,7 +82,7 @@ def test_strong_errors_bag_reproduced(tmp_path):
 def test_timed_mode_feeds_the_line_extractor_every_scan(tmp_path):
     out = tmp_path / 'out'
     result = _replay([str(BAGS / 'nominal'), str(out), '--launch', '--mode', 'timed',
-                      '--rate', '10', '--nodes', 'line_extractor', '--expect',
+                      '--rate', '5', '--nodes', 'line_extractor', '--expect',
                       '/scan=/scan/lines,/scan/lines/table'])
     assert result.returncode == 0, result.stdout + result.stderr
     counts = topic_counts(out)

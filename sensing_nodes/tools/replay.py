@@ -35,6 +35,9 @@ DEFAULT_EXPECTATIONS: dict[str, tuple[str, ...]] = {
 # outputs reach the replay and those nodes over separate DDS paths, so after them the replay
 # lets the fan-out land (settle) before it publishes the next input.
 DEFAULT_SETTLE_AFTER = ('/joint_states',)
+# ... and before these inputs it lets everything published so far land (the scan matcher acts on
+# the odometry it holds when a scan arrives).
+DEFAULT_SETTLE_BEFORE = {'/scan': 0.010}
 # Outputs that are not 1:1 with an input: recorded as they come.
 DEFAULT_EXTRA_OUTPUTS = ('/odometry/filtered', '/diagnostics')
 # Message type each node input takes (a bag topic of another type is refused).
@@ -297,8 +300,10 @@ class Replayer:
 def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, rate: float,
               timeout_s: float, quiet_s: float, progress: str | None,
               settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
-              settle_s: float = 0.002) -> PassResult:
+              settle_s: float = 0.002,
+              settle_before: dict[str, float] | None = None) -> PassResult:
     """One pass over the bag's inputs; returns what the graph published during it."""
+    settle_before = DEFAULT_SETTLE_BEFORE if settle_before is None else settle_before
     result = PassResult()
     replayer.current = result
     started = time.monotonic()
@@ -311,6 +316,8 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
             while time.monotonic() < due:
                 replayer.spin(min(0.005, max(0.0, due - time.monotonic())))
             replayer.publish_clock(stamp)
+        if mode == 'lockstep' and settle_before.get(topic, 0.0) > 0.0:
+            replayer.spin(settle_before[topic])
         replayer.input_stamp_ns = stamp
         replayer.publishers[topic].publish(raw)
         result.inputs_published += 1
@@ -383,7 +390,8 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
            timeout_s: float = 10.0, quiet_s: float = 1.5, startup_timeout_s: float = 60.0,
            progress: bool = True, logs: Path | None = None,
            compress: bool = False, settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
-           settle_s: float = 0.002, warmup_s: float = 2.0) -> list[PassResult]:
+           settle_s: float = 0.002, warmup_s: float = 2.0,
+           settle_before: dict[str, float] | None = None) -> list[PassResult]:
     """Replay a bag through the graph (started here when `launch`), `loops` times back to back;
     writes `out` (one pass) or out/pass-K (several), complete or not at all."""
     expectations = dict(DEFAULT_EXPECTATIONS if expectations is None else expectations)
@@ -415,7 +423,13 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
             from sensing_nodes.tools.demo import Graph
 
             (log_dir / 'logs').mkdir(parents=True, exist_ok=True)
-            graph = Graph(log_dir, dict(os.environ))
+            env = dict(os.environ)
+            if mode == 'lockstep':
+                # Publish hands the message to every matched reader before it returns, so an
+                # output the replay has received is already on its way to the other subscribers
+                # (asynchronous publishing sends from a separate thread, later).
+                env.setdefault('RMW_FASTRTPS_PUBLICATION_MODE', 'SYNCHRONOUS')
+            graph = Graph(log_dir, env)
             for name in nodes:
                 graph.start(name, list((node_params or {}).get(name, [])))
         replayer.wait_for_graph(
@@ -431,13 +445,13 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
             warm = InputBag(bag.path, bag.types, [m for m in bag.messages
                                                   if m[1] <= start + int(warmup_s * 1e9)])
             play_pass(replayer, warm, set(expectations), 'lockstep', rate, timeout_s, quiet_s,
-                      'warm-up: ' if progress else None, settle_after, settle_s)
+                      'warm-up: ' if progress else None, settle_after, settle_s, settle_before)
         results = []
         for k in range(loops):
             label = f'pass {k + 1}/{loops}: ' if loops > 1 else ''
             results.append(play_pass(replayer, bag, set(expectations), mode, rate, timeout_s,
                                      quiet_s, label if progress else None, settle_after,
-                                     settle_s))
+                                     settle_s, settle_before))
             if graph is not None and graph.failed():
                 raise ReplayError(f'node(s) exited during the replay: {", ".join(graph.failed())}; '
                                   f'logs in {log_dir / "logs"}')
@@ -615,6 +629,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--settle-after', action='append', default=None, metavar='TOPIC',
                         help='inputs followed by the settle time (default: '
                              + ' '.join(DEFAULT_SETTLE_AFTER) + ')')
+    parser.add_argument('--settle-before', action='append', default=None, metavar='TOPIC=MS',
+                        help='lockstep: wall ms to spin before publishing that input (default: '
+                             + ' '.join(f'{t}={1e3 * v:g}' for t, v in DEFAULT_SETTLE_BEFORE.items())
+                             + '); TOPIC=0 turns one off')
     parser.add_argument('--warmup-s', type=float, default=2.0,
                         help='with --launch: first play this much of the bag (bag seconds) and '
                              'discard the outputs, so every link of the graph is matched before '
@@ -631,6 +649,21 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if not (args.rate > 0 and args.timeout > 0 and args.loops >= 1 and args.quiet_s > 0):
         parser.error('--rate, --timeout and --quiet-s must be > 0 and --loops >= 1')
     return args
+
+
+def _settle_before(specs: list[str] | None) -> dict[str, float] | None:
+    if specs is None:
+        return None
+    table = dict(DEFAULT_SETTLE_BEFORE)
+    for spec in specs:
+        topic, sep, ms = spec.partition('=')
+        try:
+            table[topic] = float(ms) * 1e-3
+        except ValueError:
+            raise ReplayError(f'--settle-before {spec!r}: write TOPIC=MS') from None
+        if not sep or table[topic] < 0:
+            raise ReplayError(f'--settle-before {spec!r}: write TOPIC=MS with MS >= 0')
+    return table
 
 
 def _interrupt(signum, frame):
@@ -663,6 +696,7 @@ def main(argv: list[str] | None = None) -> int:
             node_params=parse_node_params(args.param), loops=args.loops, timeout_s=args.timeout,
             quiet_s=args.quiet_s, progress=not args.no_progress, logs=args.logs,
             compress=args.compress, settle_s=args.settle_ms * 1e-3, warmup_s=args.warmup_s,
+            settle_before=_settle_before(args.settle_before),
             settle_after=(tuple(args.settle_after) if args.settle_after is not None
                           else DEFAULT_SETTLE_AFTER))
     except ReplayError as exc:
