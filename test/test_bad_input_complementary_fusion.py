@@ -50,6 +50,7 @@ KINDS = {
     'negative_variance': 'rejected',
     'zero_covariance_after_moving': 'rejected',
     'orientation_absent': 'rejected',     # IMU orientation_covariance[0] = -1 (REP 145)
+    'not_unit_quaternion': 'rejected',    # +-inf or NaN in it, all zero, or not of length 1
     'backwards_stamp': 'went backwards',
     'far_future_stamp': 'went backwards',  # the next valid message is then far in the past
     'huge_dt': 'went backwards',
@@ -120,6 +121,7 @@ def bad_spec(kind=None):
         'back': st.sampled_from([1, STEP, 10**9, 3600 * 10**9]),
         'gap': st.integers(5, 3600).map(lambda s: s * 10**9),
         'frame': st.text(max_size=12),
+        'quaternion': st.sampled_from(['inf', 'zero', 'scaled']),
     })
 
 
@@ -156,6 +158,15 @@ def make_bad(spec, last_t, truth_at):
         return source, msg
     if kind == 'orientation_absent':
         msg.orientation_covariance[0] = -1.0
+        return source, msg
+    if kind == 'not_unit_quaternion':
+        q = msg.orientation if source == 'imu' else msg.pose.pose.orientation
+        if spec['quaternion'] == 'inf':
+            setattr(q, 'zw'[spec['index'] % 2], spec['bad'])
+        elif spec['quaternion'] == 'zero':
+            q.x = q.y = q.z = q.w = 0.0
+        else:
+            q.z, q.w = 2.0 * q.z, 2.0 * q.w
         return source, msg
     if kind in ('backwards_stamp', 'far_future_stamp', 'huge_dt', 'repeated_stamp'):
         stamp = {'backwards_stamp': last_t - spec['back'], 'far_future_stamp': last_t + FAR_FUTURE,
@@ -268,14 +279,14 @@ def run_example(s: Stream, specs, yaw_rate) -> None:
     got = [g for g in got if since <= g[0] <= last]
     expected = [e for e in core_outputs(valid) if e[0] >= since]
     assert [g[0] for g in got] == [e[0] for e in expected], s.node.output()[-3000:]
-    # Positions and the heading change at wheel outputs must match a fresh core exactly. The
-    # heading change at a scan-match output may not: when an input is counted silent (after a
-    # reset its only message is an hour old) or the idle flush releases held inputs, a scan
-    # match can be fused before the IMU sample of its own stamp, and the scan frame is then
-    # tied off by the gyro steps it missed; the complementary filter pulls the heading towards
-    # that tie by (1 - alpha) of what is left at every later match, in later examples too.
-    # Seen over DDS: up to 7e-4 rad per match (a tie about 0.03 rad off). Allowed: the pull of
-    # a tie up to 0.1 rad off; a jump, or a tie further off, fails.
+    # Positions and the heading change at wheel outputs must match a fresh core exactly. At a
+    # scan-match output the heading may differ by the complementary filter's pull: a burst can
+    # hold a valid scan match stamped less than one IMU period after the previous one. With no
+    # dead reckoning in between, its own heading change stands in for it, and the next IMU
+    # increment (which spans the same interval) counts that turn again: the fused heading is
+    # then off by |yaw rate| * that interval, and each later match pulls (1 - alpha) of it back.
+    # Seen over DDS: up to 2.4e-4 rad per match. Allowed: the pull of an offset up to 0.1 rad;
+    # a jump, or a bogus heading taken in (e.g. from an infinite quaternion), fails.
     pull_tol = (1.0 - 0.98) * 0.1
     for i in range(1, len(got)):
         pose, cov = got[i][1], got[i][2]
@@ -325,3 +336,32 @@ def test_every_kind_was_warned_about(stream):
         key = KINDS[kind]
         if key is not None:
             assert re.search(re.escape(key), warnings), f'no warning for {kind} ({key}):\n{log}'
+
+
+def test_an_orientation_that_is_no_rotation_is_rejected(stream, probe):
+    """An orientation with an infinite component, all zero, or not of unit length gives a finite
+    yaw through atan2 all the same: each such message must be counted as rejected on
+    /diagnostics (and so not fused), on every input."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 50)
+
+    def rejected():
+        for msg in reversed(diagnostics.messages):
+            for status in msg.status:
+                if status.name == 'complementary_fusion':
+                    values = {kv.key: kv.value for kv in status.values}
+                    return {name: int(values.get(f'{name}_rejected', 0))
+                            for name in ('wheel_odom', 'imu', 'scan_match')}
+        return None
+
+    assert spin_until(probe, lambda: rejected() is not None, 10)
+    before = rejected()
+    base = {'kind': 'not_unit_quaternion', 'bad': math.inf, 'index': 0, 'negative': -1.0,
+            'back': 1, 'gap': 5 * 10**9, 'frame': ''}
+    specs = [{**base, 'input': source, 'offset': 1000 + 10 * i, 'quaternion': how}
+             for i, (source, how) in enumerate((s, h) for s in INPUTS
+                                               for h in ('inf', 'zero', 'scaled'))]
+    run_example(stream, specs, 0.5)
+    expected = {name: before[name] + 3 for name in before}
+    assert spin_until(probe, lambda: rejected() == expected, 10), (before, rejected())
+    diagnostics.close()

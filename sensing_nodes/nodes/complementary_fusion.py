@@ -33,6 +33,13 @@ WHEEL, GYRO, SCAN = 0, 1, 2
 INPUT_NAMES = {WHEEL: 'wheel_odom', GYRO: 'imu', SCAN: 'scan_match'}
 
 
+def unit_quaternion(q) -> bool:
+    """Finite and of unit length (within 1 %): an infinite or all-zero orientation still gives
+    a finite yaw from atan2, but it is no rotation at all."""
+    norm2 = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
+    return math.isfinite(norm2) and abs(norm2 - 1.0) <= 0.02
+
+
 class ComplementaryFusionNode(Node):
     def __init__(self) -> None:
         super().__init__('complementary_fusion')
@@ -167,7 +174,7 @@ class ComplementaryFusionNode(Node):
             yaw = quaternion_to_yaw(msg.orientation)
             if not self._accepted_first[source]:
                 self._origin[source] = yaw
-            ok = math.isfinite(yaw) and math.isfinite(yaw_var) and (
+            ok = unit_quaternion(msg.orientation) and math.isfinite(yaw_var) and (
                 yaw_var > 0.0 or (yaw_var == 0.0 and yaw == self._origin[source]))
             if msg.orientation_covariance[0] == -1.0:
                 ok = False
@@ -177,19 +184,22 @@ class ComplementaryFusionNode(Node):
             diagonal = np.diag(cov)
             if not self._accepted_first[source]:
                 self._origin[source] = pose
-            ok = bool(np.all(np.isfinite(pose)) and np.all(np.isfinite(cov)) and (
-                np.all(diagonal > 0.0) or
-                (np.all(diagonal == 0.0) and pose == self._origin[source])))
+            ok = bool(unit_quaternion(msg.pose.pose.orientation)
+                      and np.all(np.isfinite(pose)) and np.all(np.isfinite(cov)) and (
+                          np.all(diagonal > 0.0) or
+                          (np.all(diagonal == 0.0) and pose == self._origin[source])))
             reading = (pose, cov)
-            if source == SCAN:
-                reading = (pose, cov, self._scan_increment_covariance(msg, stamp_to_ns(msg.header.stamp)))
         if not ok:
             self.diagnostics.count(f'{name}_rejected')
             self._warnings.warn(
                 f'{name}_rejected',
                 f'{name}: rejected a message whose pose or covariance is NaN, negative, absent, '
-                'or zero after moving (only a source\'s starting pose may be exactly known)')
+                'or zero after moving (only a source\'s starting pose may be exactly known), or '
+                'whose orientation is not a unit quaternion')
             return None
+        if source == SCAN:
+            # Only accepted matches may start the interval of the next one's covariance.
+            reading = (*reading, self._scan_increment_covariance(msg, stamp_to_ns(msg.header.stamp)))
         self._accepted_first[source] = True
         return source, reading
 
