@@ -202,3 +202,14 @@ def _messages(bag: Path, topic: str):
         msg_type = message_class(connections[0].msgtype)
         for c, stamp, raw in reader.messages(connections=connections):
             yield topic, stamp, deserialize_message(raw, msg_type)
+
+
+def test_a_node_failing_at_start_up_is_an_error_without_output(tmp_path):
+    out = tmp_path / 'out'
+    result = _replay([str(BAGS / 'nominal'), str(out), '--launch', '--nodes', 'icp_matcher',
+                      '--expect', '/scan=/scan_match/odom', '--param',
+                      'icp_matcher:method:=nonsense'], timeout=60)
+    _assert_refused(result, 'icp_matcher', 'exited at start-up', 'node logs in', out=out)
+    log_dir = Path(result.stderr.split('node logs in ')[1].split()[0])
+    assert "invalid parameter" in (log_dir / 'icp_matcher.log').read_text()
+    shutil.rmtree(log_dir.parent)

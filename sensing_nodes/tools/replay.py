@@ -414,6 +414,7 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
         staging.mkdir(parents=True)
 
     graph = None
+    succeeded = False
     log_dir = Path(tempfile.mkdtemp(prefix='sensing_replay-')) if logs is None else Path(logs)
     replayer = None
     try:
@@ -432,9 +433,14 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
             graph = Graph(log_dir, env)
             for name in nodes:
                 graph.start(name, list((node_params or {}).get(name, [])))
-        replayer.wait_for_graph(
-            required, startup_timeout_s, failed=(graph.failed if graph is not None else lambda: []),
-            nodes=nodes if launch and '/diagnostics' in outputs else ())
+        try:
+            replayer.wait_for_graph(
+                required, startup_timeout_s,
+                failed=(graph.failed if graph is not None else lambda: []),
+                nodes=nodes if launch and '/diagnostics' in outputs else ())
+        except ReplayError as exc:
+            raise ReplayError(f'{exc}; node logs in {log_dir / "logs"}' if launch else str(exc)) \
+                from None
         if warmup_s > 0 and launch:
             # Two nodes that have just discovered each other may still be matching: a message
             # sent then is lost. So the first warmup_s of the bag goes through first and is
@@ -471,6 +477,7 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                     write_output_bag(partial / f'pass-{k + 1}', bag, r, output_types, outputs,
                                      compress)
             partial.rename(out)
+        succeeded = True
         return results
     finally:
         if staging is not None:
@@ -479,8 +486,8 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
             graph.stop()
         if replayer is not None:
             replayer.close()
-        if logs is None and graph is None:
-            shutil.rmtree(log_dir, ignore_errors=True)
+        if logs is None and (graph is None or succeeded):
+            shutil.rmtree(log_dir, ignore_errors=True)   # kept after a failure: it names them
 
 
 # -- comparing outputs ----------------------------------------------------------------------
