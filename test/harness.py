@@ -131,7 +131,8 @@ def publish_paced(node, publisher, messages, pause_s: float = 0.002) -> None:
             rclpy.spin_once(node, timeout_sec=0)
 
 
-def publish_until(node, publisher, msg, answered: Callable[[], bool], timeout: float = 20.0) -> bool:
+def publish_until(node, publisher, msg, answered: Callable[[], bool],
+                  timeout: float = 20.0) -> bool:
     """Publish msg every 0.2 s until answered() holds: best effort loses whatever is sent before
     the reader has matched this writer. Extra copies arrive as duplicate stamps."""
     if not spin_until(node, lambda: publisher.get_subscription_count() > 0, timeout):

@@ -232,7 +232,8 @@ def core_outputs(valid):
             fusion.add_gyro(t, *imu_reading(t, msg_pose_truth(msg)))
             continue
         else:
-            increment_cov = None if previous_scan is None else TWIST_COV * ((t - previous_scan) * 1e-9) ** 2
+            increment_cov = (None if previous_scan is None
+                             else TWIST_COV * ((t - previous_scan) * 1e-9) ** 2)
             previous_scan = t
             fusion.add_scan_match(t, *odometry_pose(msg), increment_cov)
         outputs.append((t, fusion.state.pose))
@@ -270,7 +271,8 @@ def run_example(s: Stream, specs, yaw_rate) -> None:
     for _, _, source, msg in valid:
         s.publish(source, msg)
     last = s.t
-    spin_until(s.probe, lambda: sum(stamp_to_ns(m.header.stamp) == last for m in s.out.messages) >= 2, 5)
+    spin_until(s.probe,
+               lambda: sum(stamp_to_ns(m.header.stamp) == last for m in s.out.messages) >= 2, 5)
     assert s.node.alive(), s.node.output()
 
     scan_stamps = [t for t, _, source, _ in valid if source == 'scan']
@@ -301,7 +303,8 @@ def run_example(s: Stream, specs, yaw_rate) -> None:
         else:
             assert motion[2] == pytest.approx(core_motion[2], abs=1e-9)
     at_scans = [g for g in got if g[0] in scan_stamps]
-    at_scans = [g for i, g in enumerate(at_scans) if i + 1 == len(at_scans) or at_scans[i + 1][0] != g[0]]
+    at_scans = [g for i, g in enumerate(at_scans)              # the last output per stamp
+                if i + 1 == len(at_scans) or at_scans[i + 1][0] != g[0]]
     assert len(at_scans) == len(scan_stamps) - 1
     for a, b in zip(at_scans, at_scans[1:]):
         truth_motion = se2.between(truth_at(a[0]), truth_at(b[0]))
@@ -316,7 +319,8 @@ def test_malformed_inputs_keep_fusion_alive_and_correct(stream, kind):
     @settings(max_examples=3, deadline=None, derandomize=True, database=None,
               suppress_health_check=list(HealthCheck))
     @given(forced=bad_spec(kind), others=st.lists(bad_spec(), max_size=3),
-           where=st.integers(0, 3), yaw_rate=st.floats(0.05, MAX_YAW_RATE) | st.floats(-MAX_YAW_RATE, -0.05))
+           where=st.integers(0, 3),
+           yaw_rate=st.floats(0.05, MAX_YAW_RATE) | st.floats(-MAX_YAW_RATE, -0.05))
     def example(forced, others, where, yaw_rate):
         run_example(stream, others[:where] + [forced] + others[where:], yaw_rate)
 

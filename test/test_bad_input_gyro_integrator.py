@@ -48,7 +48,8 @@ def imu(t_ns, gyro, accel=GRAVITY, frame_id='imu_link'):
     msg.header.frame_id = frame_id
     msg.orientation_covariance[0] = -1.0
     msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = map(float, gyro)
-    msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = map(float, accel)
+    a = msg.linear_acceleration
+    a.x, a.y, a.z = map(float, accel)
     msg.angular_velocity_covariance[0] = msg.angular_velocity_covariance[4] = 1e-6
     msg.angular_velocity_covariance[8] = 1e-6
     return msg
@@ -149,7 +150,8 @@ def run_example(s: Stream, specs, rate) -> None:
         values = [msg.orientation.z, msg.orientation.w, msg.orientation_covariance[8],
                   msg.angular_velocity.z, *msg.angular_velocity_covariance]
         assert np.all(np.isfinite(values)) and msg.orientation_covariance[8] >= 0.0, msg
-        turned = wrap_angle(quaternion_to_yaw(msg.orientation) - quaternion_to_yaw(msg_prev.orientation))
+        turned = wrap_angle(quaternion_to_yaw(msg.orientation)
+                            - quaternion_to_yaw(msg_prev.orientation))
         assert turned == pytest.approx(wrap_angle(expected[i][0] - expected[i - 1][0]), abs=1e-9)
         assert msg.angular_velocity.z == pytest.approx(expected[i][1], abs=1e-12)
         assert msg.header.frame_id == 'imu_link'

@@ -182,7 +182,8 @@ def run_example(s: Stream, specs, speed, yaw_rate) -> None:
     publish_paced(s.probe, s.publisher, burst, pause_s=0.005)
     publish_paced(s.probe, s.publisher, [scan(t, room_ranges(p)) for t, p in valid], pause_s=0.005)
     last = valid[-1][0]
-    spin_until(s.probe, lambda: any(stamp_to_ns(m.header.stamp) == last for m in s.out.messages), 10)
+    spin_until(s.probe,
+               lambda: any(stamp_to_ns(m.header.stamp) == last for m in s.out.messages), 10)
     assert s.node.alive(), s.node.output()
 
     for msg in s.out.messages:           # every output, after bad scans too, is finite
@@ -200,7 +201,8 @@ def run_example(s: Stream, specs, speed, yaw_rate) -> None:
         position_error = math.hypot(moved[0] - truth[0], moved[1] - truth[1])
         heading_error = abs(float(se2.wrap_angle(moved[2] - truth[2])))
         s.worst = (max(s.worst[0], position_error), max(s.worst[1], heading_error))
-        assert position_error < 0.01 and heading_error < 0.01, (moved, truth, s.node.output()[-2000:])
+        assert position_error < 0.01 and heading_error < 0.01, \
+            (moved, truth, s.node.output()[-2000:])
     s.resumed += 1
 
 

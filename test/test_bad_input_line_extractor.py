@@ -34,7 +34,8 @@ INCREMENT = 2 * math.pi / BEAMS
 RANGE_MIN, RANGE_MAX = 0.12, 8.0
 FAR_FUTURE = 100_000_000 * 1_000_000_000
 WORLD = load_world(config_file('default_world.yaml'))
-PARAMS = yaml.safe_load(config_file('line_extractor.yaml').read_text())['line_extractor']['ros__parameters']
+PARAMS = yaml.safe_load(
+    config_file('line_extractor.yaml').read_text())['line_extractor']['ros__parameters']
 CORE_OPTIONS = {k: PARAMS[k] for k in ('split_distance', 'max_line_gap', 'min_line_points',
                                        'min_line_length', 'min_range', 'max_range', 'range_sigma',
                                        'merge_chi2')}

@@ -165,7 +165,8 @@ def test_fused_pose_stayed_continuous_and_followed_the_robot(graph):
         truth_moved = se2.between(truth_a, truth_b)
         error = (math.hypot(moved[0] - truth_moved[0], moved[1] - truth_moved[1]),
                  abs(float(se2.wrap_angle(moved[2] - truth_moved[2]))))
-        report.append((victim, (t_b - t_a) * 1e-9, math.hypot(*truth_moved[:2]), truth_moved[2], error))
+        report.append((victim, (t_b - t_a) * 1e-9, math.hypot(*truth_moved[:2]), truth_moved[2],
+                       error))
     print('\n'.join(f'{v}: {span:.1f} s, truth moved {d:.2f} m / {math.degrees(y):.1f} deg, '
                     f'fused off by {e[0]:.3f} m / {math.degrees(e[1]):.2f} deg'
                     for v, span, d, y, e in report))

@@ -93,7 +93,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     executor = make_executor()
     executor.add_node(node)
     counts = {topic: 0 for topic in COUNTED}
-    stamps_by_topic: dict[str, set[int]] = {topic: set() for topic in COUNTED if topic != '/odometry/filtered'}
+    stamps_by_topic: dict[str, set[int]] = {topic: set() for topic in COUNTED
+                                            if topic != '/odometry/filtered'}
     stamps = {'first': None, 'newest': 0}
     diagnostics: dict[str, dict[str, str]] = {}
 
@@ -177,8 +178,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         codes = graph.stop()
         node.destroy_node()
         rclpy.try_shutdown()
-    return report(args, samples, counts, stamps_by_topic, stamps['first'], diagnostics, wall_s, sim_s,
-                  failed, codes)
+    return report(args, samples, counts, stamps_by_topic, stamps['first'], diagnostics, wall_s,
+                  sim_s, failed, codes)
 
 
 def report(args, samples, counts, stamps_by_topic, first_stamp, diagnostics, wall_s, sim_s, failed,
@@ -219,7 +220,8 @@ def report(args, samples, counts, stamps_by_topic, first_stamp, diagnostics, wal
     fusion = diagnostics.get('complementary_fusion', {})
     result = {
         'when': datetime.now().isoformat(timespec='seconds'),
-        'mode': 'paced by /odometry/filtered' if args.rate == 'paced' else f'{args.rate}x real time',
+        'mode': ('paced by /odometry/filtered' if args.rate == 'paced'
+                 else f'{args.rate}x real time'),
         'simulated_s': round(sim_s, 1),
         'wall_s': round(wall_s, 1),
         'real_time_factor': round(sim_s / wall_s, 2) if wall_s > 0 else None,
@@ -238,12 +240,14 @@ def report(args, samples, counts, stamps_by_topic, first_stamp, diagnostics, wal
 
 
 def print_table(result: dict) -> None:
-    print(f"\nsensing_soak: {result['simulated_s']:.0f} s simulated in {result['wall_s']:.0f} s wall "
+    print(f"\nsensing_soak: {result['simulated_s']:.0f} s simulated in "
+          f"{result['wall_s']:.0f} s wall "
           f"({result['real_time_factor']}x real time, {result['mode']})")
     print(f"{'node':<22}{'RSS min 1 (kB)':>16}{'RSS end (kB)':>14}{'change':>9}")
     for name, n in result['nodes'].items():
         change = f"{100 * n['rss_change']:+.1f}%" if n['rss_change'] is not None else '-'
-        print(f"{name:<22}{n['rss_kb_after_first_minute'] or '-':>16}{n['rss_kb_at_end'] or '-':>14}"
+        print(f"{name:<22}{n['rss_kb_after_first_minute'] or '-':>16}"
+              f"{n['rss_kb_at_end'] or '-':>14}"
               f"{change:>9}")
     s = result['scans']
     print(f"scans: published {s['published_by_sim']}, matched {s['processed_by_icp_matcher']}, "
