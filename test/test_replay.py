@@ -69,8 +69,9 @@ def test_nominal_bag_reproduced_twice_back_to_back_with_every_node_reset(tmp_pat
 
 def test_strong_errors_bag_reproduced(tmp_path):
     out = tmp_path / 'out'
-    result = _replay([str(BAGS / 'strong_errors'), str(out), '--launch'])
+    result = _replay([str(BAGS / 'strong_errors'), str(out), '--launch', '--check'])
     assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.count('reproduced:') == len(OUTPUTS) and 'DIFFERS' not in result.stdout
     _assert_reproduces(BAGS / 'strong_errors', out)
     # The output bag holds the inputs and ground truth too, so it replays like the original.
     counts = topic_counts(out)

@@ -647,6 +647,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--logs', type=Path, default=None, help='with --launch: keep node logs here')
     parser.add_argument('--make-bags', metavar='DIR', default=None,
                         help="regenerate the project's bags (" + ', '.join(BAG_SPECS) + ') in DIR')
+    parser.add_argument('--check', action='store_true',
+                        help='compare the outputs with those recorded in BAG; exit 1 if any differ')
     parser.add_argument('--compress', action='store_true',
                         help='zstd-compress the output bag\'s MCAP chunks')
     parser.add_argument('--no-progress', action='store_true')
@@ -720,7 +722,32 @@ def main(argv: list[str] | None = None) -> int:
         print('  waiting for outputs per input topic: ' + ', '.join(
             f'{t} {s:.1f} s' for t, s in sorted(r.wait_s.items())))
     print(f'sensing_replay: wrote {args.out}')
-    return EXIT_FAILED if any(r.missing for r in results) else 0
+    failed = any(r.missing for r in results)
+    if args.check:
+        failed |= not check_against(Path(args.bag), results)
+    return EXIT_FAILED if failed else 0
+
+
+def check_against(recorded: Path, results: list[PassResult]) -> bool:
+    """Print, per pass and output topic, whether the replay reproduced the bag's recorded
+    outputs (the topics both have, /diagnostics aside); True when every one did."""
+    from sensing_nodes.bag import topic_counts
+
+    types = {t: v[0] for t, v in topic_counts(recorded).items()}
+    topics = {t for r in results for t in r.outputs} & set(types) - WALL_PERIODIC_TOPICS
+    expected = output_messages(recorded, topics)
+    ok = True
+    for k, r in enumerate(results):
+        report = compare_outputs(expected, {t: r.outputs.get(t, []) for t in topics}, types)
+        for topic, e in report.items():
+            # Equal values count as reproduced (MarkerArray CDR holds uninitialised padding).
+            same = e['expected'] == e['actual'] and e['max_difference'] == 0.0
+            ok &= same
+            print(f"  check pass {k + 1} {topic:<22} {'reproduced' if same else 'DIFFERS'}: "
+                  f"{e['identical']} of {e['expected']} byte-identical"
+                  + ('' if same else f", {e['actual']} replayed, largest difference "
+                     f"{e['max_difference']:.3g} at {e['where']}"))
+    return ok
 
 
 if __name__ == '__main__':
