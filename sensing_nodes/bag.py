@@ -30,6 +30,27 @@ def message_class(name: str) -> type:
     return getattr(importlib.import_module(f'{package}.msg'), cls)
 
 
+def bag_qos(profile: Any) -> Any:
+    """rclpy QoSProfile -> the rosbags QoS record of a bag's offered_qos_profiles (a rosbags
+    record, e.g. read from another bag, is kept as it is)."""
+    from rosbags.interfaces import (
+        Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime,
+    )
+
+    if isinstance(profile, Qos):
+        return profile
+
+    def duration(d) -> QosTime:
+        sec, nsec = divmod(int(d.nanoseconds), 1_000_000_000)
+        return QosTime(sec, nsec)
+
+    return Qos(QosHistory(int(profile.history)), int(profile.depth),
+               QosReliability(int(profile.reliability)), QosDurability(int(profile.durability)),
+               duration(profile.deadline), duration(profile.lifespan),
+               QosLiveliness(int(profile.liveliness)), duration(profile.liveliness_lease_duration),
+               bool(profile.avoid_ros_namespace_conventions))
+
+
 class BagWriter:
     """Writes rclpy messages to a new rosbag2 (format 9, MCAP storage) at `path`; with
     `compress`, MCAP chunks are zstd-compressed (storage-level, as rosbag2's MCAP presets do)."""
@@ -49,11 +70,15 @@ class BagWriter:
     def __exit__(self, exc_type, exc, tb) -> None:
         self._writer.close()
 
-    def add_topic(self, topic: str, msg_type: str) -> None:
-        """Register a topic up front, so it is in the bag even when no message arrives."""
+    def add_topic(self, topic: str, msg_type: str, qos: Any = None) -> None:
+        """Register a topic up front, so it is in the bag even when no message arrives; `qos`
+        (an rclpy QoSProfile, or a list of them) is stored as its offered QoS, which
+        `ros2 bag play` publishes with."""
         if topic not in self._connections:
+            profiles = [] if qos is None else [qos] if not isinstance(qos, (list, tuple)) else qos
             self._connections[topic] = self._writer.add_connection(
-                topic, msg_type, typestore=TYPESTORE)
+                topic, msg_type, typestore=TYPESTORE,
+                offered_qos_profiles=[bag_qos(p) for p in profiles])
             self.counts[topic] = 0
 
     def write(self, topic: str, msg: Any, stamp_ns: int) -> None:

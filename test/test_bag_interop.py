@@ -31,6 +31,8 @@ TOPIC_KEYS = {'name', 'type', 'serialization_format', 'offered_qos_profiles',
               'type_description_hash'}
 FILE_KEYS = {'path', 'starting_time', 'duration', 'message_count'}
 SAMPLE = 20
+QOS_KEYS = {'history', 'depth', 'reliability', 'durability', 'deadline', 'lifespan', 'liveliness',
+            'liveliness_lease_duration', 'avoid_ros_namespace_conventions'}
 
 
 def expected_name(info: dict, topic: str) -> str:
@@ -111,6 +113,20 @@ def test_opens_with_rosbags_and_mcap_ros2(written_bags, name):
         assert decoded == Counter({t: min(n, SAMPLE) for t, n in counted.items()})
 
 
+def test_replayed_bags_record_the_offered_qos():
+    """`ros2 bag play` publishes each topic with the QoS recorded for it: the raw sensor streams
+    best effort, as the simulator (a driver) offers them, the nodes' estimates reliable."""
+    info = _metadata(REPO / 'bags' / 'nominal')
+    reliability = {t['topic_metadata']['name']: {q['reliability'] for q in
+                                                 t['topic_metadata']['offered_qos_profiles']}
+                   for t in info['topics_with_message_count']}
+    for topic in ('/scan', '/imu/data_raw', '/joint_states'):
+        assert reliability[topic] == {'best_effort'}
+    for topic in ('/wheel/odom', '/imu/data', '/scan_match/odom', '/odometry/filtered',
+                  '/scan/lines', '/scan/lines/table'):
+        assert reliability[topic] == {'reliable'}
+
+
 @pytest.mark.parametrize('name', ['nominal', 'strong_errors', 'sensor_sim', 'bag_writer',
                                   'carmen_to_bag'])
 def test_metadata_follows_rosbag2_version_9(written_bags, name, probe):
@@ -144,6 +160,12 @@ def test_metadata_follows_rosbag2_version_9(written_bags, name, probe):
         assert set(meta) == TOPIC_KEYS
         assert meta['serialization_format'] == 'cdr'
         assert isinstance(meta['offered_qos_profiles'], list)  # a sequence from version 9 on
+        for qos in meta['offered_qos_profiles']:
+            assert set(qos) == QOS_KEYS
+            assert qos['reliability'] in {'reliable', 'best_effort', 'system_default'}
+            assert qos['durability'] in {'volatile', 'transient_local', 'system_default'}
+            for key in ('deadline', 'lifespan', 'liveliness_lease_duration'):
+                assert set(qos[key]) == {'sec', 'nsec'}
         assert re.fullmatch(r'[a-z_]+/msg/[A-Za-z0-9]+', meta['type'])
         # The hash ROS 2 computes for the type (what `ros2 bag play` compares).
         assert meta['type_description_hash'] == _live_type_hash(probe, meta['type'])

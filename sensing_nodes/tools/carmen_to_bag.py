@@ -79,6 +79,7 @@ def convert(log_path: str | Path, out: str | Path, laser_x_m: float = 0.0,
 
     from sensing_nodes.bag import BagWriter
     from sensing_nodes.ros.conversions import float32_array, make_odometry
+    from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
     log_path, out = Path(log_path), Path(out)
     try:
@@ -138,9 +139,10 @@ def convert(log_path: str | Path, out: str | Path, laser_x_m: float = 0.0,
             messages.append((stamp(t), 1, '/odom', msg))
         messages.sort(key=lambda m: (m[0], m[1]))
         with BagWriter(staging / out.name, compress=compress) as bag:
-            bag.add_topic('/scan', 'sensor_msgs/msg/LaserScan')
-            bag.add_topic('/odom', 'nav_msgs/msg/Odometry')
-            bag.add_topic('/ground_truth/odom', 'nav_msgs/msg/Odometry')
+            # Offered QoS for `ros2 bag play`: the scan as a driver offers it, the rest reliable.
+            bag.add_topic('/scan', 'sensor_msgs/msg/LaserScan', SENSOR_QOS)
+            bag.add_topic('/odom', 'nav_msgs/msg/Odometry', ESTIMATE_QOS)
+            bag.add_topic('/ground_truth/odom', 'nav_msgs/msg/Odometry', ESTIMATE_QOS)
             for t, _, topic, msg in messages:
                 bag.write(topic, msg, t)
                 counts[topic] += 1

@@ -78,6 +78,7 @@ class InputBag:
     path: Path
     types: dict[str, str]
     messages: list[tuple[str, int, bytes]]  # (topic, bag time ns, CDR bytes), in bag order
+    qos: dict[str, list] = field(default_factory=dict)  # topic -> offered QoS (rosbags records)
 
 
 @dataclass
@@ -105,6 +106,8 @@ def load_bag(path: str | Path) -> InputBag:
         with Reader(path) as reader:
             types = {c.topic: c.msgtype for c in reader.connections}
             expected = {c.topic: c.msgcount for c in reader.connections}
+            qos = {c.topic: list(getattr(c.ext, 'offered_qos_profiles', []) or [])
+                   for c in reader.connections}
             for connection, stamp, raw in reader.messages():
                 messages.append((connection.topic, stamp, bytes(raw)))
     except ReplayError:
@@ -122,7 +125,7 @@ def load_bag(path: str | Path) -> InputBag:
                           'truncated?')
     # Bag order: stamp order, ties in the order the bag stores them (a stable sort).
     order = sorted(range(len(messages)), key=lambda i: messages[i][1])
-    return InputBag(path, types, [messages[i] for i in order])
+    return InputBag(path, types, [messages[i] for i in order], qos)
 
 
 def check_inputs(bag: InputBag, inputs: list[str], remaps: dict[str, str]) -> None:
@@ -358,16 +361,19 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
 
 
 def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types: dict[str, str],
-                     outputs: set[str], compress: bool = False) -> dict[str, int]:
-    """The input bag's topics (all but the graph's outputs) plus what the graph published."""
+                     outputs: set[str], compress: bool = False,
+                     offered: dict[str, list] | None = None) -> dict[str, int]:
+    """The input bag's topics (all but the graph's outputs) plus what the graph published, each
+    with the QoS it was offered with (`offered`: topic -> profiles; else the input bag's)."""
     from sensing_nodes.bag import BagWriter
 
+    offered = offered or {}
     with BagWriter(path, compress=compress) as out:
         for topic, msg_type in bag.types.items():
             if topic not in outputs:
-                out.add_topic(topic, msg_type)
+                out.add_topic(topic, msg_type, offered.get(topic, bag.qos.get(topic)) or None)
         for topic in sorted(result.outputs):
-            out.add_topic(topic, output_types[topic])
+            out.add_topic(topic, output_types[topic], offered.get(topic) or None)
         merged = [(s, 0, t, raw) for t, s, raw in bag.messages if t not in outputs]
         merged += [(s, 1, t, raw) for t in sorted(result.outputs) for s, raw in result.outputs[t]]
         # Outputs after the input of the same stamp; each topic keeps its arrival order.
@@ -461,21 +467,27 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
             if graph is not None and graph.failed():
                 raise ReplayError(f'node(s) exited during the replay: {", ".join(graph.failed())}; '
                                   f'logs in {log_dir / "logs"}')
-        output_types = {t: replayer.node.get_publishers_info_by_topic(t)[0].topic_type
-                        for t in replayer.subscribed
-                        if replayer.node.get_publishers_info_by_topic(t)}
+        output_types, offered = {}, {}
+        for t in replayer.subscribed:
+            infos = replayer.node.get_publishers_info_by_topic(t)
+            if infos:
+                output_types[t] = infos[0].topic_type
+                offered[t] = [i.qos_profile for i in infos]
+        for t, publisher in replayer.publishers.items():   # the inputs, as the replay offered them
+            offered[t] = [publisher.qos_profile]
         for r in results:
             for t in r.outputs:
                 if t not in output_types:
                     raise ReplayError(f'output {t}: its publisher vanished before its type was read')
         if partial is not None:
             if loops == 1:
-                write_output_bag(partial, bag, results[0], output_types, outputs, compress)
+                write_output_bag(partial, bag, results[0], output_types, outputs, compress,
+                                 offered)
             else:
                 partial.mkdir(parents=True)
                 for k, r in enumerate(results):
                     write_output_bag(partial / f'pass-{k + 1}', bag, r, output_types, outputs,
-                                     compress)
+                                     compress, offered)
             partial.rename(out)
         succeeded = True
         return results
