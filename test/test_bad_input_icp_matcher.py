@@ -233,10 +233,6 @@ def test_every_kind_was_warned_about(stream):
             assert re.search(re.escape(key), warnings), f'no warning for {kind} ({key}):\n{log}'
 
 
-@pytest.mark.xfail(strict=True, reason='known bug, reported: a scan stamped nanoseconds after the '
-                   'previous one makes the constant-velocity model divide a match residual by a '
-                   'tiny dt; the prediction then runs away and every later match is rejected as a '
-                   'jump (fallbacks keep the runaway twist) until a gap or a reset')
 def test_a_scan_nanoseconds_after_the_previous_does_not_derail_the_matcher(stream):
     """A valid scan 1 us after the previous one (a driver's duplicate with a nudged stamp, with
     a few beams missing), then the drive goes on: the matcher must keep tracking it."""

@@ -170,3 +170,18 @@ def test_prepared_keyframe_is_reused():
     for k in range(1, 5):
         matcher.process(T0 + k * DT, laser_points(path(k)), between(path(k - 1), path(k)))
     assert matcher.keyframe is first
+
+
+def test_a_scan_a_microsecond_after_the_previous_keeps_the_velocity():
+    """A duplicate scan with a nudged stamp must not turn a match residual into a velocity."""
+    matcher = KeyframeScanMatcher(ScanMatcherSettings(laser_pose=MOUNT))
+    for k in range(5):
+        matcher.process(T0 + k * DT, laser_points(path(k)), None)
+    twist = matcher.twist
+    matcher.process(T0 + 4 * DT + 1_000, laser_points(path(4)), None)
+    assert matcher.twist == twist
+    for k in range(5, 10):
+        step = matcher.process(T0 + k * DT, laser_points(path(k)), None)
+        assert step.status == 'matched', step.reason
+    ref = between(path(0), path(9))
+    assert math.hypot(step.pose[0] - ref[0], step.pose[1] - ref[1]) < 0.01

@@ -22,6 +22,12 @@ from sensing_nodes.core.timing import StampStep, classify_step
 ZERO: Pose2 = (0.0, 0.0, 0.0)
 
 
+# A scan stamped closer than this to the previous one (a driver's duplicate with a nudged stamp)
+# says nothing about velocity: a match residual divided by a tiny dt would make the
+# constant-velocity prediction run away, so the previous twist is kept.
+MIN_VELOCITY_INTERVAL_S = 1e-3
+
+
 @dataclass(frozen=True)
 class ScanMatcherSettings:
     """Keyframe policy, laser mount, acceptance gates and fallback noise (m, rad, s)."""
@@ -162,7 +168,8 @@ class KeyframeScanMatcher:
         if new_keyframe:
             self._set_keyframe(points)
         motion = between(previous, self.pose)
-        self.twist = (motion[0] / dt, motion[1] / dt, motion[2] / dt)
+        if dt >= MIN_VELOCITY_INTERVAL_S:
+            self.twist = (motion[0] / dt, motion[1] / dt, motion[2] / dt)
         self.stamp_ns = stamp_ns
         return ScanStep(stamp_ns, self.pose, self.covariance.copy(), self.twist, status, reason,
                         new_keyframe=new_keyframe, prediction=source, result=result,
