@@ -143,3 +143,41 @@ def publish_until(node, publisher, msg, answered: Callable[[], bool],
         if spin_until(node, answered, 0.2):
             return True
     return answered()
+
+
+def assert_every_kind_warned(stream, kinds: dict[str, str | None], examples_per_kind: int) -> None:
+    """After a bad-input module's examples: the node is alive, every malformed kind was sent and
+    left a [WARN] line matching its key (None: a kind that needs no warning)."""
+    import re
+
+    log = stream.node.output()
+    assert stream.node.alive(), log
+    assert stream.resumed >= examples_per_kind * len(kinds)
+    assert stream.kinds_sent == set(kinds), set(kinds) - stream.kinds_sent
+    warnings = '\n'.join(line for line in log.splitlines() if '[WARN]' in line)
+    for kind in sorted(stream.kinds_sent):
+        key = kinds[kind]
+        if key is not None:
+            assert re.search(re.escape(key), warnings), f'no warning for {kind} ({key}):\n{log}'
+
+
+def laser_scan(t_ns: int, ranges, frame_id: str = 'laser', angle_min: float = -3.141592653589793,
+               increment: float = 0.017453292519943295, range_min: float = 0.12,
+               range_max: float = 8.0, intensities=None):
+    """A sensor_msgs/LaserScan as a driver would send it (any field may be made malformed)."""
+    import numpy as np
+    from sensor_msgs.msg import LaserScan
+
+    from sensing_nodes.ros.conversions import float32_array, ns_to_stamp
+
+    msg = LaserScan()
+    msg.header.stamp = ns_to_stamp(t_ns)
+    msg.header.frame_id = frame_id
+    msg.angle_min, msg.angle_increment = float(angle_min), float(increment)
+    msg.angle_max = float(angle_min + increment * max(len(ranges) - 1, 0))
+    msg.range_min, msg.range_max = float(range_min), float(range_max)
+    msg.time_increment, msg.scan_time = 0.0, 0.1
+    msg.ranges = float32_array(np.asarray(ranges, dtype=np.float32))
+    if intensities is not None:
+        msg.intensities = float32_array(np.asarray(intensities, dtype=np.float32))
+    return msg
