@@ -48,7 +48,9 @@ class Graph:
         self.diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', DIAG_QOS)
         assert spin_until(probe, lambda: set(PROCESSING) <= set(probe.get_node_names()), 60), \
             self.logs()
-        self.nodes['sensor_sim'] = start('sensor_sim', real_time_factor=RATE)
+        # The probe is the ground truth's only subscriber: simulated time starts once it matched,
+        # so the truth is complete from the first stamp.
+        self.nodes['sensor_sim'] = start('sensor_sim', real_time_factor=RATE, wait_for_subscribers=1)
 
     def logs(self):
         return '\n'.join(f'--- {n}\n{p.output()[-1500:]}' for n, p in self.nodes.items())
