@@ -47,6 +47,14 @@ def test_bag_holds_every_topic(demo_run):
         assert counts.get(topic, ('', 0))[1] > 0, topic
 
 
+def test_no_scan_was_dropped(demo_run):
+    _, _, report = demo_run
+    scans = report['scans']
+    assert scans['published_by_sim'] == 701  # 70 s at 10 Hz, both ends included
+    assert scans['processed_by_icp_matcher'] == scans['published_by_sim']
+    assert scans['processed_by_line_extractor'] == scans['published_by_sim']
+
+
 def test_fusion_meets_the_accuracy_targets(demo_run):
     _, _, report = demo_run
     fused = report['estimates']['fused']
@@ -54,6 +62,8 @@ def test_fusion_meets_the_accuracy_targets(demo_run):
     assert fused['final_position_error_m'] <= 0.005 * report['distance_m']
     assert fused['final_heading_error_deg'] <= 1.0
     assert fused['rms_position_error_m'] < wheel['rms_position_error_m']
+    assert fused['final_position_error_m'] * 10 <= wheel['final_position_error_m'] or \
+        fused['final_heading_error_deg'] * 10 <= wheel['final_heading_error_deg']
     assert fused['within_3_sigma'] >= 0.95
 
 

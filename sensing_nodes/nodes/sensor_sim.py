@@ -68,6 +68,7 @@ class NodeSettings:
     left_joint_name: str = 'left_wheel_joint'
     right_joint_name: str = 'right_wheel_joint'
     wait_for_subscribers: int = 0
+    wait_for_scan_subscribers: int = 0
     pace_topic: str = ''
     pace_timeout_s: float = 5.0
 
@@ -87,6 +88,8 @@ NODE_DOCS = {
     'right_joint_name': 'name of the right wheel joint in /joint_states',
     'wait_for_subscribers': 'start simulated time once /scan, /imu/data_raw, /joint_states and '
                             '/ground_truth/odom have at least this many subscribers each',
+    'wait_for_scan_subscribers': 'and /scan at least this many (every scan consumer matched, '
+                                 'so none misses the first scans)',
     'pace_topic': "'' = paced by real_time_factor; else as fast as the graph keeps up: a scan "
                   'is published only once an Odometry stamped at or after the previous scan '
                   'arrived on this topic',
@@ -94,7 +97,8 @@ NODE_DOCS = {
                       '(with a warning)',
 }
 NODE_RANGES = {'real_time_factor': (1e-3, 1e6), 'duration_s': (0.0, None), 'seed': (0, 2**63 - 1),
-               'pace_timeout_s': (1e-3, None), 'wait_for_subscribers': (0, 1000)}
+               'pace_timeout_s': (1e-3, None), 'wait_for_subscribers': (0, 1000),
+               'wait_for_scan_subscribers': (0, 1000)}
 
 
 def settings_from_values(values: dict[str, Any]) -> tuple[core.SimParams, NodeSettings, World]:
@@ -386,6 +390,9 @@ class SensorSimNode(Node):
         wanted = self.settings.wait_for_subscribers
         missing = [TOPICS[k][0] for k in (core.SCAN, core.IMU, core.JOINTS, core.TRUTH)
                    if self._outputs[k].get_subscription_count() < wanted]
+        if self._outputs[core.SCAN].get_subscription_count() < \
+                self.settings.wait_for_scan_subscribers:
+            missing.append(TOPICS[core.SCAN][0])
         if self._paced:
             if self._outputs[core.SCAN].get_subscription_count() < 1:
                 missing.append('/scan')
@@ -397,7 +404,7 @@ class SensorSimNode(Node):
             return False
         self._started = True
         self._wall_start = time.monotonic()
-        if wanted or self._paced:
+        if wanted or self.settings.wait_for_scan_subscribers or self._paced:
             self.get_logger().info('the graph is connected: starting')
         return True
 

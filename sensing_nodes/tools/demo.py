@@ -58,6 +58,7 @@ SIM_TOPICS = {
 # Topics between processing nodes, and how many subscribers each has in the graph (the
 # recorder included) once every node has matched.
 INTERNAL_EDGES = {'/wheel/odom': 4, '/imu/data': 2, '/scan_match/odom': 2}
+SCAN_SUBSCRIBERS = 3  # line_extractor, icp_matcher and the recorder
 
 
 def executable(name: str) -> str:
@@ -204,7 +205,8 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
             # The recorder is the only subscriber of the ground truth: once the simulator has
             # matched it, simulated time starts, so the bag misses nothing.
             sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
-                        '-p', f'real_time_factor:={args.rate}', '-p', 'wait_for_subscribers:=1']
+                        '-p', f'real_time_factor:={args.rate}', '-p', 'wait_for_subscribers:=1',
+                        '-p', f'wait_for_scan_subscribers:={SCAN_SUBSCRIBERS}']
             wall_start = time.monotonic()
             graph.start('sensor_sim', sim_args)
             sim = graph.processes['sensor_sim']
