@@ -94,7 +94,10 @@ class IcpMatcherNode(Node):
                            'min_inlier_fraction': min_inliers,
                            'min_points': max(3, self._min_points)})
         self._matcher = KeyframeScanMatcher(self._settings)
-        self._odometry = OdometryBuffer(max_extrapolation_s=odom_extrapolation) \
+        # Odometry history must reach back to the previous scan, however far apart scans may be
+        # (max_gap_s): a real log's keyframes can be tens of seconds apart.
+        self._odometry = OdometryBuffer(max_age_s=max(10.0, 2.0 * max_gap),
+                                        max_extrapolation_s=odom_extrapolation) \
             if odom_topic else None
         self._last_scan_ns: int | None = None
         self._warnings = ThrottledWarnings(self)
