@@ -304,7 +304,10 @@ def score(collected: Collected, counts: dict, wall_s: float, duration_s: float) 
         processed = published if input_topic is None else int(counts.get(outputs[0], 0))
         report['nodes'][name] = {'published': published, 'processed': processed}
     sim_diag = collected.diagnostics.get('sensor_sim', {})
-    scans_published = max(int(sim_diag.get('/scan', 0)), counts.get('/scan', 0))
+    # The simulator's last diagnostics may predate its last scans and the recorder's best-effort
+    # subscription may miss one; no consumer can process a scan that was not published.
+    scans_published = max(int(sim_diag.get('/scan', 0)), counts.get('/scan', 0),
+                          counts.get('/scan_match/odom', 0), counts.get('/scan/lines', 0))
     report['scans'] = {
         'published_by_sim': scans_published,
         'received_by_recorder': counts.get('/scan', 0),
