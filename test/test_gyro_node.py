@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 import rclpy
-from harness import REPO, Collector, NodeProcess, run_to_exit, spin_until
+from harness import REPO, Collector, NodeProcess, run_to_exit, spin_until, publish_until
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger
@@ -53,16 +53,11 @@ def imu_pub(probe):
 
 
 def prime(probe, pub, out, msg, node):
-    """Publish the first message until its output comes back (best effort loses what is sent
-    before the node's reader matched); extra copies are duplicate stamps."""
-    assert spin_until(probe, lambda: pub.get_subscription_count() > 0, 20)
+    """Publish the first message until its output comes back (harness.publish_until)."""
     stamp = stamp_to_ns(msg.header.stamp)
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:
-        pub.publish(msg)
-        if spin_until(probe, lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in out.messages), 0.2):
-            return
-    raise AssertionError('the node never answered:\n' + node.output())
+    answered = publish_until(
+        probe, pub, msg, lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in out.messages))
+    assert answered, 'the node never answered:\n' + node.output()
 
 
 def send(probe, pub, messages):
