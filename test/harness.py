@@ -137,6 +137,9 @@ def publish_until(node, publisher, msg, answered: Callable[[], bool],
     the reader has matched this writer. Extra copies arrive as duplicate stamps."""
     if not spin_until(node, lambda: publisher.get_subscription_count() > 0, timeout):
         return False
+    # We see the node's reader; give its writers a moment to see our readers too (discovery is
+    # not symmetric in time), or the answer to a message sent once can be lost.
+    spin_until(node, lambda: False, 0.5)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         publisher.publish(msg)
