@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -212,26 +213,36 @@ def record(out_dir: str | Path, duration_s: float, params: core.SimParams, setti
     end_ns = params.start_ns + int(round(duration_s * core.NS_PER_S))
     skip = set() if settings.publish_clock else {core.CLOCK}
     next_report = params.start_ns
-    with BagWriter(out_dir) as bag:
-        for kind, (topic, msg_type) in TOPICS.items():
-            if kind not in skip:
-                bag.add_topic(topic, msg_type)
-        while True:
-            block = sim.advance()
-            for t, kind, msg in convert.messages(block):
-                if t > end_ns:
-                    break
+    # SIGINT stops between two messages, so the bag is closed with exactly what it holds
+    # (an interrupt inside a write could leave a message in the file that the metadata misses).
+    interrupted: list[int] = []
+    previous_handler = signal.signal(signal.SIGINT, lambda signum, frame: interrupted.append(signum))
+    try:
+        with BagWriter(out_dir) as bag:
+            for kind, (topic, msg_type) in TOPICS.items():
                 if kind not in skip:
-                    bag.write(TOPICS[kind][0], msg, t)
-            if sim.time_ns >= end_ns:
-                break
-            if progress and sim.time_ns >= next_report:
-                print(f'\rsensor_sim: recorded {(sim.time_ns - params.start_ns) / 1e9:6.1f} / '
-                      f'{duration_s:.1f} s', end='', file=sys.stderr, flush=True)
-                next_report += 10 * core.NS_PER_S
-        if progress:
-            print(file=sys.stderr)
-        return dict(bag.counts)
+                    bag.add_topic(topic, msg_type)
+            while not interrupted:
+                block = sim.advance()
+                for t, kind, msg in convert.messages(block):
+                    if t > end_ns or interrupted:
+                        break
+                    if kind not in skip:
+                        bag.write(TOPICS[kind][0], msg, t)
+                if sim.time_ns >= end_ns:
+                    break
+                if progress and sim.time_ns >= next_report:
+                    print(f'\rsensor_sim: recorded {(sim.time_ns - params.start_ns) / 1e9:6.1f} / '
+                          f'{duration_s:.1f} s', end='', file=sys.stderr, flush=True)
+                    next_report += 10 * core.NS_PER_S
+            if progress:
+                print(file=sys.stderr)
+            counts = dict(bag.counts)
+    finally:
+        signal.signal(signal.SIGINT, previous_handler)
+    if interrupted:
+        raise KeyboardInterrupt(f'interrupted: {sum(counts.values())} messages in {out_dir}')
+    return counts
 
 
 def ros_args_values(ros_args: list[str]) -> dict[str, Any]:
@@ -289,7 +300,12 @@ def _record_main(argv: list[str], ros_args: list[str]) -> int:
         print(f'[sensor_sim] invalid parameter: {exc}', file=sys.stderr, flush=True)
         return EXIT_BAD_PARAMETER
     started = time.perf_counter()
-    counts = record(args.record, args.duration, params, settings, world, progress=not args.quiet)
+    try:
+        counts = record(args.record, args.duration, params, settings, world,
+                        progress=not args.quiet)
+    except KeyboardInterrupt as exc:
+        print(f'sensor_sim: {exc} (bag closed and complete up to there)', file=sys.stderr)
+        return 130
     wall = time.perf_counter() - started
     print(f'sensor_sim: recorded {args.duration:g} s of simulated time in {wall:.2f} s wall '
           f'({args.duration / wall:.1f}x real time) into {args.record}')
