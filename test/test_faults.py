@@ -121,7 +121,8 @@ def test_kill_and_restart(graph, victim):
     during = graph.newest_fused_stamp()
     assert spin_until(probe, lambda: graph.newest_fused_stamp() > during + 1e9, 30), graph.logs()
     for name, proc in graph.nodes.items():
-        assert name == victim or proc.alive(), f'{name} died with {victim}:\n{graph.logs()}'
+        assert name == victim or proc.alive(), \
+            f'{name} died (exit {proc.proc.returncode}) with {victim}:\n{graph.logs()}'
 
     graph.nodes[victim] = start(victim)
     if feeds is not None:
@@ -136,7 +137,7 @@ def test_kill_and_restart(graph, victim):
     back = graph.newest_fused_stamp()
     assert spin_until(probe, lambda: graph.newest_fused_stamp() > back + 2e9, 30), graph.logs()
     for name, proc in graph.nodes.items():
-        assert proc.alive(), f'{name} is not running:\n{graph.logs()}'
+        assert proc.alive(), f'{name} is not running (exit {proc.proc.returncode}):\n{graph.logs()}'
     graph.outages = getattr(graph, 'outages', []) + [(victim, killed_at, back)]
 
 
@@ -206,4 +207,4 @@ def test_killing_fusion_itself_leaves_the_rest_running(graph):
     fused = [odometry_pose(m)[0] for m in graph.fused.messages]
     assert all(np.all(np.isfinite(p)) for p in fused)
     for name, proc in graph.nodes.items():
-        assert proc.alive(), f'{name} is not running:\n{graph.logs()}'
+        assert proc.alive(), f'{name} is not running (exit {proc.proc.returncode}):\n{graph.logs()}'

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import sys
 from typing import Callable
@@ -40,6 +41,8 @@ def make_executor():
 
 def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
     """Create the node, spin until shutdown; a bad parameter is reported and exits with 2."""
+    # A crash inside the C++ executor or a message library then leaves a Python stack in the log.
+    faulthandler.enable()
     rclpy.init(args=args)
     node = None
     try:
