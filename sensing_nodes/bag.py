@@ -1,21 +1,46 @@
-"""rosbag2 MCAP bags of rclpy messages, written and read with rosbags.
+"""rosbag2 bags of rclpy messages, written (MCAP) and read (MCAP or sqlite3) with rosbags.
 
-Messages are serialised by rclpy itself (CDR, exactly what goes over DDS), so a bag holds the
-bytes a ROS 2 recorder would have written and reads back into the same message classes.
+Every message is written in canonical CDR: the fields exactly as rclpy/DDS serialise them, but
+with every alignment padding byte zero and no bytes after the last field (`canonical_cdr`).
+rclpy's serialiser leaves padding uninitialised (process memory) and appends 4 alignment bytes
+after a trailing empty sequence of 8-byte elements (JointState's `effort`), which rosbags'
+strict reader rejects; canonical bytes make same-seed recordings byte-identical and decode with
+rosbags, mcap-ros2-support and rclpy alike.
 """
 
 from __future__ import annotations
 
+import heapq
 import importlib
 from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+class BagError(Exception):
+    """A bag that cannot be read: the message names the file and what is wrong."""
+
+
+def canonical_cdr(raw: bytes | memoryview, msgtype: str) -> bytes:
+    """CDR bytes of a 'pkg/msg/Name' message -> the same message in canonical CDR (same byte
+    order and values, padding zero, nothing after the last field), through rosbags' typestore."""
+    msgdef = TYPESTORE.get_msgdef(msgtype)
+    if len(raw) < 4 or bytes(raw[:2]) not in (b'\x00\x00', b'\x00\x01'):
+        raise ValueError(f'{msgtype}: not a CDR message (encapsulation header {bytes(raw[:4])!r})')
+    little_endian = bool(raw[1])
+    decode = msgdef.deserialize_cdr_le if little_endian else msgdef.deserialize_cdr_be
+    # Bytes after the last field are dropped: Fast-CDR aligns before the (absent) elements of
+    # each empty sequence of doubles, so an all-empty JointState ends in 8 such bytes.
+    message, _ = decode(memoryview(raw)[4:], 0, msgdef.cls, TYPESTORE)
+    return bytes(TYPESTORE.serialize_cdr(message, msgtype, little_endian=little_endian))
 
 
 def type_name(msg_or_class: Any) -> str:
@@ -87,23 +112,101 @@ class BagWriter:
         self.write_raw(topic, serialize_message(msg), stamp_ns)
 
     def write_raw(self, topic: str, data: bytes, stamp_ns: int) -> None:
-        """Append one already CDR-serialised message of a topic registered with add_topic."""
-        self._writer.write(self._connections[topic], int(stamp_ns), data)
+        """Append one CDR-serialised message (as rclpy or DDS gave it) of a topic registered
+        with add_topic; it is stored in canonical CDR."""
+        connection = self._connections[topic]
+        self._writer.write(connection, int(stamp_ns), canonical_cdr(data, connection.msgtype))
         self.counts[topic] += 1
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """One topic of a bag: message type, message count, offered QoS (rosbags records)."""
+
+    msgtype: str
+    count: int
+    qos: tuple
+
+
+class BagReader:
+    """Reads a rosbag2 bag folder (metadata.yaml + MCAP or sqlite3 storage, metadata versions 4
+    to 9, as written by rosbag2 itself or by BagWriter); BagError when it cannot.
+
+    Each storage file is opened with the topics it declares itself: rosbags' folder reader
+    matches them against metadata.yaml's QoS and silently yields nothing when the two disagree
+    (rosbag2's own test bags store 'infinite' deadlines in the file, zero in metadata.yaml).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise BagError(f'{self.path}: no such bag')
+        if not (self.path / 'metadata.yaml').is_file():
+            raise BagError(f'{self.path}: not a rosbag2 bag (no metadata.yaml)')
+        try:
+            with Reader(self.path) as folder:   # checks metadata.yaml and the storage files
+                self._compressed = bool(folder.compression_mode)
+            metadata = yaml.safe_load((self.path / 'metadata.yaml').read_text())
+            files = [self.path / Path(p).name
+                     for p in metadata['rosbag2_bagfile_information']['relative_file_paths']]
+            self.topics: dict[str, TopicInfo] = {}
+            counts: dict[str, int] = {}
+            self._files = files
+            for connection in self._connections():
+                counts[connection.topic] = counts.get(connection.topic, 0) + connection.msgcount
+                if connection.topic not in self.topics:
+                    qos = tuple(getattr(connection.ext, 'offered_qos_profiles', None) or ())
+                    self.topics[connection.topic] = TopicInfo(connection.msgtype, 0, qos)
+            for topic, info in self.topics.items():
+                self.topics[topic] = TopicInfo(info.msgtype, counts[topic], info.qos)
+        except BagError:
+            raise
+        except Exception as exc:  # rosbags raises several types for damaged files
+            raise BagError(f'{self.path}: cannot read the bag ({type(exc).__name__}: {exc}); '
+                           'truncated or damaged?') from None
+
+    def _connections(self):
+        if self._compressed:   # file- or message-compressed: only the folder reader unpacks it
+            with Reader(self.path) as reader:
+                return list(reader.connections)
+        connections = []
+        for file in self._files:
+            with Reader(file) as reader:
+                connections += reader.connections
+        return connections
+
+    def _file_messages(self, file: Path | None, topics: set[str] | None):
+        with Reader(self.path if file is None else file) as reader:
+            wanted = [c for c in reader.connections if topics is None or c.topic in topics]
+            if not wanted:   # rosbags reads every connection when given none
+                return
+            for connection, stamp, raw in reader.messages(connections=wanted):
+                yield stamp, connection.topic, raw
+
+    def raw(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
+        """(topic, bag time ns, CDR bytes) of every message (of `topics`), in bag-time order."""
+        wanted = None if topics is None else set(topics)
+        streams = [self._file_messages(None, wanted)] if self._compressed else \
+            [self._file_messages(f, wanted) for f in self._files]
+        for stamp, topic, raw in heapq.merge(*streams, key=lambda row: row[0]):
+            yield topic, stamp, bytes(raw)
+
+    def messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
+        """(topic, bag time ns, rclpy message) for every message (of `topics`)."""
+        wanted = None if topics is None else set(topics)
+        classes = {t: message_class(i.msgtype) for t, i in self.topics.items()
+                   if wanted is None or t in wanted}
+        for topic, stamp, raw in self.raw(classes):
+            yield topic, stamp, deserialize_message(raw, classes[topic])
 
 
 def read_messages(
     path: str | Path, topics: Iterable[str] | None = None
 ) -> Iterator[tuple[str, int, Any]]:
     """(topic, bag time ns, rclpy message) for every message in the bag, in bag-time order."""
-    with Reader(Path(path)) as reader:
-        connections = [c for c in reader.connections if topics is None or c.topic in set(topics)]
-        classes = {c.id: message_class(c.msgtype) for c in connections}
-        for connection, timestamp, raw in reader.messages(connections=connections):
-            yield connection.topic, timestamp, deserialize_message(raw, classes[connection.id])
+    yield from BagReader(path).messages(topics)
 
 
 def topic_counts(path: str | Path) -> dict[str, tuple[str, int]]:
-    """topic -> (type, message count) from the bag's metadata."""
-    with Reader(Path(path)) as reader:
-        return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+    """topic -> (type, message count) of every topic in the bag."""
+    return {t: (i.msgtype, i.count) for t, i in BagReader(path).topics.items()}

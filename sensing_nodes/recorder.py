@@ -57,6 +57,8 @@ class TopicRecorder:
         for topic, types in self._node.get_topic_names_and_types():
             if topic in self._subscriptions or topic in EXCLUDED_TOPICS or len(types) != 1:
                 continue
+            if self._only is not None and topic not in self._only:
+                continue
             if not self._node.get_publishers_info_by_topic(topic):
                 continue  # only subscribers so far: wait for a publisher to choose the QoS
             if self.subscribe(topic, types[0], self._qos_for(topic)):

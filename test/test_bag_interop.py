@@ -1,5 +1,7 @@
-"""Every kind of bag the project writes opens with rosbags and with mcap-ros2-support, and its
-metadata.yaml has the fields, types and values rosbag2 (Jazzy, metadata version 9) reads.
+"""Every message of every kind of bag the project writes or ships decodes with rosbags (strict),
+mcap-ros2-support and rclpy and is stored in canonical CDR; the project's bag reader opens bags
+written by rosbag2 itself (MCAP and sqlite3); and metadata.yaml has the fields, types and values
+rosbag2 (Jazzy, metadata version 9) reads.
 
 rosbag2's reader (rosbag2_storage/yaml.hpp, version 9) decodes: version, storage_identifier,
 duration.nanoseconds, starting_time.nanoseconds_since_epoch, message_count,
@@ -21,16 +23,16 @@ import yaml
 from harness import REPO, run_to_exit
 from rclpy.serialization import deserialize_message
 
-from sensing_nodes.bag import BagWriter, message_class
+from sensing_nodes.bag import BagReader, BagWriter, canonical_cdr, message_class
 
 CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'
+ROSBAG2 = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'ros' / 'rosbag2-resources'
 TOP_KEYS = {'version', 'storage_identifier', 'duration', 'starting_time', 'message_count',
             'topics_with_message_count', 'compression_format', 'compression_mode',
             'relative_file_paths', 'files', 'custom_data', 'ros_distro'}
 TOPIC_KEYS = {'name', 'type', 'serialization_format', 'offered_qos_profiles',
               'type_description_hash'}
 FILE_KEYS = {'path', 'starting_time', 'duration', 'message_count'}
-SAMPLE = 20
 QOS_KEYS = {'history', 'depth', 'reliability', 'durability', 'deadline', 'lifespan', 'liveliness',
             'liveliness_lease_duration', 'avoid_ros_namespace_conventions'}
 
@@ -73,10 +75,12 @@ def _metadata(bag: Path) -> dict:
 
 @pytest.mark.parametrize('name', ['nominal', 'strong_errors', 'sensor_sim', 'bag_writer',
                                   'carmen_to_bag'])
-def test_opens_with_rosbags_and_mcap_ros2(written_bags, name):
+def test_every_message_decodes_with_rosbags_mcap_ros2_and_rclpy(written_bags, name):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
-    from rosbags.rosbag2 import Reader
+    from rosbags.highlevel import AnyReader
+
+    from sensing_nodes.bag import TYPESTORE
 
     if name not in written_bags:
         pytest.skip(f'CARMEN logs not found in {CARMEN}')
@@ -84,13 +88,15 @@ def test_opens_with_rosbags_and_mcap_ros2(written_bags, name):
     info = _metadata(bag)
     expected = {t['topic_metadata']['name']: t['message_count']
                 for t in info['topics_with_message_count']}
-    # Every message is counted; up to SAMPLE per topic are decoded (rclpy and mcap_ros2).
-    with Reader(bag) as reader:
+    # rosbags' AnyReader (strict: a size mismatch raises) and rclpy decode every message, and
+    # every message is canonical CDR (zero padding, nothing after the last field).
+    with AnyReader([bag], default_typestore=TYPESTORE) as reader:
         counted = Counter()
         for connection, _, raw in reader.messages():
             counted[connection.topic] += 1
-            if counted[connection.topic] <= SAMPLE:
-                deserialize_message(raw, message_class(connection.msgtype))
+            reader.deserialize(raw, connection.msgtype)
+            deserialize_message(raw, message_class(connection.msgtype))
+            assert canonical_cdr(raw, connection.msgtype) == bytes(raw), connection.topic
     assert dict(counted) == {t: n for t, n in expected.items() if n}
     for path in info['relative_file_paths']:
         with open(bag / path, 'rb') as handle:
@@ -102,15 +108,47 @@ def test_opens_with_rosbags_and_mcap_ros2(written_bags, name):
             assert {c.topic: summary.statistics.channel_message_counts[i]
                     for i, c in summary.channels.items()} == {t: n for t, n in expected.items()}
         decoded = Counter()
-        for topic in counted:
-            with open(bag / path, 'rb') as handle:
-                reader = make_reader(handle, decoder_factories=[DecoderFactory()])
-                for _, channel, _, msg in reader.iter_decoded_messages(topics=[topic]):
-                    assert type(msg).__name__ == expected_name(info, topic)
-                    decoded[topic] += 1
-                    if decoded[topic] == SAMPLE:
-                        break
-        assert decoded == Counter({t: min(n, SAMPLE) for t, n in counted.items()})
+        with open(bag / path, 'rb') as handle:
+            reader = make_reader(handle, decoder_factories=[DecoderFactory()])
+            for _, channel, _, msg in reader.iter_decoded_messages():
+                assert type(msg).__name__ == expected_name(info, channel.topic)
+                decoded[channel.topic] += 1
+        assert decoded == counted
+
+
+# rosbag2's own test bags: (folder, {topic: (type, messages)}).
+ROSBAG2_BAGS = {
+    'mcap_talker': ('rosbag2_py/test/resources/mcap/talker',
+                    {'/topic': ('std_msgs/msg/String', 10), '/rosout': ('rcl_interfaces/msg/Log', 10),
+                     '/parameter_events': ('rcl_interfaces/msg/ParameterEvent', 0)}),
+    'sqlite3_talker': ('rosbag2_py/test/resources/sqlite3/talker',
+                       {'/topic': ('std_msgs/msg/String', 10),
+                        '/rosout': ('rcl_interfaces/msg/Log', 10),
+                        '/parameter_events': ('rcl_interfaces/msg/ParameterEvent', 0)}),
+    'cdr_test': ('rosbag2_tests/resources/mcap/cdr_test',
+                 {'/test_topic': ('test_msgs/msg/BasicTypes', 3),
+                  '/array_topic': ('test_msgs/msg/Arrays', 4)}),
+}
+
+
+@pytest.mark.parametrize('name', sorted(ROSBAG2_BAGS))
+def test_reader_opens_bags_written_by_rosbag2(name):
+    """Metadata versions 4 and 7, MCAP and sqlite3: every message comes out, in stamp order.
+    (rosbags' own folder reader yields none of the talker bags' messages: it matches the files'
+    topics against metadata.yaml's QoS, which rosbag2 wrote differently.)"""
+    folder, topics = ROSBAG2_BAGS[name]
+    bag = ROSBAG2 / folder
+    if not (bag / 'metadata.yaml').is_file():
+        pytest.skip(f'rosbag2 test bags not found in {ROSBAG2}')
+    reader = BagReader(bag)
+    assert {t: (i.msgtype, i.count) for t, i in reader.topics.items()} == topics
+    rows = list(reader.raw())
+    assert Counter(t for t, _, _ in rows) == Counter({t: n for t, (_, n) in topics.items() if n})
+    stamps = [s for _, s, _ in rows]
+    assert stamps == sorted(stamps)
+    if '/topic' in topics:   # the talker: rclpy messages, in order
+        said = [m.data for _, _, m in reader.messages(['/topic'])]
+        assert said == [f'Hello, world! {k}' for k in range(10)]
 
 
 def test_replayed_bags_record_the_offered_qos():
