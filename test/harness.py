@@ -89,10 +89,13 @@ class NodeProcess:
         return Path(self._log.name).read_text(errors='replace')
 
 
-def run_to_exit(executable: str, args: list[str], timeout: float = 60.0) -> subprocess.CompletedProcess:
-    """Run an executable to completion, capturing its output (for bad-parameter exits and tools)."""
+def run_to_exit(executable: str, args: list[str], timeout: float = 60.0,
+                env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Run an executable to completion, capturing its output (for bad-parameter exits and
+    tools); `env` adds to (or overrides) this process's environment."""
     return subprocess.run(
-        [str(BIN / executable), *args], capture_output=True, text=True, timeout=timeout)
+        [str(BIN / executable), *args], capture_output=True, text=True, timeout=timeout,
+        env=None if env is None else {**os.environ, **env})
 
 
 def spin_until(node, condition: Callable[[], bool], timeout: float) -> bool:

@@ -38,6 +38,17 @@ DEFAULT_SETTLE_AFTER = ('/joint_states',)
 # ... and before these inputs it lets everything published so far land (the scan matcher acts on
 # the odometry it holds when a scan arrives).
 DEFAULT_SETTLE_BEFORE = {'/scan': 0.010}
+# Outputs of nodes that buffer their inputs (the fusion's reorder window: it answers an input
+# once the other inputs have caught up, or after its idle flush): an expectation naming one is
+# not waited for per input; the end of the pass checks that every stamp came.
+ANSWERS_LATER = ('/odometry/filtered',)
+# ... but at most this many of their answers may be outstanding: a node that releases a burst of
+# held outputs must not overrun the recording subscription (reliable, keep last 100).
+MAX_OUTSTANDING_LATER = 50
+# Lockstep with --launch: the fusion's idle flush (wall time without input), unless --param sets
+# it; the end of a pass then waits for quiet a second longer than the flush can take (its
+# timer looks every flush_after_s / 2).
+LOCKSTEP_FUSION_FLUSH_S = 2.0
 # Outputs that are not 1:1 with an input: recorded as they come.
 DEFAULT_EXTRA_OUTPUTS = ('/odometry/filtered', '/diagnostics')
 # Message type each node input takes (a bag topic of another type is refused).
@@ -56,6 +67,15 @@ SENSOR_TOPICS = {'/joint_states', '/imu/data_raw', '/scan'}
 WALL_PERIODIC_TOPICS = {'/diagnostics'}
 PROCESSING_NODES = ('wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
                     'complementary_fusion')
+# What each processing node publishes (so a launched graph is only used once each requested
+# output has a publisher).
+NODE_OUTPUTS = {
+    'wheel_odometry': ('/wheel/odom', '/diagnostics'),
+    'gyro_integrator': ('/imu/data', '/diagnostics'),
+    'line_extractor': ('/scan/lines', '/scan/lines/table', '/diagnostics'),
+    'icp_matcher': ('/scan_match/odom', '/diagnostics'),
+    'complementary_fusion': ('/odometry/filtered', '/diagnostics'),
+}
 
 # The project's bags: name -> (sensor_sim parameter file in config/, seed, simulated seconds).
 BAG_SPECS = {
@@ -94,24 +114,17 @@ class PassResult:
 
 def load_bag(path: str | Path) -> InputBag:
     """Read a whole rosbag2 bag; ReplayError (naming the file) when it is missing or unreadable."""
-    from rosbags.rosbag2 import Reader
+    from sensing_nodes.bag import BagError, BagReader
 
     path = Path(path)
-    if not path.exists():
-        raise ReplayError(f'{path}: no such bag')
-    if not (path / 'metadata.yaml').is_file():
-        raise ReplayError(f'{path}: not a rosbag2 bag (no metadata.yaml)')
-    messages = []
     try:
-        with Reader(path) as reader:
-            types = {c.topic: c.msgtype for c in reader.connections}
-            expected = {c.topic: c.msgcount for c in reader.connections}
-            qos = {c.topic: list(getattr(c.ext, 'offered_qos_profiles', []) or [])
-                   for c in reader.connections}
-            for connection, stamp, raw in reader.messages():
-                messages.append((connection.topic, stamp, bytes(raw)))
-    except ReplayError:
-        raise
+        reader = BagReader(path)
+        types = {t: i.msgtype for t, i in reader.topics.items()}
+        expected = {t: i.count for t, i in reader.topics.items()}
+        qos = {t: list(i.qos) for t, i in reader.topics.items()}
+        messages = list(reader.raw())   # in stamp order, ties in the order the bag stores them
+    except BagError as exc:
+        raise ReplayError(str(exc)) from None
     except Exception as exc:  # rosbags raises several types for damaged files
         raise ReplayError(f'{path}: cannot read the bag ({type(exc).__name__}: {exc}); '
                           'truncated or damaged?') from None
@@ -123,9 +136,7 @@ def load_bag(path: str | Path) -> InputBag:
         detail = ', '.join(f'{t}: {g} of {n}' for t, (g, n) in sorted(short.items()))
         raise ReplayError(f'{path}: bag holds fewer messages than its metadata says ({detail}); '
                           'truncated?')
-    # Bag order: stamp order, ties in the order the bag stores them (a stable sort).
-    order = sorted(range(len(messages)), key=lambda i: messages[i][1])
-    return InputBag(path, types, [messages[i] for i in order], qos)
+    return InputBag(path, types, messages, qos)
 
 
 def check_inputs(bag: InputBag, inputs: list[str], remaps: dict[str, str]) -> None:
@@ -165,6 +176,36 @@ def parse_node_params(specs: list[str]) -> dict[str, list[str]]:
                               f'{", ".join(PROCESSING_NODES)}')
         extra[node] += ['-p', assignment]
     return extra
+
+
+def shifted_stamp(raw: bytes, offset_ns: int) -> bytes:
+    """A CDR message whose first field is a Header, with its stamp moved by offset_ns."""
+    order = '<' if raw[1] == 1 else '>'
+    sec, nanosec = struct.unpack_from(order + 'iI', raw, 4)
+    sec, nanosec = divmod(sec * 1_000_000_000 + nanosec + offset_ns, 1_000_000_000)
+    out = bytearray(raw)
+    struct.pack_into(order + 'iI', out, 4, sec, nanosec)
+    return bytes(out)
+
+
+def warm_up_bag(bag: InputBag, inputs: set[str], warmup_s: float) -> InputBag:
+    """The inputs of the bag's first warmup_s, and at least the first message of every input
+    topic, with stamps (header and bag time) moved to 1 s after the bag's last message."""
+    from sensing_nodes.bag import message_class
+
+    firsts: dict[str, int] = {}
+    for topic, stamp, _ in bag.messages:
+        if topic in inputs:
+            firsts.setdefault(topic, stamp)
+    start = min(firsts.values())
+    end = max(start + int(warmup_s * 1e9), max(firsts.values()))
+    offset = bag.messages[-1][1] - start + 1_000_000_000
+    stamped = {t for t in firsts if next(iter(message_class(bag.types[t])
+                                              .get_fields_and_field_types().values()), '')
+               == 'std_msgs/Header'}
+    return InputBag(bag.path, bag.types, [
+        (t, s + offset, shifted_stamp(raw, offset) if t in stamped else raw)
+        for t, s, raw in bag.messages if t in inputs and s <= end])
 
 
 def marker_array_stamp_ns(raw: bytes, fallback_ns: int) -> int:
@@ -217,6 +258,7 @@ class Replayer:
         self.marker_topics: set[str] = set()   # MarkerArray outputs: stamp of their first marker
         self.input_stamp_ns = 0
         self.subscribed: set[str] = set()
+        self.deferred: set[str] = set(ANSWERS_LATER)   # expected outputs that come later
 
     def _on_output(self, topic: str, raw: bytes, stamp: int) -> None:
         if topic in self.marker_topics:
@@ -233,6 +275,14 @@ class Replayer:
         self.seen[(topic, stamp)] += 1
         if self.current is not None:
             self.current.outputs[topic].append((stamp, bytes(raw)))
+
+    def discover(self) -> None:
+        """Subscribe to outputs whose publisher appeared since the last call."""
+        for topic in self.recorder.discover():
+            self.subscribed.add(topic)
+            types = [p.topic_type for p in self.node.get_publishers_info_by_topic(topic)]
+            if 'visualization_msgs/msg/MarkerArray' in types:
+                self.marker_topics.add(topic)
 
     def spin(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds
@@ -253,11 +303,7 @@ class Replayer:
             self.spin(0.1)
             if failed():
                 raise ReplayError(f'node(s) exited at start-up: {", ".join(failed())}')
-            for topic in self.recorder.discover():
-                self.subscribed.add(topic)
-                types = [p.topic_type for p in self.node.get_publishers_info_by_topic(topic)]
-                if 'visualization_msgs/msg/MarkerArray' in types:
-                    self.marker_topics.add(topic)
+            self.discover()
             subscribed = self.subscribed
             matched = all(p.get_subscription_count() > 0 for t, p in self.publishers.items()
                           if self.expectations.get(t))
@@ -312,7 +358,8 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
     started = time.monotonic()
     todo = [(t, s, raw) for t, s, raw in bag.messages if t in inputs]
     first_stamp = todo[0][1] if todo else 0
-    next_report = started + 2.0
+    next_report = next_discovery = started + 2.0
+    deferred_pending: list[tuple[str, int]] = []   # (output, stamp) of outputs that answer later
     for i, (topic, stamp, raw) in enumerate(todo):
         if mode == 'timed':
             due = started + (stamp - first_stamp) * 1e-9 / rate
@@ -326,34 +373,58 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
         result.inputs_published += 1
         if mode == 'lockstep':
             expected = replayer.expectations.get(topic, ())
+            deferred_pending += [(o, stamp) for o in expected if o in replayer.deferred]
             waited_from = time.monotonic()
             deadline = waited_from + timeout_s
             while True:
-                pending = [o for o in expected if replayer.seen[(o, stamp)] < 1]
+                pending = [o for o in expected
+                           if o not in replayer.deferred and replayer.seen[(o, stamp)] < 1]
                 if not pending:
                     break
                 if time.monotonic() >= deadline:
-                    for o in pending:
-                        result.missing[o] += 1
-                    print(f'sensing_replay: warning: no {", ".join(pending)} stamped '
-                          f'{stamp} ns within {timeout_s:g} s of publishing {topic}; going on',
-                          file=sys.stderr, flush=True)
+                    # A node that buffers (the fusion's reorder window) answers only after later
+                    # inputs: from now on that output is not waited for per input; whether every
+                    # stamp came is checked at the end of the pass.
+                    replayer.deferred.update(pending)
+                    deferred_pending += [(o, stamp) for o in pending]
+                    print(f'sensing_replay: warning: no {", ".join(pending)} stamped {stamp} ns '
+                          f'within {timeout_s:g} s of publishing {topic}; taking it to answer '
+                          'later (not waited for per input from now on, counted at the end of '
+                          'the pass)', file=sys.stderr, flush=True)
                     break
                 replayer.executor.spin_once(timeout_sec=0.005)
             for o in expected:
-                replayer.seen.pop((o, stamp), None)
-            if topic in settle_after and settle_s > 0:
+                if o not in replayer.deferred:
+                    replayer.seen.pop((o, stamp), None)
+            deferred_pending = [k for k in deferred_pending if replayer.seen[k] < 1]
+            while len(deferred_pending) > MAX_OUTSTANDING_LATER \
+                    and time.monotonic() < deadline:
+                replayer.executor.spin_once(timeout_sec=0.005)
+                deferred_pending = [k for k in deferred_pending if replayer.seen[k] < 1]
+            # Nothing to wait for when all its outputs answer later: let it land at least.
+            if (topic in settle_after or any(o in replayer.deferred for o in expected)) \
+                    and settle_s > 0:
                 replayer.spin(settle_s)
             result.wait_s[topic] += time.monotonic() - waited_from
         else:
             replayer.executor.spin_once(timeout_sec=0.0)
-        if progress is not None and time.monotonic() >= next_report:
-            next_report = time.monotonic() + 2.0
+        now = time.monotonic()
+        if now >= next_discovery:   # outputs whose publisher came late
+            replayer.discover()
+            next_discovery = now + 0.5
+        if progress is not None and now >= next_report:
+            next_report = now + 2.0
             outputs = sum(len(v) for v in result.outputs.values())
             print(f'  {progress}{i + 1:6d} / {len(todo)} inputs ({100 * (i + 1) / len(todo):3.0f} %), '
                   f'{(stamp - first_stamp) * 1e-9:6.1f} s of bag time, {outputs} outputs',
                   file=sys.stderr, flush=True)
+    deadline = time.monotonic() + timeout_s   # the answers still outstanding, then quiet
+    while any(replayer.seen[k] < 1 for k in deferred_pending) and time.monotonic() < deadline:
+        replayer.spin(0.02)
     replayer.drain(quiet_s)
+    for o, stamp in deferred_pending:
+        if replayer.seen[(o, stamp)] < 1:
+            result.missing[o] += 1
     replayer.seen.clear()
     replayer.current = None
     result.wall_s = time.monotonic() - started
@@ -408,6 +479,8 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
     outputs = ({o for outs in expectations.values() for o in outs} | set(extra_outputs)) \
         - published_names
     required = {o for outs in expectations.values() for o in outs}
+    if launch:   # every output asked for that a launched node publishes
+        required |= outputs & {o for n in nodes for o in NODE_OUTPUTS.get(n, ())}
     out = Path(out) if out is not None else None
     if out is not None and out.exists():
         raise ReplayError(f'{out}: already exists; choose a new output folder')
@@ -438,7 +511,15 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                 env.setdefault('RMW_FASTRTPS_PUBLICATION_MODE', 'SYNCHRONOUS')
             graph = Graph(log_dir, env)
             for name in nodes:
-                graph.start(name, list((node_params or {}).get(name, [])))
+                extra = list((node_params or {}).get(name, []))
+                if name == 'complementary_fusion' and mode == 'lockstep' \
+                        and not any(a.startswith('flush_after_s:=') for a in extra):
+                    # The fusion processes what it holds after flush_after_s of wall time
+                    # without input; a lockstep wait that long (a scan match on an overloaded
+                    # machine) would flush before the match arrives and change the outputs.
+                    extra = ['-p', f'flush_after_s:={LOCKSTEP_FUSION_FLUSH_S}', *extra]
+                    quiet_s = max(quiet_s, 1.5 * LOCKSTEP_FUSION_FLUSH_S + 1.0)
+                graph.start(name, extra)
         try:
             replayer.wait_for_graph(
                 required, startup_timeout_s,
@@ -449,14 +530,14 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                 from None
         if warmup_s > 0 and launch:
             # Two nodes that have just discovered each other may still be matching: a message
-            # sent then is lost. So the first warmup_s of the bag goes through first and is
-            # discarded; the pass proper then starts with time jumping backwards, which resets
-            # every node (the same path every later loop takes).
-            inputs_sorted = [m for m in bag.messages if m[0] in expectations]
-            start = inputs_sorted[0][1]
-            warm = InputBag(bag.path, bag.types, [m for m in bag.messages
-                                                  if m[1] <= start + int(warmup_s * 1e9)])
-            play_pass(replayer, warm, set(expectations), 'lockstep', rate, timeout_s, quiet_s,
+            # sent then is lost. So the first warmup_s of the bag, and at least one message of
+            # every input topic (a keyframe log may hold seconds between two scans), goes
+            # through first and is discarded. Its stamps are moved after the bag's end, so the
+            # pass proper starts with time jumping backwards on every input, which resets every
+            # node (the same path every later loop takes), even an input whose first message
+            # the warm-up played.
+            play_pass(replayer, warm_up_bag(bag, set(expectations), warmup_s),
+                      set(expectations), 'lockstep', rate, timeout_s, quiet_s,
                       'warm-up: ' if progress else None, settle_after, settle_s, settle_before)
         results = []
         for k in range(loops):
@@ -503,76 +584,161 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
 
 
 # -- comparing outputs ----------------------------------------------------------------------
+# A replay on another CPU (another OpenBLAS kernel: OPENBLAS_CORETYPE) sums in another order, so
+# its floats may differ from the recording's in the last bits, and a difference can grow through
+# the graph's feedback (fusion, the matcher's initial guess). Floats therefore count as
+# reproduced when |a - b| <= ATOL + RTOL * max(|a|, |b|); integers, strings, lengths and bag
+# times must be equal. Measured (docs/reproducibility.md): between the SkylakeX, Haswell,
+# Sandybridge, Nehalem and Prescott kernels the largest difference was 1.1e-14 absolute, and
+# 9.7e-10 relative only on values near zero (covariance cross terms); the worst field used
+# 1/1000 of this tolerance, which is still far below what a change of behaviour gives (>= 1e-6).
+REPRODUCE_RTOL = 1e-9
+REPRODUCE_ATOL = 1e-11
+
+
 def output_messages(path: str | Path, topics: set[str]) -> dict[str, list[tuple[int, bytes]]]:
     """topic -> [(bag time ns, CDR bytes)] in bag order, for the given topics."""
-    from rosbags.rosbag2 import Reader
+    from sensing_nodes.bag import BagReader
 
     out: dict[str, list[tuple[int, bytes]]] = {t: [] for t in topics}
-    with Reader(Path(path)) as reader:
-        connections = [c for c in reader.connections if c.topic in topics]
-        for connection, stamp, raw in reader.messages(connections=connections):
-            out[connection.topic].append((stamp, bytes(raw)))
+    for topic, stamp, raw in BagReader(path).raw(topics):
+        out[topic].append((stamp, raw))
     return out
 
 
-def _largest_difference(a, b, path: str = '') -> tuple[float, str]:
-    """Largest absolute difference between two decoded messages' numbers, and where;
-    inf when they differ in anything that is not a number."""
+@dataclass
+class Difference:
+    """The worst field of a comparison: its path, the absolute difference, and that difference
+    over the tolerance at its magnitude (> 1: not reproduced; inf: not a float, or a length)."""
+
+    where: str = ''
+    absolute: float = 0.0
+    excess: float = 0.0
+
+    def worse(self, other: Difference) -> Difference:
+        return other if (other.excess, other.absolute) > (self.excess, self.absolute) else self
+
+
+def _float_difference(x, y, path: str, rtol: float, atol: float) -> Difference:
+    """Element-wise comparison of two float arrays (NaN equals NaN, infinities equal only with
+    the same sign)."""
+    import numpy as np
+
+    x, y = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
+    same = (x == y) | (np.isnan(x) & np.isnan(y))
+    if same.all():
+        return Difference()
+    with np.errstate(invalid='ignore', over='ignore'):
+        absolute = np.where(same, 0.0, np.abs(x - y))
+        absolute = np.where(np.isnan(absolute), np.inf, absolute)
+        excess = absolute / (atol + rtol * np.maximum(np.abs(x), np.abs(y)))
+        excess = np.where(np.isnan(excess), np.inf, excess)
+    i = int(np.argmax(excess))
+    return Difference(f'{path}[{i}]' if x.size > 1 else path, float(absolute[i]), float(excess[i]))
+
+
+def _cloud_columns(msg) -> dict[str, object] | None:
+    """A PointCloud2's data as its declared fields (name -> numpy column), or None when its
+    layout is not one numpy can describe."""
+    import numpy as np
+
+    kinds = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
+    try:
+        dtype = np.dtype({'names': [f.name for f in msg.fields],
+                          'formats': [('>' if msg.is_bigendian else '<') + kinds[f.datatype]
+                                      + ('' if f.count == 1 else f'({f.count},)')
+                                      for f in msg.fields],
+                          'offsets': [f.offset for f in msg.fields], 'itemsize': msg.point_step})
+        points = np.frombuffer(bytes(msg.data), dtype=dtype, count=msg.width * msg.height)
+    except (KeyError, ValueError, TypeError):
+        return None
+    return {name: points[name] for name in dtype.names}
+
+
+def message_difference(a, b, path: str = '', rtol: float = REPRODUCE_RTOL,
+                       atol: float = REPRODUCE_ATOL) -> Difference:
+    """Worst difference between two decoded rclpy messages, every field compared: floats within
+    the tolerance, everything else exactly (a PointCloud2's data as its declared fields)."""
     import numpy as np
 
     if hasattr(a, 'get_fields_and_field_types'):
-        worst = (0.0, '')
-        for name in a.get_fields_and_field_types():
-            d = _largest_difference(getattr(a, name), getattr(b, name), f'{path}.{name}')
-            worst = max(worst, d, key=lambda x: x[0])
+        worst = Difference()
+        fields = a.get_fields_and_field_types()
+        columns = None
+        if type(a).__name__ == 'PointCloud2' and fields.get('data') == 'sequence<uint8>':
+            columns = (_cloud_columns(a), _cloud_columns(b))
+        for name in fields:
+            if name == 'data' and columns is not None and None not in columns:
+                ca, cb = columns
+                if list(ca) != list(cb) or any(ca[k].shape != cb[k].shape for k in ca):
+                    worst = worst.worse(Difference(f'{path}.data (layout)', math.inf, math.inf))
+                    continue
+                for k in ca:
+                    sub = f'{path}.data.{k}'
+                    if ca[k].dtype.kind == 'f':
+                        worst = worst.worse(_float_difference(ca[k], cb[k], sub, rtol, atol))
+                    elif not np.array_equal(ca[k], cb[k]):
+                        worst = worst.worse(Difference(sub, math.inf, math.inf))
+                continue
+            worst = worst.worse(message_difference(getattr(a, name), getattr(b, name),
+                                                   f'{path}.{name}', rtol, atol))
         return worst
-    if isinstance(a, (list, tuple)) or hasattr(a, '__array__') or type(a).__name__ == 'array':
-        if len(a) != len(b):
-            return math.inf, f'{path} (length {len(a)} vs {len(b)})'
-        if len(a) and isinstance(a[0], (int, float)):
-            x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-            same = (x == y) | (np.isnan(x) & np.isnan(y))
-            if same.all():
-                return 0.0, ''
-            i = int(np.argmax(np.where(same, 0.0, np.abs(x - y))))
-            return float(np.nan_to_num(abs(x[i] - y[i]), nan=math.inf)), f'{path}[{i}]'
-        worst = (0.0, '')
-        for i, (u, v) in enumerate(zip(a, b)):
-            worst = max(worst, _largest_difference(u, v, f'{path}[{i}]'), key=lambda x: x[0])
-        return worst
-    if isinstance(a, float) and isinstance(b, float):
-        if a == b or (math.isnan(a) and math.isnan(b)):
-            return 0.0, ''
-        return abs(a - b), path
-    return (0.0, '') if a == b else (math.inf, path)
+    if isinstance(a, (bytes, str, bool, int)) or a is None:
+        return Difference() if type(a) is type(b) and a == b else \
+            Difference(path, math.inf, math.inf)
+    if isinstance(a, float):
+        return _float_difference(a, b, path, rtol, atol)
+    # Sequences and arrays: array.array, numpy arrays, lists of messages or strings.
+    if len(a) != len(b):
+        return Difference(f'{path} (length {len(a)} vs {len(b)})', math.inf, math.inf)
+    if len(a) == 0:
+        return Difference()
+    kind = np.asarray(a).dtype.kind if not hasattr(a[0], 'get_fields_and_field_types') else 'O'
+    if kind == 'f':
+        return _float_difference(a, b, path, rtol, atol)
+    if kind in 'iub':
+        x, y = np.asarray(a), np.asarray(b)
+        if np.array_equal(x, y):
+            return Difference()
+        i = int(np.argmax(x != y))
+        return Difference(f'{path}[{i}]', math.inf, math.inf)
+    worst = Difference()
+    for i, (u, v) in enumerate(zip(a, b)):
+        worst = worst.worse(message_difference(u, v, f'{path}[{i}]', rtol, atol))
+    return worst
 
 
 def compare_outputs(expected: dict[str, list[tuple[int, bytes]]],
                     actual: dict[str, list[tuple[int, bytes]]],
                     types: dict[str, str]) -> dict[str, dict]:
-    """Per topic: message counts, how many are byte-identical, and the largest numeric
-    difference (with where) among the others."""
+    """Per topic: message counts, how many are byte-identical (in canonical CDR), the worst
+    difference among the others (absolute, and relative to the tolerance: 'excess' <= 1 is
+    reproduced) and whether the topic is reproduced (same count, every message within it)."""
     from rclpy.serialization import deserialize_message
 
-    from sensing_nodes.bag import message_class
+    from sensing_nodes.bag import canonical_cdr, message_class
 
     report = {}
     for topic in sorted(set(expected) | set(actual)):
         a, b = expected.get(topic, []), actual.get(topic, [])
         entry = {'expected': len(a), 'actual': len(b), 'identical': 0, 'max_difference': 0.0,
-                 'where': ''}
+                 'excess': 0.0, 'where': ''}
         cls = message_class(types[topic])
+        worst = Difference()
         for (sa, ra), (sb, rb) in zip(a, b):
-            if sa == sb and ra == rb:
+            if sa == sb and (ra == rb or canonical_cdr(ra, types[topic])
+                             == canonical_cdr(rb, types[topic])):
                 entry['identical'] += 1
                 continue
             if sa != sb:
-                d, where = math.inf, f'bag time {sa} vs {sb}'
+                d = Difference(f'bag time {sa} vs {sb}', math.inf, math.inf)
             else:
-                d, where = _largest_difference(deserialize_message(ra, cls),
-                                               deserialize_message(rb, cls))
-            if d >= entry['max_difference']:
-                entry['max_difference'], entry['where'] = d, f'stamp {sa}: {where}'
+                d = message_difference(deserialize_message(ra, cls), deserialize_message(rb, cls))
+            d.where = f'stamp {sa}: {d.where}'
+            worst = worst.worse(d)
+        entry.update(max_difference=worst.absolute, excess=worst.excess, where=worst.where)
+        entry['reproduced'] = len(a) == len(b) and worst.excess <= 1.0
+        entry['byte_identical'] = len(a) == len(b) == entry['identical']
         report[topic] = entry
     return report
 
@@ -742,7 +908,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def check_against(recorded: Path, results: list[PassResult]) -> bool:
     """Print, per pass and output topic, whether the replay reproduced the bag's recorded
-    outputs (the topics both have, /diagnostics aside); True when every one did."""
+    outputs (the topics both have, /diagnostics aside): floats within the tolerance (the bag may
+    come from another CPU), the rest exactly. Passes after the first must equal the first byte
+    for byte (canonical CDR): one process on one CPU is deterministic. True when all hold."""
     from sensing_nodes.bag import topic_counts
 
     types = {t: v[0] for t, v in topic_counts(recorded).items()}
@@ -752,13 +920,24 @@ def check_against(recorded: Path, results: list[PassResult]) -> bool:
     for k, r in enumerate(results):
         report = compare_outputs(expected, {t: r.outputs.get(t, []) for t in topics}, types)
         for topic, e in report.items():
-            # Equal values count as reproduced (MarkerArray CDR holds uninitialised padding).
-            same = e['expected'] == e['actual'] and e['max_difference'] == 0.0
-            ok &= same
-            print(f"  check pass {k + 1} {topic:<22} {'reproduced' if same else 'DIFFERS'}: "
+            ok &= e['reproduced']
+            print(f"  check pass {k + 1} {topic:<22} "
+                  f"{'reproduced' if e['reproduced'] else 'DIFFERS'}: "
                   f"{e['identical']} of {e['expected']} byte-identical"
-                  + ('' if same else f", {e['actual']} replayed, largest difference "
-                     f"{e['max_difference']:.3g} at {e['where']}"))
+                  + (f", {e['actual']} replayed" if e['actual'] != e['expected'] else '')
+                  + (f", largest difference {e['max_difference']:.3g} "
+                     f"({e['excess']:.3g} x tolerance) at {e['where']}"
+                     if e['identical'] != e['expected'] else ''))
+        if k > 0:
+            same = compare_outputs({t: results[0].outputs.get(t, []) for t in topics},
+                                   {t: r.outputs.get(t, []) for t in topics}, types)
+            for topic, e in same.items():
+                ok &= e['byte_identical']
+                print(f"  check pass {k + 1} {topic:<22} "
+                      f"{'identical to pass 1' if e['byte_identical'] else 'DIFFERS FROM PASS 1'}"
+                      + ('' if e['byte_identical'] else
+                         f": {e['identical']} of {e['expected']} byte-identical, "
+                         f"largest difference {e['max_difference']:.3g} at {e['where']}"))
     return ok
 
 
