@@ -51,11 +51,13 @@ class TopicRecorder:
         self.counts: dict[str, int] = defaultdict(int)
         self.newest_stamp_ns = 0
 
-    def discover(self) -> list[str]:
-        """Subscribe to topics that appeared (with a publisher) since the last call."""
+    def discover(self, not_yet: set[str] | frozenset = frozenset()) -> list[str]:
+        """Subscribe to topics that appeared (with a publisher) since the last call, except
+        `not_yet` (topics to subscribe to later, e.g. when a subscription gates a publisher)."""
         added = []
         for topic, types in self._node.get_topic_names_and_types():
-            if topic in self._subscriptions or topic in EXCLUDED_TOPICS or len(types) != 1:
+            if topic in self._subscriptions or topic in EXCLUDED_TOPICS or len(types) != 1 \
+                    or topic in not_yet:
                 continue
             if self._only is not None and topic not in self._only:
                 continue

@@ -139,3 +139,20 @@ def test_bad_input_exits_2_naming_file_and_topic_without_output(tmp_path, args, 
     for word in words:
         assert word in result.stderr
     assert not out.exists()
+
+
+def test_a_valid_bag_without_odometry_is_named_as_such(tmp_path):
+    """rosbag2's own cdr_test bag (test_msgs only): the error says there is no Odometry topic and
+    what the bag holds (it said 'KeyError: 2; truncated?')."""
+    bag = REPO.parent / 'shared' / 'datasets' / 'ros' / 'rosbag2-resources' / 'rosbag2_tests' \
+        / 'resources' / 'mcap' / 'cdr_test'
+    if not (bag / 'metadata.yaml').is_file():
+        pytest.skip(f'rosbag2 test bags not found in {bag}')
+    out = tmp_path / 'out.json'
+    result = run_to_exit('sensing_eval', [str(bag), '--json', str(out)])
+    assert result.returncode == 2, result.stdout + result.stderr
+    for word in ('no nav_msgs/msg/Odometry topic', '/array_topic (test_msgs/msg/Arrays)',
+                 '--topic'):
+        assert word in result.stderr, result.stderr
+    assert 'KeyError' not in result.stderr and 'truncated' not in result.stderr
+    assert not out.exists()

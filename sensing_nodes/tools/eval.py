@@ -88,6 +88,10 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
         except Exception as exc:
             raise EvalError(f'{bag}: cannot read the bag ({type(exc).__name__}: {exc})') from None
         topics = sorted(t for t, (ty, n) in available.items() if ty == ODOMETRY and t != reference)
+        if not topics:
+            held = ', '.join(f'{t} ({ty})' for t, (ty, _) in sorted(available.items())) or 'none'
+            raise EvalError(f'{bag}: no {ODOMETRY} topic to score besides the reference '
+                            f'{reference} (the bag holds: {held}); name one with --topic')
     relations = None
     if relations_file is not None:  # read first: a bad file fails before the bag is loaded
         try:
