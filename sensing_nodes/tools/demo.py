@@ -59,6 +59,9 @@ SIM_TOPICS = {
 # recorder included) once every node has matched.
 INTERNAL_EDGES = {'/wheel/odom': 4, '/imu/data': 2, '/scan_match/odom': 2}
 SCAN_SUBSCRIBERS = 3  # line_extractor, icp_matcher and the recorder
+# Simulator topics and their subscribers among the processing nodes. The simulator (started with
+# them) counts the recorder's subscription too, so they must be there before the recorder's.
+SIM_CONSUMERS = {'/scan': 2, '/imu/data_raw': 1, '/joint_states': 1}
 # Published on a wall-clock timer whatever the data: not an output the drain waits for.
 WALL_PERIODIC_TOPICS = {'/diagnostics'}
 DRAIN_QUIET_S = 1.0   # the end: this long without an output (fusion flushes after 0.5 s idle)
@@ -276,7 +279,7 @@ def _wait_for_nodes(node, executor, names, graph, recorder, timeout=30.0) -> Non
             raise SystemExit(f'sensing_demo: node(s) failed at start-up: {graph.failed()}')
         if set(names) <= set(node.get_node_names()) and all(
                 len(node.get_subscriptions_info_by_topic(topic)) >= count
-                for topic, count in INTERNAL_EDGES.items()):
+                for topic, count in {**INTERNAL_EDGES, **SIM_CONSUMERS}.items()):
             settle = time.monotonic() + 0.5
             while time.monotonic() < settle:
                 executor.spin_once(timeout_sec=0.05)
