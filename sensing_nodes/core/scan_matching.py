@@ -41,7 +41,7 @@ class ScanMatcherSettings:
     fallback_std_m: float = 0.05                  # std added per fallback step, translation
     fallback_std_rad: float = math.radians(3.0)   # ... and yaw
     max_gap_s: float = 1.0                        # scans further apart: restart the keyframe
-    match_options: dict = field(default_factory=dict)   # passed to core.icp.match
+    icp_options: icp.IcpOptions = icp.IcpOptions()   # how each scan is matched
 
 
 @dataclass
@@ -142,8 +142,8 @@ class KeyframeScanMatcher:
         predicted = compose(self.pose, predicted_motion)
         guess_base = between(self.keyframe_pose, predicted)
         guess_laser = mount_transform(guess_base, s.laser_pose)
-        result = icp.match(points, self.keyframe, guess_laser, **s.match_options)
-        points_usable = result.source_points >= s.match_options.get('min_points', 3)
+        result = icp.match(points, self.keyframe, guess_laser, options=s.icp_options)
+        points_usable = result.source_points >= s.icp_options.correspondences.min_points
 
         reason = self._rejection(result, guess_laser)
         previous = self.pose

@@ -11,6 +11,7 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import LaserScan
 
+from sensing_nodes.core.icp import Convergence, Correspondences, IcpOptions
 from sensing_nodes.core.scan import scan_to_points
 from sensing_nodes.core.scan_matching import (
     KeyframeScanMatcher, OdometryBuffer, ScanMatcherSettings,
@@ -89,10 +90,12 @@ class IcpMatcherNode(Node):
             laser_pose=laser, keyframe_distance_m=kf_distance, keyframe_angle_rad=kf_angle,
             max_error_m=max_error, max_jump_m=max_jump, max_jump_rad=max_jump_rad,
             fallback_std_m=fallback_std_m, fallback_std_rad=fallback_std_rad, max_gap_s=max_gap,
-            match_options={'method': method, 'robust': robust, 'max_iterations': max_iterations,
-                           'max_correspondence_distance': max_corr, 'voxel_size': voxel,
-                           'min_inlier_fraction': min_inliers,
-                           'min_points': max(3, self._min_points)})
+            icp_options=IcpOptions(
+                method=method, voxel_size=voxel,
+                convergence=Convergence(max_iterations=max_iterations),
+                correspondences=Correspondences(
+                    max_correspondence_distance=max_corr, robust=robust,
+                    min_inlier_fraction=min_inliers, min_points=max(3, self._min_points))))
         self._matcher = KeyframeScanMatcher(self._settings)
         # Odometry history must reach back to the previous scan, however far apart scans may be
         # (max_gap_s): a real log's keyframes can be tens of seconds apart.
