@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sensing_nodes.core.se2 import wrap_angle
-from sensing_nodes.core.timing import StampStep, classify_step
+from sensing_nodes.core.timing import SampleOutcome, StampStep, classify_step
 
 
 def integrate_rate(stamps_ns: ArrayLike, rate: ArrayLike, bias: float = 0.0, yaw0: float = 0.0
@@ -160,12 +160,8 @@ class ImuRejection(enum.Enum):
 
 
 @dataclass
-class ImuUpdate:
-    """Outcome of one IMU sample: whether to publish, the stamp step and anything to report."""
-    publish: bool
-    step: StampStep | None = None
-    rejection: ImuRejection | None = None
-    note: str = ''
+class ImuUpdate(SampleOutcome):
+    """Outcome of one IMU sample (rejection: an ImuRejection); still: the robot stands still."""
     still: bool = False
 
 

@@ -134,6 +134,12 @@ class KeyframeScanMatcher:
                             f'{gap_s:.2f} s since the previous scan: keyframe restarted here',
                             new_keyframe=True)
 
+        return self._match(stamp_ns, points, predicted_motion)
+
+    def _match(self, stamp_ns: int, points: NDArray[np.float64],
+               predicted_motion: Pose2 | None) -> ScanStep:
+        """process() for a scan that follows the previous one within max_gap_s."""
+        s = self.settings
         dt = (stamp_ns - self.stamp_ns) * 1e-9
         source = 'odometry'
         if predicted_motion is None or not all(math.isfinite(v) for v in predicted_motion):

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sensing_nodes.core.se2 import Pose2, wrap_angle
-from sensing_nodes.core.timing import StampStep, classify_step
+from sensing_nodes.core.timing import SampleOutcome, StampStep, classify_step
 
 METHODS = ('exact_arc', 'euler')
 
@@ -262,12 +262,9 @@ class WheelOdometryConfig:
 
 
 @dataclass
-class OdometryUpdate:
-    """Outcome of one JointState sample: what to publish (if anything) and what to report."""
-    publish: bool
-    step: StampStep | None = None
-    rejection: Rejection | None = None
-    note: str = ''
+class OdometryUpdate(SampleOutcome):
+    """Outcome of one JointState sample (rejection: a Rejection); wrapped: an encoder wrap was
+    folded back."""
     wrapped: bool = False
 
 
