@@ -103,19 +103,18 @@ def _quiet_windows(mean: NDArray[np.float64], std: NDArray[np.float64], full: ND
             & (np.abs(mean[:, :3]) <= config.max_gyro_bias_rad_s).all(axis=1))
 
 
-def _zero_velocity_update(yaw: float, p_yaw: float, p_cross: float, p_bias: float,
-                          bias: Sequence[float], z: Sequence[float], r: float):
-    """One Kalman update of the [yaw, bias_z] filter while the robot stands still: raw rates z
-    (rad/s, 3 axes) measure the bias with variance r (rad^2/s^2); the x and y biases take the
-    same gain as z. Returns (yaw, p_yaw, p_cross, p_bias, bias) on plain floats."""
-    bx, by, bz = bias
-    zx, zy, zz = z
+def _zero_velocity_update(yaw: float, p_yaw: float, p_cross: float, p_bias: float, bx: float,
+                          by: float, bz: float, zx: float, zy: float, zz: float, r: float):
+    """One Kalman update of the [yaw, bias_z] filter while the robot stands still: raw rates
+    (zx, zy, zz) (rad/s) measure the bias (bx, by, bz) with variance r (rad^2/s^2); the x and y
+    biases take the same gain as z. Returns (yaw, p_yaw, p_cross, p_bias, bx, by, bz), plain
+    floats (flat: this runs once per still sample)."""
     s = p_bias + r
     k_yaw, k_bias = p_cross / s, p_bias / s
     # P - K H P, each line using the prior values it needs.
     return (yaw + k_yaw * (zz - bz), p_yaw - k_yaw * p_cross, p_cross - k_yaw * p_bias,
-            p_bias - k_bias * p_bias,
-            (bx + k_bias * (zx - bx), by + k_bias * (zy - by), bz + k_bias * (zz - bz)))
+            p_bias - k_bias * p_bias, bx + k_bias * (zx - bx), by + k_bias * (zy - by),
+            bz + k_bias * (zz - bz))
 
 
 @dataclass
@@ -504,11 +503,12 @@ class GyroIntegrator:
         if not fresh:
             return
         m = len(fresh)
-        z = np.mean(fresh, axis=0).tolist() if m > 1 else fresh[0]
+        zx, zy, zz = np.mean(fresh, axis=0).tolist() if m > 1 else fresh[0]
         r = self.config.noise_density ** 2 / max(dt, 1e-6) / m
-        self.yaw, self.p_yaw, self.p_cross, self.p_bias, bias = _zero_velocity_update(
-            self.yaw, self.p_yaw, self.p_cross, self.p_bias, self.bias.tolist(), z, r)
-        self.bias = np.array(bias)
+        bx, by, bz = self.bias.tolist()
+        self.yaw, self.p_yaw, self.p_cross, self.p_bias, bx, by, bz = _zero_velocity_update(
+            self.yaw, self.p_yaw, self.p_cross, self.p_bias, bx, by, bz, zx, zy, zz, r)
+        self.bias = np.array((bx, by, bz))
         self._used_until_ns = stamp_ns
         self.bias_updates += m
         # A requested calibration is done once a whole still window has been measured.
@@ -581,22 +581,20 @@ class _BatchRun:
         gx, gy, gz = g[lo:hi, 0].tolist(), g[lo:hi, 1].tolist(), g[lo:hi, 2].tolist()
         gx[0], gy[0], gz[0] = (float(v) for v in zs)
         ms += [1] * (hi - lo - 1)
-        bias = tuple(float(v) for v in self.bias)
-        q, nd2, updates = self.q, self.nd2, self.updates
-        yaws, pys, pcs, biases = [], [], [], []
-        for dk, m, z in zip(self.dt[lo:hi].tolist(), ms, zip(gx, gy, gz)):
+        bx, by, bz = (float(v) for v in self.bias)
+        q, nd2, update = self.q, self.nd2, _zero_velocity_update
+        states = []
+        keep = states.append
+        for dk, m, zx, zy, zz in zip(self.dt[lo:hi].tolist(), ms, gx, gy, gz):
             pb += q * dk
-            yaw, py, pc, pb, bias = _zero_velocity_update(yaw, py, pc, pb, bias, z,
-                                                          nd2 / max(dk, 1e-6) / m)
-            updates += m
-            yaws.append(yaw)
-            pys.append(py)
-            pcs.append(pc)
-            biases.append(bias)
+            state = update(yaw, py, pc, pb, bx, by, bz, zx, zy, zz, nd2 / max(dk, 1e-6) / m)
+            yaw, py, pc, pb, bx, by, bz = state
+            keep(state)
+        yaws, pys, pcs, _, bxs, bys, bzs = zip(*states)
         rows = slice(npre + lo, npre + hi)
         self.yaw_all[rows], self.py_all[rows], self.pc_all[rows] = yaws, pys, pcs
-        self.bias_out[lo:hi] = biases
+        self.bias_out[lo:hi, 0], self.bias_out[lo:hi, 1], self.bias_out[lo:hi, 2] = bxs, bys, bzs
         self.used_until = int(self.t[hi - 1])
         self.yaw, self.py, self.pc, self.pb = yaw, py, pc, pb
-        self.bias = np.array(bias)
-        self.updates = updates
+        self.bias = np.array([bx, by, bz])
+        self.updates += sum(ms)

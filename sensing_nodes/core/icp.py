@@ -123,6 +123,9 @@ class IcpOptions:
         return replace(self, **keywords, **parts)
 
 
+_DEFAULT_OPTIONS = IcpOptions()
+
+
 @dataclass(frozen=True)
 class Target:
     """A target scan prepared once for many matches: points (N, 2) in its frame (m), a k-d tree,
@@ -597,7 +600,7 @@ def match(
     valid but unusable input (too few points, all points identical, a non-finite guess) returns
     converged=False with a reason.
     """
-    options = options or IcpOptions()
+    options = options or _DEFAULT_OPTIONS
     if keywords:
         options = options.updated(**keywords)
     guess = np.asarray(initial, dtype=float).ravel()

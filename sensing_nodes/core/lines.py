@@ -449,6 +449,9 @@ class LineOptions:
                              f'{self.max_range!r}')
 
 
+_DEFAULT_OPTIONS = LineOptions()
+
+
 def extract_lines(ranges: ArrayLike, angles: ArrayLike, *, options: LineOptions | None = None,
                   **keywords) -> list[Line]:
     """Lines (laser frame) in a scan given as ranges (m, REP 117 values allowed) and beam angles (rad).
@@ -459,7 +462,7 @@ def extract_lines(ranges: ArrayLike, angles: ArrayLike, *, options: LineOptions 
     what it finds (possibly nothing).
     """
     if options is None:
-        options = LineOptions(**keywords)
+        options = LineOptions(**keywords) if keywords else _DEFAULT_OPTIONS
     elif keywords:
         options = replace(options, **keywords)
     r_in = np.asarray(ranges, dtype=float).ravel()

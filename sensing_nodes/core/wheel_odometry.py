@@ -428,8 +428,8 @@ class WheelOdometry:
         a, b = -dy, dx
         var_l = cfg.variance_per_m[0] * abs(ds_l)
         var_r = cfg.variance_per_m[1] * abs(ds_r)
-        p = self.random_covariance
-        xx, xy, xt, yy, yt, tt = p[0, 0], p[0, 1], p[0, 2], p[1, 1], p[1, 2], p[2, 2]
+        # As plain floats: arithmetic on numpy scalars costs several times more (same bits).
+        (xx, xy, xt), (_, yy, yt), (_, _, tt) = self.random_covariance.tolist()
         xx2 = xx + 2.0 * a * xt + a * a * tt + var_l * lx * lx + var_r * rx * rx
         xy2 = xy + a * yt + b * xt + a * b * tt + var_l * lx * ly + var_r * rx * ry
         xt2 = xt + a * tt + inv_l * (var_r * rx - var_l * lx)
@@ -438,11 +438,11 @@ class WheelOdometry:
         tt2 = tt + inv_l * inv_l * (var_l + var_r)
         self.random_covariance = np.array([[xx2, xy2, xt2], [xy2, yy2, yt2], [xt2, yt2, tt2]])
         if cfg.radius_multiplier_std > 0.0:
-            j = self.radius_jacobian
+            (jx0, jx1), (jy0, jy1), (jt0, jt1) = self.radius_jacobian.tolist()
             self.radius_jacobian = np.array([
-                [j[0, 0] + a * j[2, 0] + lx * ds_l, j[0, 1] + a * j[2, 1] + rx * ds_r],
-                [j[1, 0] + b * j[2, 0] + ly * ds_l, j[1, 1] + b * j[2, 1] + ry * ds_r],
-                [j[2, 0] - inv_l * ds_l, j[2, 1] + inv_l * ds_r]])
+                [jx0 + a * jt0 + lx * ds_l, jx1 + a * jt1 + rx * ds_r],
+                [jy0 + b * jt0 + ly * ds_l, jy1 + b * jt1 + ry * ds_r],
+                [jt0 - inv_l * ds_l, jt1 + inv_l * ds_r]])
         yaw2 = yaw + dtheta
         if yaw2 > math.pi or yaw2 <= -math.pi:
             yaw2 = float(wrap_angle(yaw2))
