@@ -8,6 +8,7 @@ import pytest
 
 from sensing_nodes.core.se2 import between, wrap_angle
 from sensing_nodes.core.timing import StampStep
+from sensing_nodes.core.textbook import integrate_step, propagate_covariance, step_jacobians
 from sensing_nodes.core.wheel_odometry import (
     METHODS,
     Rejection,
@@ -15,9 +16,6 @@ from sensing_nodes.core.wheel_odometry import (
     WheelOdometryConfig,
     body_increments,
     integrate_path,
-    integrate_step,
-    propagate_covariance,
-    step_jacobians,
     unwrap_increments,
     wheel_increments,
 )

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sensing_nodes.core.se2 import wrap_angle
-from sensing_nodes.core.timing import StampStep, classify_step
+from sensing_nodes.core.timing import SampleOutcome, StampStep, classify_step
 
 
 def integrate_rate(stamps_ns: ArrayLike, rate: ArrayLike, bias: float = 0.0, yaw0: float = 0.0
@@ -82,17 +82,39 @@ def still_mask(stamps_ns: ArrayLike, gyro: ArrayLike, accel: ArrayLike, config: 
     (or last before) each sample; any motion inside the window vetoes stillness.
     """
     t = np.asarray(stamps_ns, dtype=np.int64)
-    g_mean, g_std, full = window_statistics(t, gyro, config.stillness_window_s)
-    _, a_std, _ = window_statistics(t, accel, config.stillness_window_s)
-    still = (full & (g_std < config.gyro_std_threshold_rad_s).all(axis=1)
-             & (a_std < config.accel_std_threshold_m_s2).all(axis=1)
-             & (np.abs(g_mean) <= config.max_gyro_bias_rad_s).all(axis=1))
+    both = np.concatenate([np.asarray(gyro, dtype=float).reshape(-1, 3),
+                           np.asarray(accel, dtype=float).reshape(-1, 3)], axis=1)
+    still = _quiet_windows(*window_statistics(t, both, config.stillness_window_s), config)
     if wheel_moving is not None:
         moving = np.asarray(wheel_moving, dtype=bool)
         motion_count = np.concatenate([[0], np.cumsum(moving)])
         start = window_starts(t, config.stillness_window_s)
         still &= (motion_count[np.arange(t.size) + 1] - motion_count[start]) == 0
     return still
+
+
+def _quiet_windows(mean: NDArray[np.float64], std: NDArray[np.float64], full: NDArray[np.bool_],
+                   config: 'GyroConfig') -> NDArray[np.bool_]:
+    """The IMU stillness rule on window statistics of (N, 6) [gyro | accel] samples: a full
+    window whose every gyro and accelerometer std is below its threshold and whose gyro mean is
+    within max_gyro_bias_rad_s on every axis. _Window.quiet is this rule on running sums."""
+    return (full & (std[:, :3] < config.gyro_std_threshold_rad_s).all(axis=1)
+            & (std[:, 3:] < config.accel_std_threshold_m_s2).all(axis=1)
+            & (np.abs(mean[:, :3]) <= config.max_gyro_bias_rad_s).all(axis=1))
+
+
+def _zero_velocity_update(yaw: float, p_yaw: float, p_cross: float, p_bias: float, bx: float,
+                          by: float, bz: float, zx: float, zy: float, zz: float, r: float):
+    """One Kalman update of the [yaw, bias_z] filter while the robot stands still: raw rates
+    (zx, zy, zz) (rad/s) measure the bias (bx, by, bz) with variance r (rad^2/s^2); the x and y
+    biases take the same gain as z. Returns (yaw, p_yaw, p_cross, p_bias, bx, by, bz), plain
+    floats (flat: this runs once per still sample)."""
+    s = p_bias + r
+    k_yaw, k_bias = p_cross / s, p_bias / s
+    # P - K H P, each line using the prior values it needs.
+    return (yaw + k_yaw * (zz - bz), p_yaw - k_yaw * p_cross, p_cross - k_yaw * p_bias,
+            p_bias - k_bias * p_bias, bx + k_bias * (zx - bx), by + k_bias * (zy - by),
+            bz + k_bias * (zz - bz))
 
 
 @dataclass
@@ -137,12 +159,8 @@ class ImuRejection(enum.Enum):
 
 
 @dataclass
-class ImuUpdate:
-    """Outcome of one IMU sample: whether to publish, the stamp step and anything to report."""
-    publish: bool
-    step: StampStep | None = None
-    rejection: ImuRejection | None = None
-    note: str = ''
+class ImuUpdate(SampleOutcome):
+    """Outcome of one IMU sample (rejection: an ImuRejection); still: the robot stands still."""
     still: bool = False
 
 
@@ -387,8 +405,9 @@ class GyroIntegrator:
         out.still[i] = self.still
 
     def _batch_clean(self, t, g, a, dt, out: BatchUpdate, offset: int) -> None:
+        """update_batch for a batch the per-sample rules pass untouched (see there); writes
+        rows offset.. of out and leaves the state as update() would have."""
         cfg = self.config
-        n = t.size
         # The window holds earlier samples too: prefix them so every window is the per-sample one.
         prefix = list(self._window.samples)
         npre = len(prefix)
@@ -398,106 +417,49 @@ class GyroIntegrator:
         first = window_starts(t_all, cfg.stillness_window_s)
         if cfg.bias_estimation:
             both = np.concatenate([g_all, a_all], axis=1)
-            mean, std, full = window_statistics(t_all, both, cfg.stillness_window_s)
-            still = (full & (std[:, :3] < cfg.gyro_std_threshold_rad_s).all(axis=1)
-                     & (std[:, 3:] < cfg.accel_std_threshold_m_s2).all(axis=1)
-                     & (np.abs(mean[:, :3]) <= cfg.max_gyro_bias_rad_s).all(axis=1))[npre:]
+            still = _quiet_windows(*window_statistics(t_all, both, cfg.stillness_window_s),
+                                   cfg)[npre:]
             wheels = (self._wheel_last_ns is not None) & (
                 np.abs(t - (self._wheel_last_ns or 0)) <= cfg.wheel_timeout_s * 1e9)
             if self._wheel_motion_ns is not None:
                 still &= ~(wheels & (self._wheel_motion_ns >= t_all[first[npre:]]))
         else:
-            still = np.zeros(n, dtype=bool)
-
-        # Heading and covariance after every sample of the combined window history.
-        yaw_all = np.concatenate([[s.yaw for s in prefix], np.empty(n)])
-        py_all = np.concatenate([[s.p_yaw for s in prefix], np.empty(n)])
-        pc_all = np.concatenate([[s.p_cross for s in prefix], np.empty(n)])
-        bias_out = np.empty((n, 3))
-        gz_prev = np.concatenate([[self._prev_gyro[2]], g[:-1, 2]])
-        q, nd2 = cfg.bias_random_walk ** 2, cfg.noise_density ** 2
-        yaw, py, pc, pb = self.yaw, self.p_yaw, self.p_cross, self.p_bias
-        bias = self.bias.copy()
-        was_still, used_until, updates = self.still, self._used_until_ns, self.bias_updates
+            still = np.zeros(t.size, dtype=bool)
+        run = _BatchRun(self, prefix, t, t_all, g, g_all, dt, first)
         edges = np.flatnonzero(np.diff(still.astype(np.int8))) + 1
-        for lo, hi in zip(np.concatenate([[0], edges]), np.concatenate([edges, [n]])):
-            d = dt[lo:hi]
-            if not still[lo]:
-                # Moving: yaw' = yaw + (trapezoid - bias) dt; F = [[1, -dt], [0, 1]] plus noise.
-                pb_before = pb + q * np.concatenate([[0.0], np.cumsum(d[:-1])])
-                pc_run = pc - np.cumsum(d * pb_before)
-                pc_before = np.concatenate([[pc], pc_run[:-1]])
-                py_run = py + np.cumsum(-2.0 * d * pc_before + d * d * pb_before + nd2 * d)
-                yaw_run = yaw + np.cumsum((0.5 * (gz_prev[lo:hi] + g[lo:hi, 2]) - bias[2]) * d)
-                yaw_all[npre + lo:npre + hi] = yaw_run
-                py_all[npre + lo:npre + hi] = py_run
-                pc_all[npre + lo:npre + hi] = pc_run
-                bias_out[lo:hi] = bias
-                yaw, py, pc, pb = yaw_run[-1], py_run[-1], pc_run[-1], pb_before[-1] + q * d[-1]
-                was_still = False
-                continue
-            # Still: a scalar Kalman recursion in plain floats (numpy per element costs more).
-            if not was_still:
-                j = first[npre + lo]
-                yaw, py, pc = float(yaw_all[j]), float(py_all[j]), float(pc_all[j])
-                begin = max(j, int(np.searchsorted(t_all, used_until, side='right')))
-                zs = g_all[begin:npre + lo + 1].mean(axis=0)
-                ms = [npre + lo + 1 - begin]
-                was_still = True
+        for lo, hi in zip(np.concatenate([[0], edges]), np.concatenate([edges, [t.size]])):
+            if still[lo]:
+                run.still(lo, hi)
             else:
-                zs, ms = g[lo], [1]
-            gx, gy, gz = g[lo:hi, 0].tolist(), g[lo:hi, 1].tolist(), g[lo:hi, 2].tolist()
-            gx[0], gy[0], gz[0] = (float(v) for v in zs)
-            ms += [1] * (hi - lo - 1)
-            bx, by, bz = (float(v) for v in bias)
-            yaws, pys, pcs, bxs, bys, bzs = [], [], [], [], [], []
-            for dk, m, zx, zy, zz in zip(d.tolist(), ms, gx, gy, gz):
-                pb += q * dk
-                r = nd2 / max(dk, 1e-6) / m
-                s_inv = 1.0 / (pb + r)
-                k_yaw, k_bias = pc * s_inv, pb * s_inv
-                yaw += k_yaw * (zz - bz)
-                bx, by = bx + k_bias * (zx - bx), by + k_bias * (zy - by)
-                bz = bz + k_bias * (zz - bz)
-                py -= k_yaw * pc
-                pc -= k_yaw * pb
-                pb -= k_bias * pb
-                updates += m
-                yaws.append(yaw)
-                pys.append(py)
-                pcs.append(pc)
-                bxs.append(bx)
-                bys.append(by)
-                bzs.append(bz)
-            used_until = int(t[hi - 1])
-            yaw_all[npre + lo:npre + hi], py_all[npre + lo:npre + hi] = yaws, pys
-            pc_all[npre + lo:npre + hi] = pcs
-            bias_out[lo:hi, 0], bias_out[lo:hi, 1], bias_out[lo:hi, 2] = bxs, bys, bzs
-            bias = np.array([bx, by, bz])
-        # Outputs and state as after the last per-sample update.
-        rate = g - bias_out
-        half = 0.5 * rate[:, 2] * dt
-        sl = slice(offset, offset + n)
-        out.accepted[sl] = True
-        out.yaw[sl] = yaw_all[npre:]
-        out.heading_variance[sl] = py_all[npre:] + half * half
-        out.rate[sl] = rate
-        out.bias[sl] = bias_out
-        out.still[sl] = still
-        self.yaw, self.p_yaw = float(yaw), float(py)
-        self.p_cross, self.p_bias = float(pc), float(pb)
-        self.bias = bias.copy()
-        self.still = bool(still[-1])
-        self._used_until_ns, self.bias_updates = used_until, updates
-        self.stamp_ns = int(t[-1])
-        self._prev_gyro = tuple(float(v) for v in g[-1])
-        self._last_dt = float(dt[-1])
-        self.rate = rate[-1].copy()
+                run.moving(lo, hi)
+        self._finish_batch(run, still, out, offset)
         self._window.clear()
         for j in range(first[-1], t_all.size):
             self._window.add(_Sample(int(t_all[j]), tuple(float(v) for v in g_all[j]),
-                                     tuple(float(v) for v in a_all[j]),
-                                     float(yaw_all[j]), float(py_all[j]), float(pc_all[j])))
+                                     tuple(float(v) for v in a_all[j]), float(run.yaw_all[j]),
+                                     float(run.py_all[j]), float(run.pc_all[j])))
+
+    def _finish_batch(self, run: _BatchRun, still, out: BatchUpdate, offset: int) -> None:
+        """Outputs of a clean batch, and the state as after the last per-sample update."""
+        g, dt, npre = run.g, run.dt, run.npre
+        rate = g - run.bias_out
+        half = 0.5 * rate[:, 2] * dt
+        sl = slice(offset, offset + g.shape[0])
+        out.accepted[sl] = True
+        out.yaw[sl] = run.yaw_all[npre:]
+        out.heading_variance[sl] = run.py_all[npre:] + half * half
+        out.rate[sl] = rate
+        out.bias[sl] = run.bias_out
+        out.still[sl] = still
+        self.yaw, self.p_yaw = float(run.yaw), float(run.py)
+        self.p_cross, self.p_bias = float(run.pc), float(run.pb)
+        self.bias = run.bias.copy()
+        self.still = bool(still[-1])
+        self._used_until_ns, self.bias_updates = run.used_until, run.updates
+        self.stamp_ns = int(run.t[-1])
+        self._prev_gyro = tuple(float(v) for v in g[-1])
+        self._last_dt = float(dt[-1])
+        self.rate = rate[-1].copy()
 
     @property
     def heading_variance(self) -> float:
@@ -544,15 +506,9 @@ class GyroIntegrator:
         zx, zy, zz = np.mean(fresh, axis=0).tolist() if m > 1 else fresh[0]
         r = self.config.noise_density ** 2 / max(dt, 1e-6) / m
         bx, by, bz = self.bias.tolist()
-        s = self.p_bias + r
-        k_yaw, k_bias = self.p_cross / s, self.p_bias / s
-        self.yaw += k_yaw * (zz - bz)
-        self.bias = np.array((bx + k_bias * (zx - bx), by + k_bias * (zy - by),
-                              bz + k_bias * (zz - bz)))
-        # P - K H P, each line using the prior values it needs.
-        self.p_yaw -= k_yaw * self.p_cross
-        self.p_cross -= k_yaw * self.p_bias
-        self.p_bias -= k_bias * self.p_bias
+        self.yaw, self.p_yaw, self.p_cross, self.p_bias, bx, by, bz = _zero_velocity_update(
+            self.yaw, self.p_yaw, self.p_cross, self.p_bias, bx, by, bz, zx, zy, zz, r)
+        self.bias = np.array((bx, by, bz))
         self._used_until_ns = stamp_ns
         self.bias_updates += m
         # A requested calibration is done once a whole still window has been measured.
@@ -566,3 +522,79 @@ class GyroIntegrator:
         if self.wheels_available(stamp_ns) and self._wheel_motion_ns is not None:
             return self._wheel_motion_ns < self._window.samples[0].stamp_ns
         return True
+
+
+class _BatchRun:
+    """GyroIntegrator._batch_clean's walk over the moving and still runs of a batch: the filter
+    state on plain floats, and the heading history (yaw, p_yaw, p_cross after each sample) of
+    the window's earlier samples followed by the batch, which a new still run returns to."""
+
+    def __init__(self, gi: GyroIntegrator, prefix: list[_Sample], t, t_all, g, g_all, dt,
+                 first) -> None:
+        n, cfg = t.size, gi.config
+        self.t, self.t_all, self.g, self.g_all, self.dt, self.first = t, t_all, g, g_all, dt, first
+        self.npre = len(prefix)
+        self.yaw_all = np.concatenate([[s.yaw for s in prefix], np.empty(n)])
+        self.py_all = np.concatenate([[s.p_yaw for s in prefix], np.empty(n)])
+        self.pc_all = np.concatenate([[s.p_cross for s in prefix], np.empty(n)])
+        self.bias_out = np.empty((n, 3))
+        self.gz_prev = np.concatenate([[gi._prev_gyro[2]], g[:-1, 2]])
+        self.q, self.nd2 = cfg.bias_random_walk ** 2, cfg.noise_density ** 2
+        self.yaw, self.py, self.pc, self.pb = gi.yaw, gi.p_yaw, gi.p_cross, gi.p_bias
+        self.bias = gi.bias.copy()
+        self.was_still, self.used_until, self.updates = gi.still, gi._used_until_ns, gi.bias_updates
+
+    def moving(self, lo: int, hi: int) -> None:
+        """Samples lo..hi-1 integrate: GyroIntegrator._propagate and the trapezoid, as sums.
+
+        yaw' = yaw + (trapezoid - bias) dt; F = [[1, -dt], [0, 1]] plus noise, in closed form."""
+        d, q, pb, pc = self.dt[lo:hi], self.q, self.pb, self.pc
+        pb_before = pb + q * np.concatenate([[0.0], np.cumsum(d[:-1])])
+        pc_run = pc - np.cumsum(d * pb_before)
+        pc_before = np.concatenate([[pc], pc_run[:-1]])
+        py_run = self.py + np.cumsum(-2.0 * d * pc_before + d * d * pb_before + self.nd2 * d)
+        yaw_run = self.yaw + np.cumsum(
+            (0.5 * (self.gz_prev[lo:hi] + self.g[lo:hi, 2]) - self.bias[2]) * d)
+        rows = slice(self.npre + lo, self.npre + hi)
+        self.yaw_all[rows], self.py_all[rows], self.pc_all[rows] = yaw_run, py_run, pc_run
+        self.bias_out[lo:hi] = self.bias
+        self.yaw, self.py, self.pc = yaw_run[-1], py_run[-1], pc_run[-1]
+        self.pb = pb_before[-1] + q * d[-1]
+        self.was_still = False
+
+    def still(self, lo: int, hi: int) -> None:
+        """Samples lo..hi-1 measure the bias: GyroIntegrator._measure_bias per sample, on plain
+        floats (numpy per element costs more)."""
+        npre, g = self.npre, self.g
+        yaw, py, pc, pb = self.yaw, self.py, self.pc, self.pb
+        if not self.was_still:
+            # As update(): return to the heading held at the window's start, and let every raw
+            # sample of the window not used before measure the bias.
+            j = self.first[npre + lo]
+            yaw, py, pc = float(self.yaw_all[j]), float(self.py_all[j]), float(self.pc_all[j])
+            begin = max(j, int(np.searchsorted(self.t_all, self.used_until, side='right')))
+            zs = self.g_all[begin:npre + lo + 1].mean(axis=0)
+            ms = [npre + lo + 1 - begin]
+            self.was_still = True
+        else:
+            zs, ms = g[lo], [1]
+        gx, gy, gz = g[lo:hi, 0].tolist(), g[lo:hi, 1].tolist(), g[lo:hi, 2].tolist()
+        gx[0], gy[0], gz[0] = (float(v) for v in zs)
+        ms += [1] * (hi - lo - 1)
+        bx, by, bz = (float(v) for v in self.bias)
+        q, nd2, update = self.q, self.nd2, _zero_velocity_update
+        states = []
+        keep = states.append
+        for dk, m, zx, zy, zz in zip(self.dt[lo:hi].tolist(), ms, gx, gy, gz):
+            pb += q * dk
+            state = update(yaw, py, pc, pb, bx, by, bz, zx, zy, zz, nd2 / max(dk, 1e-6) / m)
+            yaw, py, pc, pb, bx, by, bz = state
+            keep(state)
+        yaws, pys, pcs, _, bxs, bys, bzs = zip(*states)
+        rows = slice(npre + lo, npre + hi)
+        self.yaw_all[rows], self.py_all[rows], self.pc_all[rows] = yaws, pys, pcs
+        self.bias_out[lo:hi, 0], self.bias_out[lo:hi, 1], self.bias_out[lo:hi, 2] = bxs, bys, bzs
+        self.used_until = int(self.t[hi - 1])
+        self.yaw, self.py, self.pc, self.pb = yaw, py, pc, pb
+        self.bias = np.array([bx, by, bz])
+        self.updates += sum(ms)

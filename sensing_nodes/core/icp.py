@@ -8,7 +8,7 @@ gives the pose of scan k+1 in the frame of scan k. Units: metres and radians.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -25,6 +25,105 @@ DEGENERATE_VARIANCE = 100.0
 
 _METHODS = ('point_to_line', 'point_to_point')
 _ROBUST = ('trim', 'adaptive', 'none')
+
+
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ValueError(message)
+
+
+@dataclass(frozen=True)
+class Convergence:
+    """When the ICP loop stops. Converged: the increment (m, yaw as arc length at the source's RMS
+    radius) fell below `tolerance`, or the mean error changed by less than `error_tolerance`
+    (relative), or it has not improved on its best for `stall_iterations` (correspondences
+    flipping back and forth). Not converged: `max_iterations` reached."""
+
+    max_iterations: int = 50
+    tolerance: float = 1e-4
+    error_tolerance: float = 0.001
+    stall_iterations: int = 5
+
+    def __post_init__(self) -> None:
+        _require(self.max_iterations >= 1 and self.tolerance > 0,
+                 f'max_iterations >= 1 and tolerance > 0 required, got {self.max_iterations} '
+                 f'and {self.tolerance}')
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """Which nearest-neighbour pairs enter the estimate (distances in m).
+
+    The gate starts at max_correspondence_distance and, with robust='adaptive', shrinks each
+    iteration to 2 × adaptive_factor × 1.4826 × the median residual (never below
+    min_correspondence_distance), keeping pairs within adaptive_factor × 1.4826 × median;
+    robust='trim' keeps the trim_fraction best pairs; 'none' keeps every pair inside the gate.
+    Fewer pairs than min_inlier_fraction of the source (or min_points): failure."""
+
+    max_correspondence_distance: float = 1.0
+    min_correspondence_distance: float = 0.1
+    robust: str = 'adaptive'
+    trim_fraction: float = 0.9
+    adaptive_factor: float = 3.0
+    min_points: int = 3
+    min_inlier_fraction: float = 0.2
+
+    def __post_init__(self) -> None:
+        _require(self.robust in _ROBUST, f'robust must be one of {_ROBUST}, got {self.robust!r}')
+        _require(self.max_correspondence_distance > 0 and 0 < self.trim_fraction <= 1
+                 and self.adaptive_factor > 0 and self.min_points >= 3,
+                 'max_correspondence_distance > 0, 0 < trim_fraction <= 1, adaptive_factor > 0 '
+                 'and min_points >= 3 required')
+
+
+@dataclass(frozen=True)
+class YawSearch:
+    """Coarse matches from the initial guess and from each yaw offset in yaw_hypotheses (rad),
+    on the source downsampled to coarse_voxel_size (m); each is scored by the fraction of source
+    points within score_distance (m) of the target, and the best seeds the fine match (a
+    hypothesis must beat the guess's own result by hypothesis_margin). No offsets: no search."""
+
+    yaw_hypotheses: tuple[float, ...] = ()
+    coarse_voxel_size: float = 0.25
+    coarse_iterations: int = 10
+    score_distance: float = 0.1
+    hypothesis_margin: float = 0.05
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'yaw_hypotheses', tuple(self.yaw_hypotheses))
+
+
+@dataclass(frozen=True)
+class IcpOptions:
+    """Everything match() can be told, validated once: the residual (`method`), source
+    downsampling (voxel_size, m; 0 = off), the degeneracy test (eigenvalue ratio) and the floor
+    of the residual standard deviation (m) used for the covariance, and one part per concern."""
+
+    method: str = 'point_to_line'
+    voxel_size: float = 0.0
+    degeneracy_ratio: float = 1e-3
+    min_residual_std: float = 0.005
+    convergence: Convergence = Convergence()
+    correspondences: Correspondences = Correspondences()
+    yaw_search: YawSearch = YawSearch()
+
+    def __post_init__(self) -> None:
+        _require(self.method in _METHODS,
+                 f'method must be one of {_METHODS}, got {self.method!r}')
+
+    def updated(self, **keywords) -> IcpOptions:
+        """A copy with flat keywords (match's call form) set in the part that holds each name;
+        TypeError on a name no part has."""
+        parts = {}
+        for part in ('convergence', 'correspondences', 'yaw_search'):
+            current = getattr(self, part)
+            names = {f.name for f in fields(current)} & keywords.keys()
+            if names:
+                parts[part] = replace(current, **{n: keywords.pop(n) for n in names})
+        return replace(self, **keywords, **parts)
+
+
+_DEFAULT_OPTIONS = IcpOptions()
 
 
 @dataclass(frozen=True)
@@ -324,18 +423,77 @@ def _same_pairs(a: tuple, b: tuple) -> bool:
     return matched_a.size == matched_b.size and np.array_equal(matched_a, matched_b)
 
 
-def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterations: int,
-              gate: float, min_gate: float, tolerance: float, robust: str, trim_fraction: float,
-              adaptive_factor: float, min_inliers: int, radius: float,
-              solve_ratio: float, error_tolerance: float, stall_iterations: int) -> _Loop:
+def _choose_pairs(size_sq, keep, count: int, corr: Correspondences, min_inliers: int,
+                  floor_sq: float) -> tuple[NDArray[np.intp] | None, float]:
+    """The robust rule: indices of the gated pairs that enter the estimate (None = all of them)
+    and the median squared residual. size_sq is infinite for pairs outside the gate."""
+    k = count // 2
+    median_sq = float(np.partition(size_sq, k)[k])
+    gated = count < keep.size
+    chosen: NDArray[np.intp] | None = np.flatnonzero(keep) if gated else None
+    if corr.robust == 'trim' and count > min_inliers:
+        n_keep = max(min_inliers, int(corr.trim_fraction * count))
+        chosen = np.argpartition(size_sq, n_keep - 1)[:n_keep]
+    elif corr.robust == 'adaptive':
+        robust_sq = (corr.adaptive_factor * 1.4826) ** 2
+        chosen = np.flatnonzero(size_sq <= max(robust_sq * median_sq, floor_sq))
+        if chosen.size < min_inliers:
+            chosen = np.argpartition(size_sq, min_inliers - 1)[:min_inliers]
+        elif chosen.size == keep.size:
+            chosen = None
+    return chosen, median_sq
+
+
+def _point_to_point_step(design, index, chosen, tgt: Target, x: float, y: float):
+    """Closed-form (SVD) increment (dx, dy, dyaw) for the chosen pairs at translation (x, y)."""
+    matched = index if chosen is None else index[chosen]
+    p = (design if chosen is None else design[chosen])[:, 0:2, 3]
+    r_step, t_step = align_paired(p, tgt.points.take(matched, axis=0))
+    dyaw = math.atan2(r_step[1, 0], r_step[0, 0])
+    # The SVD step is exact for these pairs; compose it with the current transform.
+    new_xy = r_step @ np.array([x, y]) + t_step
+    return float(new_xy[0]) - x, float(new_xy[1]) - y, dyaw
+
+
+class _Stop:
+    """The convergence rules of Convergence, fed one iteration at a time."""
+
+    def __init__(self, rules: Convergence) -> None:
+        self.rules = rules
+        self.previous: tuple | None = None
+        self.best_error, self.stalled = math.inf, 0
+
+    def converged(self, step: float, pairs: tuple, history: list[float]) -> bool:
+        rules = self.rules
+        # The pairs (target index per chosen source point) are compared only when it matters.
+        same_pairs = step < 10.0 * rules.tolerance and self.previous is not None \
+            and _same_pairs(self.previous, pairs)
+        self.previous = pairs
+        error = history[-1]
+        settled = len(history) >= 2 and \
+            abs(history[-2] - error) <= rules.error_tolerance * error
+        # Correspondences that flip back and forth keep the step from vanishing; when the error
+        # has not improved on its best for `stall_iterations`, it has stopped changing.
+        if error < self.best_error * (1.0 - rules.error_tolerance):
+            self.best_error, self.stalled = error, 0
+        else:
+            self.stalled += 1
+        return step < rules.tolerance or same_pairs or settled \
+            or self.stalled >= rules.stall_iterations
+
+
+def _icp_loop(src_h, rows, tgt: Target, pose, options: IcpOptions, max_iterations: int,
+              min_inliers: int, radius: float) -> _Loop:
     """Iterate correspondences and closed-form / Gauss-Newton steps from pose (x, y, yaw);
     src_h = source points as (N, 3) rows [x, y, 1], rows = the target's residual rows."""
     state = _Loop(*pose, reason=f'max_iterations ({max_iterations}) reached')
     x, y, yaw = pose
-    previous: tuple | None = None
-    best_error, stalled = math.inf, 0
+    corr = options.correspondences
+    gate = corr.max_correspondence_distance
+    min_gate = min(corr.min_correspondence_distance, gate)
     floor_sq = (0.25 * min_gate) ** 2
-    robust_sq = (adaptive_factor * 1.4826) ** 2
+    point_to_line = options.method == 'point_to_line'
+    stop = _Stop(options.convergence)
     for iteration in range(1, max_iterations + 1):
         state.iterations = iteration
         # One product gives every source point's moved position and design block.
@@ -355,22 +513,9 @@ def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterat
         whitened = np.matmul(pair_rows, design)       # (N, 2, 4): Jacobian rows | residual
         r0, r1 = whitened[:, 0, 3], whitened[:, 1, 3]
         size_sq = r0 * r0 + r1 * r1                   # squared Mahalanobis-like residual (m²)
-        gated = count < keep.size
-        if gated:
+        if count < keep.size:
             size_sq[~keep] = math.inf
-        # Robust rule: which of the gated pairs enter the estimate.
-        k = count // 2
-        median_sq = float(np.partition(size_sq, k)[k])
-        chosen: NDArray[np.intp] | None = np.flatnonzero(keep) if gated else None
-        if robust == 'trim' and count > min_inliers:
-            n_keep = max(min_inliers, int(trim_fraction * count))
-            chosen = np.argpartition(size_sq, n_keep - 1)[:n_keep]
-        elif robust == 'adaptive':
-            chosen = np.flatnonzero(size_sq <= max(robust_sq * median_sq, floor_sq))
-            if chosen.size < min_inliers:
-                chosen = np.argpartition(size_sq, min_inliers - 1)[:min_inliers]
-            elif chosen.size == keep.size:
-                chosen = None
+        chosen, median_sq = _choose_pairs(size_sq, keep, count, corr, min_inliers, floor_sq)
         if chosen is not None:
             whitened, size_sq = whitened.take(chosen, axis=0), size_sq.take(chosen)
         state.inliers = size_sq.size
@@ -379,35 +524,17 @@ def _icp_loop(src_h, rows, tgt: Target, pose, *, point_to_line: bool, max_iterat
         flat = whitened.reshape(-1, 4)
         state.normal, state.origin = flat.T @ flat, (x, y)
         if point_to_line:
-            dx, dy, dyaw = _solve_step(state.normal, radius, solve_ratio)
+            dx, dy, dyaw = _solve_step(state.normal, radius, options.degeneracy_ratio)
         else:
-            matched = index if chosen is None else index[chosen]
-            p = (design if chosen is None else design[chosen])[:, 0:2, 3]
-            r_step, t_step = align_paired(p, tgt.points.take(matched, axis=0))
-            dyaw = math.atan2(r_step[1, 0], r_step[0, 0])
-            # The SVD step is exact for these pairs; compose it with the current transform.
-            new_xy = r_step @ np.array([x, y]) + t_step
-            dx, dy = float(new_xy[0]) - x, float(new_xy[1]) - y
+            dx, dy, dyaw = _point_to_point_step(design, index, chosen, tgt, x, y)
         x, y = x + dx, y + dy
         yaw = math.remainder(yaw + dyaw, 2.0 * math.pi)
         state.x, state.y, state.yaw = x, y, yaw
-        if robust == 'adaptive':
-            gate = max(min_gate, min(gate, 2.0 * adaptive_factor * 1.4826 * math.sqrt(median_sq)))
+        if corr.robust == 'adaptive':
+            gate = max(min_gate, min(gate, 2.0 * corr.adaptive_factor * 1.4826
+                                     * math.sqrt(median_sq)))
         step = math.hypot(dx, dy) + abs(dyaw) * radius
-        # The pairs (target index per chosen source point) are compared only when it matters.
-        pairs = (index, chosen)
-        same_pairs = step < 10.0 * tolerance and previous is not None \
-            and _same_pairs(previous, pairs)
-        previous = pairs
-        settled = len(state.history) >= 2 and \
-            abs(state.history[-2] - state.history[-1]) <= error_tolerance * state.history[-1]
-        # Correspondences that flip back and forth keep the step from vanishing; when the error
-        # has not improved on its best for `stall_iterations`, it has stopped changing.
-        if state.error < best_error * (1.0 - error_tolerance):
-            best_error, stalled = state.error, 0
-        else:
-            stalled += 1
-        if step < tolerance or same_pairs or settled or stalled >= stall_iterations:
+        if stop.converged(step, (index, chosen), state.history):
             state.converged = True
             state.reason = ''
             break
@@ -429,58 +556,53 @@ def _score(src, tgt: Target, pose, inlier_distance: float) -> float:
     return float(np.isfinite(distance).mean())
 
 
+def _min_inliers(options: IcpOptions, source_count: int) -> int:
+    corr = options.correspondences
+    return max(corr.min_points, int(math.ceil(corr.min_inlier_fraction * source_count)))
+
+
+def _search_yaw(src, rows, tgt: Target, start, options: IcpOptions, radius: float):
+    """The seed of the fine match: the best-scoring coarse match over the yaw hypotheses."""
+    search = options.yaw_search
+    coarse = voxel_downsample(src, search.coarse_voxel_size) \
+        if search.coarse_voxel_size > 0 else src
+    if coarse.shape[0] < max(options.correspondences.min_points, 20):
+        coarse = src            # too few points left to be worth a coarse stage
+    best, best_score = start, -1.0
+    for offset in (0.0, *search.yaw_hypotheses):
+        seed = (start[0], start[1], start[2] + float(offset))
+        state = _icp_loop(_homogeneous(coarse), rows, tgt, seed, options,
+                          search.coarse_iterations, _min_inliers(options, coarse.shape[0]),
+                          radius)
+        candidate = (state.x, state.y, state.yaw) if state.normal is not None else seed
+        score = _score(coarse, tgt, candidate, search.score_distance)
+        # The guess's own result wins unless a hypothesis explains clearly more points.
+        if score > best_score + (search.hypothesis_margin if offset else 0.0):
+            best, best_score = candidate, score
+    return best
+
+
 def match(
     source: ArrayLike,
     target: ArrayLike | Target,
     initial: ArrayLike = (0.0, 0.0, 0.0),
     *,
-    method: str = 'point_to_line',
-    max_iterations: int = 50,
-    max_correspondence_distance: float = 1.0,
-    min_correspondence_distance: float = 0.1,
-    tolerance: float = 1e-4,
-    error_tolerance: float = 0.001,
-    stall_iterations: int = 5,
-    robust: str = 'adaptive',
-    trim_fraction: float = 0.9,
-    adaptive_factor: float = 3.0,
-    voxel_size: float = 0.0,
-    yaw_hypotheses: tuple[float, ...] = (),
-    coarse_voxel_size: float = 0.25,
-    coarse_iterations: int = 10,
-    score_distance: float = 0.1,
-    hypothesis_margin: float = 0.05,
-    min_points: int = 3,
-    min_inlier_fraction: float = 0.2,
-    degeneracy_ratio: float = 1e-3,
-    min_residual_std: float = 0.005,
+    options: IcpOptions | None = None,
+    **keywords,
 ) -> MatchResult:
     """Align source (N, 2) to target ((M, 2) or a prepared Target), both in their own frames (m),
     starting from `initial` (x, y, yaw). See MatchResult for the output.
 
-    Correspondences are nearest neighbours within a gate that starts at
-    max_correspondence_distance and, with robust='adaptive', shrinks each iteration to
-    2 × adaptive_factor × 1.4826 × the median residual (never below min_correspondence_distance),
-    keeping pairs within adaptive_factor × 1.4826 × median; robust='trim' keeps the
-    trim_fraction best pairs; 'none' keeps every pair inside the gate. Fewer pairs than
-    min_inlier_fraction of the source: failure. Iteration stops (converged) when the increment
-    (m, with yaw as arc length at the source's RMS radius) is below `tolerance`, when the mean
-    error changes by less than error_tolerance (relative) or has not improved on its best for
-    stall_iterations (correspondences flipping back and forth), else at max_iterations
-    (not converged). voxel_size > 0 downsamples the source first. With yaw_hypotheses (yaw offsets, rad) a coarse match from the initial guess
-    and from each offset is scored by the fraction of source points within score_distance of the
-    target, and the best seeds the fine match. Malformed arrays or options raise ValueError;
+    Options: `options=IcpOptions(...)`, or flat keywords naming any of its fields (method,
+    max_iterations, max_correspondence_distance, tolerance, robust, yaw_hypotheses, ...), which
+    are set on top of `options` (the defaults when it is None); see IcpOptions and its parts for
+    what each does. Malformed arrays or options raise ValueError (an unknown name TypeError);
     valid but unusable input (too few points, all points identical, a non-finite guess) returns
     converged=False with a reason.
     """
-    if method not in _METHODS:
-        raise ValueError(f'method must be one of {_METHODS}, got {method!r}')
-    if robust not in _ROBUST:
-        raise ValueError(f'robust must be one of {_ROBUST}, got {robust!r}')
-    if not (max_iterations >= 1 and max_correspondence_distance > 0 and tolerance > 0
-            and 0 < trim_fraction <= 1 and adaptive_factor > 0 and min_points >= 3):
-        raise ValueError('max_iterations >= 1, max_correspondence_distance > 0, tolerance > 0, '
-                         '0 < trim_fraction <= 1, adaptive_factor > 0 and min_points >= 3 required')
+    options = options or _DEFAULT_OPTIONS
+    if keywords:
+        options = options.updated(**keywords)
     guess = np.asarray(initial, dtype=float).ravel()
     if guess.shape != (3,):
         raise ValueError(f'initial must be (x, y, yaw), got shape {guess.shape}')
@@ -489,8 +611,9 @@ def match(
     dropped += tgt.dropped
     if not np.all(np.isfinite(guess)):
         return _failed(guess, 'initial guess is not finite', src.shape[0], dropped)
-    if voxel_size > 0:
-        src = voxel_downsample(src, voxel_size)
+    if options.voxel_size > 0:
+        src = voxel_downsample(src, options.voxel_size)
+    min_points = options.correspondences.min_points
     if src.shape[0] < min_points or tgt.points.shape[0] < min_points:
         return _failed(guess, f'too few valid points (source {src.shape[0]}, target '
                        f'{tgt.points.shape[0]}, need {min_points})', src.shape[0], dropped)
@@ -500,45 +623,28 @@ def match(
     if radius < 1e-9 or float((tgt.tree.maxes - tgt.tree.mins).max()) < 1e-9:
         return _failed(guess, 'all points identical: rotation undefined', src.shape[0], dropped)
 
-    point_to_line = method == 'point_to_line'
-    min_inliers = max(min_points, int(math.ceil(min_inlier_fraction * src.shape[0])))
-    settings = dict(
-        point_to_line=point_to_line, min_gate=min(min_correspondence_distance,
-                                                  max_correspondence_distance),
-        tolerance=tolerance, robust=robust, trim_fraction=trim_fraction,
-        adaptive_factor=adaptive_factor, radius=radius,
-        solve_ratio=degeneracy_ratio, error_tolerance=error_tolerance,
-        stall_iterations=stall_iterations)
-    if point_to_line:
+    if options.method == 'point_to_line':
         rows = tgt.rows if tgt.rows is not None else _residual_rows(tgt.points, tgt.information)
     else:
         rows = _identity_rows(tgt.points)
     start = (float(guess[0]), float(guess[1]), float(guess[2]))
-    if yaw_hypotheses:
-        coarse = voxel_downsample(src, coarse_voxel_size) if coarse_voxel_size > 0 else src
-        if coarse.shape[0] < max(min_points, 20):
-            coarse = src            # too few points left to be worth a coarse stage
-        coarse_min = max(min_points, int(math.ceil(min_inlier_fraction * coarse.shape[0])))
-        best, best_score = start, -1.0
-        for offset in (0.0, *yaw_hypotheses):
-            seed = (start[0], start[1], start[2] + float(offset))
-            state = _icp_loop(_homogeneous(coarse), rows, tgt, seed,
-                              max_iterations=coarse_iterations, gate=max_correspondence_distance,
-                              min_inliers=coarse_min, **settings)
-            candidate = (state.x, state.y, state.yaw) if state.normal is not None else seed
-            score = _score(coarse, tgt, candidate, score_distance)
-            # The guess's own result wins unless a hypothesis explains clearly more points.
-            if score > best_score + (hypothesis_margin if offset else 0.0):
-                best, best_score = candidate, score
-        start = best
-    state = _icp_loop(_homogeneous(src), rows, tgt, start, max_iterations=max_iterations,
-                      gate=max_correspondence_distance, min_inliers=min_inliers, **settings)
-    x, y, yaw = state.x, state.y, state.yaw
+    if options.yaw_search.yaw_hypotheses:
+        start = _search_yaw(src, rows, tgt, start, options, radius)
+    min_inliers = _min_inliers(options, src.shape[0])
+    state = _icp_loop(_homogeneous(src), rows, tgt, start, options,
+                      options.convergence.max_iterations, min_inliers, radius)
     if state.normal is None or state.inliers < min_inliers:
-        return MatchResult(x, y, yaw, np.eye(3) * FAILED_VARIANCE, state.iterations, False,
-                           state.error, state.reason, source_points=src.shape[0],
-                           dropped_points=dropped, history=state.history, inliers=state.inliers)
+        return MatchResult(state.x, state.y, state.yaw, np.eye(3) * FAILED_VARIANCE,
+                           state.iterations, False, state.error, state.reason,
+                           source_points=src.shape[0], dropped_points=dropped,
+                           history=state.history, inliers=state.inliers)
+    return _final_result(state, options, radius, src.shape[0], dropped)
 
+
+def _final_result(state: _Loop, options: IcpOptions, radius: float, source_count: int,
+                  dropped: int) -> MatchResult:
+    """The MatchResult of a loop that ended with inliers, with its covariance."""
+    x, y, yaw = state.x, state.y, state.yaw
     # Final linearised system over the last iteration's inlier pairs (converged: a tiny step),
     # with the levers taken about the final translation: moving the lever origin by Δt changes
     # each yaw Jacobian U·J·l by -U·J·Δt, i.e. the yaw column by a mix of the x and y columns.
@@ -551,16 +657,16 @@ def match(
     # trace(Mᵢ) = |Uᵢ|², summed over the pairs, is the trace of the x-y block.
     residual_count = float(normal[0, 0] + normal[1, 1])
     dof = max(1.0, residual_count - 3.0)
-    variance = max(float(normal[3, 3]) / dof, min_residual_std ** 2)
+    variance = max(float(normal[3, 3]) / dof, options.min_residual_std ** 2)
     covariance, degenerate, direction, condition = _covariance(
-        hessian, variance, radius, degeneracy_ratio)
+        hessian, variance, radius, options.degeneracy_ratio)
     reason = state.reason
     if degenerate and state.converged:
         reason = 'degenerate: geometry leaves one direction unconstrained'
     return MatchResult(
         x=x, y=y, yaw=yaw, covariance=covariance, iterations=state.iterations,
         converged=state.converged, error=state.error, reason=reason, degenerate=degenerate,
-        degenerate_direction=direction, inliers=state.inliers, source_points=src.shape[0],
+        degenerate_direction=direction, inliers=state.inliers, source_points=source_count,
         dropped_points=dropped, condition=condition, history=state.history)
 
 

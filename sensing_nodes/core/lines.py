@@ -20,7 +20,7 @@ not range-only.)
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -81,15 +81,19 @@ def fit_line(points: ArrayLike) -> PolarFit:
     if len(p) < 2:
         raise ValueError(f'a line needs at least 2 points, got {len(p)}')
     sums = np.concatenate(([len(p)], p.sum(axis=0), (p * p).sum(axis=0), [p[:, 0] @ p[:, 1]]))
-    fit = _PolarFits(sums[None, :])
+    fit = _Fits(sums[None, :])
+    alpha, _, _, r = fit.normalised()
     spread = math.hypot(fit.sxx[0] - fit.syy[0], 2.0 * fit.sxy[0])
     residual = max(0.5 * (fit.sxx[0] + fit.syy[0] - spread), 0.0)  # smaller scatter eigenvalue
-    return PolarFit(float(fit.alpha[0]), float(fit.r[0]), residual)
+    return PolarFit(float(alpha[0]), float(r[0]), residual)
 
 
-class _PolarFits:
-    """Least-squares lines from rows of point sums (n, Σx, Σy, Σx², Σy², Σxy), with r >= 0 and
-    alpha in (-pi, pi]."""
+class _Fits:
+    """Least-squares lines from rows of point sums (n, Σx, Σy, Σx², Σy², Σxy): the centroid
+    (xm, ym), the centred scatter (sxx, syy, sxy) and the normal (c, s) = (cos, sin)(alpha) with
+    offset r = (xm, ym)·(c, s), which may be negative here (see normalised()). A negative r
+    flips the signs of c, s and every signed distance, never their size, so the split, merge
+    and trim rules use the fits as they come. _fit_floats is the same fit on plain floats."""
 
     def __init__(self, sums: NDArray[np.float64]) -> None:
         w = self.w = sums[:, 0]
@@ -97,15 +101,19 @@ class _PolarFits:
         self.sxx = sums[:, 3] - xm * sums[:, 1]
         self.syy = sums[:, 4] - ym * sums[:, 2]
         self.sxy = sums[:, 5] - xm * sums[:, 2]
-        alpha = 0.5 * np.arctan2(-2.0 * self.sxy, self.syy - self.sxx)   # in [-pi/2, pi/2]
-        c, s = np.cos(alpha), np.sin(alpha)
-        r = xm * c + ym * s
-        flip = r < 0.0
+        self.alpha = 0.5 * np.arctan2(-2.0 * self.sxy, self.syy - self.sxx)   # in [-pi/2, pi/2]
+        self.c, self.s = np.cos(self.alpha), np.sin(self.alpha)
+        self.r = xm * self.c + ym * self.s
+
+    def normalised(self):
+        """(alpha, cos alpha, sin alpha, r) with r >= 0 and alpha in (-pi, pi]."""
+        flip = self.r < 0.0
+        alpha = self.alpha
         # Turning the normal by pi keeps the line and makes r positive.
         alpha = np.where(flip, np.where(alpha > 0.0, alpha - np.pi, alpha + np.pi), alpha)
-        self.alpha = np.where(alpha <= -np.pi, alpha + 2.0 * np.pi, alpha)   # -pi rounds to pi
-        self.c, self.s = np.where(flip, -c, c), np.where(flip, -s, s)
-        self.r = np.abs(r)
+        alpha = np.where(alpha <= -np.pi, alpha + 2.0 * np.pi, alpha)   # -pi rounds to pi
+        return (alpha, np.where(flip, -self.c, self.c), np.where(flip, -self.s, self.s),
+                np.abs(self.r))
 
 
 class _Scan:
@@ -138,16 +146,9 @@ class _Scan:
         index += self.counter[:total]
         return index, owner, offsets
 
-    def fit(self, s: NDArray[np.intp], e: NDArray[np.intp]):
-        """Unweighted fits of the inclusive point ranges [s, e] as (cos alpha, sin alpha, r);
-        r may be negative here (only the final lines are normalised to r >= 0)."""
-        d = self.prefix[e + 1] - self.prefix[s]
-        w = d[:, 0]
-        xm, ym = d[:, 1] / w, d[:, 2] / w
-        alpha = 0.5 * np.arctan2(-2.0 * (d[:, 5] - xm * d[:, 2]),
-                                 (d[:, 4] - ym * d[:, 2]) - (d[:, 3] - xm * d[:, 1]))
-        c, sn = np.cos(alpha), np.sin(alpha)
-        return c, sn, xm * c + ym * sn
+    def fit(self, s: NDArray[np.intp], e: NDArray[np.intp]) -> _Fits:
+        """Fits of the inclusive point ranges [s, e]."""
+        return _Fits(self.prefix[e + 1] - self.prefix[s])
 
 
 def _split(scan: _Scan, s: NDArray[np.intp], e: NDArray[np.intp], split_distance: float,
@@ -166,7 +167,8 @@ def _split(scan: _Scan, s: NDArray[np.intp], e: NDArray[np.intp], split_distance
             _split_ranges(scan, s.tolist(), e.tolist(), split_distance, smallest, done_s, done_e)
             break
         n = e - s + 1
-        c, sn, r = scan.fit(s, e)
+        fit = scan.fit(s, e)
+        c, sn, r = fit.c, fit.s, fit.r
         index, owner, offsets = scan.ranges(s, n)
         xi, yi = x[index], y[index]
         # Fewer points than `smallest` are never split (their fit is computed but not used).
@@ -212,7 +214,7 @@ def _split_ranges(scan: _Scan, s: list[int], e: list[int], split_distance: float
         lo, hi = todo.pop()
         at = None                                   # where to split, from lo, if it must
         if hi - lo + 1 >= smallest:
-            c, sn, r = _fit_floats((prefix[hi + 1] - prefix[lo]).tolist())
+            c, sn, r = _fit_floats((prefix[hi + 1] - prefix[lo]).tolist())[:3]
             if hi - lo < _FLOAT_SPLIT_POINTS:
                 xs, ys = x[lo:hi + 1].tolist(), y[lo:hi + 1].tolist()
                 if max(abs(px * c + py * sn - r) for px, py in zip(xs, ys)) > split_distance:
@@ -249,25 +251,47 @@ def _split_ranges(scan: _Scan, s: list[int], e: list[int], split_distance: float
     done_e.append(np.array(out_e, dtype=np.intp))
 
 
-def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: float,
-           max_gap: float, min_points: int):
+def _merge(scan: _Scan, s, e, options: LineOptions, min_points: int):
     """Merge neighbouring ranges whose lines agree within their summed covariance (chi-square on
-    (dr, dalpha), 2 dof) when the gap between them is at most max_gap and the merged fit still has
-    every point within split_distance. A range of fewer than min_points points (a piece of wall
-    between invalid beams, or an outlier) needs only the gap and the merged fit to pass.
-    Also returns the ranges' fits (cos, sin, r) when they were computed and nothing merged."""
+    (dr, dalpha), 2 dof) when the gap between them is at most max_line_gap and the merged fit
+    still has every point within split_distance. A range of fewer than min_points points (a
+    piece of wall between invalid beams, or an outlier) needs only the gap and the merged fit to
+    pass. Also returns the ranges' fits (cos, sin, r) when they were computed and nothing merged."""
     if len(s) < 2:
         return s, e, None
     xs, ys, xe, ye = scan.x[s], scan.y[s], scan.x[e], scan.y[e]
-    near = np.hypot(xs[1:] - xe[:-1], ys[1:] - ye[:-1]) <= max_gap
+    near = np.hypot(xs[1:] - xe[:-1], ys[1:] - ye[:-1]) <= options.max_line_gap
     near &= s[1:] >= e[:-1]
     if not np.count_nonzero(near):
         return s, e, None
     # A scan has a dozen ranges or so: per range and per pair, plain floats cost less than
     # numpy calls.
     fits = [_polar_fit_floats(row) for row in (scan.prefix[e + 1] - scan.prefix[s]).tolist()]
-    s_l, e_l, near_l = s.tolist(), e.tolist(), near.tolist()
-    xs_l, ys_l, xe_l, ye_l = xs.tolist(), ys.tolist(), xe.tolist(), ye.tolist()
+    s_l, e_l = s.tolist(), e.tolist()
+    ends = (xs.tolist(), ys.tolist(), xe.tolist(), ye.tolist())
+    candidate = _merge_candidates(fits, s_l, e_l, near.tolist(), ends, options, min_points)
+    if not any(candidate):
+        return s, e, tuple(np.array([f[j] for f in fits]) for j in range(3))
+    split_distance = options.split_distance
+    out_s, out_e = [s_l[0]], [e_l[0]]
+    for k in range(1, len(s_l)):
+        if candidate[k - 1] and out_e[-1] == e_l[k - 1]:
+            lo, hi = out_s[-1], e_l[k]
+            cm, sm, rm = _fit_floats((scan.prefix[hi + 1] - scan.prefix[lo]).tolist())[:3]
+            if np.abs(scan.x[lo:hi + 1] * cm + scan.y[lo:hi + 1] * sm - rm).max() <= split_distance:
+                out_e[-1] = hi
+                continue
+        out_s.append(s_l[k])
+        out_e.append(e_l[k])
+    return np.array(out_s), np.array(out_e), None
+
+
+def _merge_candidates(fits, s_l, e_l, near_l, ends, options: LineOptions,
+                      min_points: int) -> list[bool]:
+    """Per neighbouring pair of ranges, whether _merge should try the merged fit: fits from
+    _polar_fit_floats, ends = the ranges' first and last points (xs, ys, xe, ye) as lists."""
+    xs_l, ys_l, xe_l, ye_l = ends
+    split_distance, sigma2 = options.split_distance, options.range_sigma * options.range_sigma
     candidate = [False] * (len(s_l) - 1)
     for k in range(1, len(s_l)):
         if not near_l[k - 1]:
@@ -292,31 +316,26 @@ def _merge(scan: _Scan, s, e, sigma2: float, merge_chi2: float, split_distance: 
         elif da <= -math.pi:
             da += 2.0 * math.pi
         candidate[k - 1] = _divide(aa * dr * dr - 2.0 * ra * dr * da + rr * da * da,
-                                   rr * aa - ra * ra) <= merge_chi2
-    if not any(candidate):
-        return s, e, tuple(np.array([f[j] for f in fits]) for j in range(3))
-    out_s, out_e = [s_l[0]], [e_l[0]]
-    for k in range(1, len(s_l)):
-        if candidate[k - 1] and out_e[-1] == e_l[k - 1]:
-            lo, hi = out_s[-1], e_l[k]
-            cm, sm, rm = _fit_floats((scan.prefix[hi + 1] - scan.prefix[lo]).tolist())
-            if np.abs(scan.x[lo:hi + 1] * cm + scan.y[lo:hi + 1] * sm - rm).max() <= split_distance:
-                out_e[-1] = hi
-                continue
-        out_s.append(s_l[k])
-        out_e.append(e_l[k])
-    return np.array(out_s), np.array(out_e), None
+                                   rr * aa - ra * ra) <= options.merge_chi2
+    return candidate
 
 
-def _polar_fit_floats(d: list[float]) -> tuple[float, ...]:
-    """_PolarFits for one row of sums on plain floats: (cos alpha, sin alpha, r, alpha), then
-    (var r, cov r-alpha, var alpha) for unit distance variance per point."""
+def _fit_floats(d: list[float]) -> tuple[float, ...]:
+    """_Fits of one row of sums (n, Σx, Σy, Σx², Σy², Σxy) on plain floats (a dozen ranges per
+    scan: numpy calls cost more than the arithmetic): (cos alpha, sin alpha, r) as _Fits has
+    them (r may be negative), then alpha, the centroid and the centred scatter."""
     w, sx, sy, sxx, syy, sxy = d
     xm, ym = sx / w, sy / w
     sxx, syy, sxy = sxx - xm * sx, syy - ym * sy, sxy - xm * sy
     alpha = 0.5 * math.atan2(-2.0 * sxy, syy - sxx)
     c, sn = math.cos(alpha), math.sin(alpha)
-    r = xm * c + ym * sn
+    return c, sn, xm * c + ym * sn, alpha, w, xm, ym, sxx, syy, sxy
+
+
+def _polar_fit_floats(d: list[float]) -> tuple[float, ...]:
+    """_fit_floats normalised as _Fits.normalised: (cos alpha, sin alpha, r, alpha), then
+    (var r, cov r-alpha, var alpha) for unit distance variance per point."""
+    c, sn, r, alpha, w, xm, ym, sxx, syy, sxy = _fit_floats(d)
     if r < 0.0:
         alpha = alpha - math.pi if alpha > 0.0 else alpha + math.pi
         c, sn, r = -c, -sn, -r
@@ -390,20 +409,9 @@ def _beams(angles: NDArray[np.float64]) -> _Beams:
     return beams
 
 
-def extract_lines(
-    ranges: ArrayLike,
-    angles: ArrayLike,
-    *,
-    split_distance: float = 0.05,
-    max_line_gap: float = 0.5,
-    min_line_points: int = 6,
-    min_line_length: float = 0.2,
-    min_range: float = 0.0,
-    max_range: float = np.inf,
-    range_sigma: float = 0.01,
-    merge_chi2: float = 9.21,
-) -> list[Line]:
-    """Lines (laser frame) in a scan given as ranges (m, REP 117 values allowed) and beam angles (rad).
+@dataclass(frozen=True)
+class LineOptions:
+    """Settings of extract_lines, checked once (ValueError for values that make no sense).
 
     split_distance: a segment is split while a point is farther than this from its fit (m);
     max_line_gap: no line spans two consecutive points farther apart than this (m);
@@ -412,30 +420,92 @@ def extract_lines(
     range_sigma: standard deviation of the range noise (m), scales the covariances;
     merge_chi2: neighbouring segments merge when chi-square of (dr, dalpha) is at most this
     (2 degrees of freedom; 9.21 is the 99 % quantile).
-    Lines are sorted by first beam. Raises ValueError for ranges and angles of different lengths
-    and for option values that make no sense; otherwise returns what it finds (possibly nothing).
     """
-    _check_options(split_distance, max_line_gap, min_line_points, min_line_length,
-                   min_range, max_range, range_sigma, merge_chi2)
+
+    split_distance: float = 0.05
+    max_line_gap: float = 0.5
+    min_line_points: int = 6
+    min_line_length: float = 0.2
+    min_range: float = 0.0
+    max_range: float = np.inf
+    range_sigma: float = 0.01
+    merge_chi2: float = 9.21
+
+    def __post_init__(self) -> None:
+        positive = {'split_distance': self.split_distance, 'max_line_gap': self.max_line_gap,
+                    'range_sigma': self.range_sigma, 'merge_chi2': self.merge_chi2}
+        for name, value in positive.items():
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f'{name} must be a finite number > 0, got {value!r}')
+        if not (math.isfinite(self.min_line_length) and self.min_line_length >= 0.0):
+            raise ValueError('min_line_length must be a finite number >= 0, got '
+                             f'{self.min_line_length!r}')
+        if int(self.min_line_points) != self.min_line_points or self.min_line_points < 2:
+            raise ValueError('min_line_points must be an integer >= 2, got '
+                             f'{self.min_line_points!r}')
+        if not (math.isfinite(self.min_range) and self.min_range >= 0.0
+                and self.max_range > self.min_range):
+            raise ValueError(f'need 0 <= min_range < max_range, got {self.min_range!r} and '
+                             f'{self.max_range!r}')
+
+
+_DEFAULT_OPTIONS = LineOptions()
+
+
+def extract_lines(ranges: ArrayLike, angles: ArrayLike, *, options: LineOptions | None = None,
+                  **keywords) -> list[Line]:
+    """Lines (laser frame) in a scan given as ranges (m, REP 117 values allowed) and beam angles (rad).
+
+    Settings: `options=LineOptions(...)` or its fields as keywords (set on top of `options`).
+    Lines are sorted by first beam. Raises ValueError for ranges and angles of different lengths
+    and for option values that make no sense (TypeError for an unknown name); otherwise returns
+    what it finds (possibly nothing).
+    """
+    if options is None:
+        options = LineOptions(**keywords) if keywords else _DEFAULT_OPTIONS
+    elif keywords:
+        options = replace(options, **keywords)
     r_in = np.asarray(ranges, dtype=float).ravel()
     a_in = np.asarray(angles, dtype=float).ravel()
     if r_in.shape != a_in.shape:
         raise ValueError(f'ranges ({r_in.size}) and angles ({a_in.size}) differ in length')
     table = _beams(a_in)
-    # Valid as in core.scan.valid_ranges (REP 117); a zero range is no point on a surface,
-    # whatever min_range says. NaN fails every comparison; +inf fails the second.
-    valid = r_in >= max(min_range, _SMALLEST_RANGE)
-    valid &= r_in <= max_range if math.isfinite(max_range) else r_in < math.inf
-    if table.finite is not None:
-        valid &= table.finite
-    beams = valid.nonzero()[0]
-    min_points = max(int(min_line_points), 2)
+    beams = _valid_beams(r_in, table, options)
+    min_points = max(int(options.min_line_points), 2)
     if len(beams) < min_points:
         return []
     rho = r_in[beams]
     x, y = rho * table.cos[beams], rho * table.sin[beams]
-    circular = table.circular
-    brk = _breaks(x, y, beams, r_in.size, circular, max_line_gap)
+    scan, brk = _ordered_scan(x, y, beams, r_in.size, table.circular, options, min_points)
+    ends = brk.nonzero()[0]
+    starts = np.concatenate(([0], ends[:-1] + 1))
+    s, e = _split(scan, starts, ends, options.split_distance, min_points)
+    s, e, fits = _merge(scan, s, e, options, min_points)
+    keep = e - s + 1 >= min_points
+    if np.count_nonzero(keep) < len(keep):
+        s, e, fits = s[keep], e[keep], None
+    s, e = _trim_ends(scan, s, e, options.range_sigma, min_points, fits)
+    return _final_lines(scan, s, e, options.range_sigma * options.range_sigma,
+                        options.min_line_length)
+
+
+def _valid_beams(r_in: NDArray[np.float64], table: _Beams,
+                 options: LineOptions) -> NDArray[np.intp]:
+    """Indices of the valid beams, as in core.scan.valid_ranges (REP 117); a zero range is no
+    point on a surface, whatever min_range says. NaN fails every comparison; +inf the second."""
+    valid = r_in >= max(options.min_range, _SMALLEST_RANGE)
+    max_range = options.max_range
+    valid &= r_in <= max_range if math.isfinite(max_range) else r_in < math.inf
+    if table.finite is not None:
+        valid &= table.finite
+    return valid.nonzero()[0]
+
+
+def _ordered_scan(x, y, beams, beam_count: int, circular: bool, options: LineOptions,
+                  min_points: int) -> tuple[_Scan, NDArray[np.bool_]]:
+    """The _Scan of the valid points and its breaks (see _breaks); a full-circle scan is
+    rotated to start where no wall is cut in two."""
+    brk = _breaks(x, y, beams, beam_count, circular, options.max_line_gap)
     if circular and not brk[-1]:
         ends = brk.nonzero()[0]
         if len(ends):
@@ -445,23 +515,14 @@ def extract_lines(
         else:
             # A closed ring of points: start at a split point found on a first pass.
             scan = _Scan(x, y, beams)
-            s, _ = _split(scan, np.array([0]), np.array([len(x) - 1]), split_distance, min_points)
+            s, _ = _split(scan, np.array([0]), np.array([len(x) - 1]), options.split_distance,
+                          min_points)
             if len(s) > 1:
                 shift = int(s[1])
                 x, y, beams = (np.concatenate((a[shift:], a[:shift])) for a in (x, y, beams))
             brk = np.zeros(len(x), dtype=bool)
             brk[-1] = True
-    scan = _Scan(x, y, beams)
-    ends = brk.nonzero()[0]
-    starts = np.concatenate(([0], ends[:-1] + 1))
-    s, e = _split(scan, starts, ends, split_distance, min_points)
-    sigma2 = range_sigma * range_sigma
-    s, e, fits = _merge(scan, s, e, sigma2, merge_chi2, split_distance, max_line_gap, min_points)
-    keep = e - s + 1 >= min_points
-    if np.count_nonzero(keep) < len(keep):
-        s, e, fits = s[keep], e[keep], None
-    s, e = _trim_ends(scan, s, e, range_sigma, min_points, fits)
-    return _final_lines(scan, s, e, sigma2, min_line_length)
+    return _Scan(x, y, beams), brk
 
 
 def _trim_ends(scan: _Scan, s, e, range_sigma: float, min_points: int, fits=None):
@@ -471,7 +532,10 @@ def _trim_ends(scan: _Scan, s, e, range_sigma: float, min_points: int, fits=None
     fits, if given, are the ranges' unweighted fits (cos alpha, sin alpha, r)."""
     if not len(s):
         return s, e
-    c, sn, r = fits if fits is not None else scan.fit(s, e)
+    if fits is None:
+        fit = scan.fit(s, e)
+        fits = fit.c, fit.s, fit.r
+    c, sn, r = fits
     ends = np.stack((s, e), axis=1)
     x, y = scan.x[ends], scan.y[ends]
     c2, s2 = c[:, None], sn[:, None]
@@ -495,7 +559,7 @@ def _trim_ends(scan: _Scan, s, e, range_sigma: float, min_points: int, fits=None
             if hi - lo + 1 < min_points:
                 kept[k] = False
                 break
-            ck, sk, rk = _fit_floats((prefix[hi + 1] - prefix[lo]).tolist())
+            ck, sk, rk = _fit_floats((prefix[hi + 1] - prefix[lo]).tolist())[:3]
             bad_lo = bad_hi = False
             for end in (lo, hi):
                 xe, ye = float(x[end]), float(y[end])
@@ -513,23 +577,14 @@ def _trim_ends(scan: _Scan, s, e, range_sigma: float, min_points: int, fits=None
     return np.array(s_out)[keep], np.array(e_out)[keep]
 
 
-def _fit_floats(d: list[float]) -> tuple[float, float, float]:
-    """_Scan.fit of one range from its row of sums (n, Σx, Σy, Σx², Σy², Σxy), on plain floats."""
-    w, sx, sy, sxx, syy, sxy = d
-    xm, ym = sx / w, sy / w
-    alpha = 0.5 * math.atan2(-2.0 * (sxy - xm * sy), (syy - ym * sy) - (sxx - xm * sx))
-    c, sn = math.cos(alpha), math.sin(alpha)
-    return c, sn, xm * c + ym * sn
-
-
 def _final_lines(scan: _Scan, s, e, sigma2: float, min_length: float) -> list[Line]:
     """Fit each range (unweighted least squares) and build the Line objects; the covariance
     propagates each point's distance variance sigma²·cos²(incidence) through that fit."""
     if not len(s):
         return []
-    sums = scan.prefix[e + 1] - scan.prefix[s]
-    fit = _PolarFits(sums)
-    c, sn, n = fit.c, fit.s, sums[:, 0]
+    fit = scan.fit(s, e)
+    alpha, c, sn, r = fit.normalised()
+    n = fit.w
     counts = e - s + 1
     index, owner, offsets = scan.ranges(s, counts)
     x, y = scan.x[index], scan.y[index]
@@ -544,7 +599,7 @@ def _final_lines(scan: _Scan, s, e, sigma2: float, min_length: float) -> list[Li
     np.multiply(vu, u, out=terms[:, 2])
     sums_v = np.add.reduceat(terms, offsets, axis=0)
     # A dozen lines or so: the rest is per line, on plain floats (the same arithmetic).
-    per_line = np.array((n, c, sn, fit.r, fit.alpha, tm, fit.sxx, fit.syy, fit.sxy,
+    per_line = np.array((n, c, sn, r, alpha, tm, fit.sxx, fit.syy, fit.sxy,
                          scan.x[s], scan.y[s], scan.x[e], scan.y[e])).T.tolist()
     first, last, counts = scan.beams[s].tolist(), scan.beams[e].tolist(), counts.tolist()
     lines = []
@@ -564,18 +619,3 @@ def _final_lines(scan: _Scan, s, e, sigma2: float, min_length: float) -> list[Li
     # A 360-degree scan was processed from a break, not from beam 0.
     lines.sort(key=lambda line: line.first)
     return lines
-
-
-def _check_options(split_distance, max_line_gap, min_line_points, min_line_length,
-                   min_range, max_range, range_sigma, merge_chi2) -> None:
-    positive = {'split_distance': split_distance, 'max_line_gap': max_line_gap,
-                'range_sigma': range_sigma, 'merge_chi2': merge_chi2}
-    for name, value in positive.items():
-        if not (math.isfinite(value) and value > 0.0):
-            raise ValueError(f'{name} must be a finite number > 0, got {value!r}')
-    if not (math.isfinite(min_line_length) and min_line_length >= 0.0):
-        raise ValueError(f'min_line_length must be a finite number >= 0, got {min_line_length!r}')
-    if int(min_line_points) != min_line_points or min_line_points < 2:
-        raise ValueError(f'min_line_points must be an integer >= 2, got {min_line_points!r}')
-    if not (math.isfinite(min_range) and min_range >= 0.0 and max_range > min_range):
-        raise ValueError(f'need 0 <= min_range < max_range, got {min_range!r} and {max_range!r}')

@@ -41,7 +41,7 @@ class ScanMatcherSettings:
     fallback_std_m: float = 0.05                  # std added per fallback step, translation
     fallback_std_rad: float = math.radians(3.0)   # ... and yaw
     max_gap_s: float = 1.0                        # scans further apart: restart the keyframe
-    match_options: dict = field(default_factory=dict)   # passed to core.icp.match
+    icp_options: icp.IcpOptions = icp.IcpOptions()   # how each scan is matched
 
 
 @dataclass
@@ -134,6 +134,12 @@ class KeyframeScanMatcher:
                             f'{gap_s:.2f} s since the previous scan: keyframe restarted here',
                             new_keyframe=True)
 
+        return self._match(stamp_ns, points, predicted_motion)
+
+    def _match(self, stamp_ns: int, points: NDArray[np.float64],
+               predicted_motion: Pose2 | None) -> ScanStep:
+        """process() for a scan that follows the previous one within max_gap_s."""
+        s = self.settings
         dt = (stamp_ns - self.stamp_ns) * 1e-9
         source = 'odometry'
         if predicted_motion is None or not all(math.isfinite(v) for v in predicted_motion):
@@ -142,8 +148,8 @@ class KeyframeScanMatcher:
         predicted = compose(self.pose, predicted_motion)
         guess_base = between(self.keyframe_pose, predicted)
         guess_laser = mount_transform(guess_base, s.laser_pose)
-        result = icp.match(points, self.keyframe, guess_laser, **s.match_options)
-        points_usable = result.source_points >= s.match_options.get('min_points', 3)
+        result = icp.match(points, self.keyframe, guess_laser, options=s.icp_options)
+        points_usable = result.source_points >= s.icp_options.correspondences.min_points
 
         reason = self._rejection(result, guess_laser)
         previous = self.pose

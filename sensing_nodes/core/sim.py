@@ -491,8 +491,9 @@ def measured_ranges(true_ranges: NDArray, noise: NDArray, params: SimParams) -> 
 
 
 @dataclass
-class SimRun:
-    """A batch simulation: every sample as arrays. Times int64 ns of simulated time.
+class SimRun(SimBlock):
+    """A batch simulation: every sample as arrays (SimBlock's, over the whole run), with the
+    parameters, seed and scan geometry it ran with. Times int64 ns of simulated time.
 
     truth_pose (N, 3) [x, y, yaw] of base_link in the map frame, truth_twist (N, 2) [v, w];
     scan_ranges (S, B) float32 in m (+inf no return, -inf too close) in the `laser` frame;
@@ -502,18 +503,6 @@ class SimRun:
 
     params: SimParams
     seed: int
-    truth_t: NDArray[np.int64]
-    truth_pose: NDArray[np.float64]
-    truth_twist: NDArray[np.float64]
-    scan_t: NDArray[np.int64]
-    scan_ranges: NDArray[np.float32]
-    imu_t: NDArray[np.int64]
-    imu_gyro: NDArray[np.float64]
-    imu_accel: NDArray[np.float64]
-    joint_t: NDArray[np.int64]
-    joint_position: NDArray[np.float64]
-    joint_velocity: NDArray[np.float64]
-    clock_t: NDArray[np.int64]
     scan_angle_min: float
     scan_angle_increment: float
     scan_range_min: float

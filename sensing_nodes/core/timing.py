@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+from dataclasses import dataclass
 
 
 class StampStep(enum.Enum):
@@ -25,3 +26,13 @@ def classify_step(previous_ns: int | None, current_ns: int, max_gap_s: float) ->
     if dt_ns > max_gap_s * 1e9:
         return StampStep.GAP
     return StampStep.OK
+
+
+@dataclass
+class SampleOutcome:
+    """Outcome of one sample of an integrating core: whether to publish, the stamp step, why
+    the sample was rejected (the core's own enum; None when it was used) and anything to report."""
+    publish: bool
+    step: StampStep | None = None
+    rejection: enum.Enum | None = None
+    note: str = ''

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sensing_nodes.core.se2 import Pose2, wrap_angle
-from sensing_nodes.core.timing import StampStep, classify_step
+from sensing_nodes.core.timing import SampleOutcome, StampStep, classify_step
 
 METHODS = ('exact_arc', 'euler')
 
@@ -35,18 +35,25 @@ METHODS = ('exact_arc', 'euler')
 LATERAL_VELOCITY_VARIANCE = 1e-9
 
 
-def unwrap_increments(delta_rad: ArrayLike, max_step_rad: ArrayLike) -> NDArray[np.float64]:
-    """Encoder angle increments (rad) with wrap jumps folded back into (-pi, pi].
+def unwrap_increments(delta_rad, max_step_rad):
+    """Encoder angle increments (rad; a float or an array) with wrap jumps folded back.
 
     Folds by one turn (a wrapped reading cannot jump further) only where |delta| > max_step_rad
-    and the folded value is within max_step_rad.
+    and the folded value is within max_step_rad; elsewhere the increment is returned as it is.
     """
-    delta = np.asarray(delta_rad, dtype=float)
+    if isinstance(delta_rad, float):
+        delta, copysign, select = delta_rad, math.copysign, _select
+    else:
+        delta, copysign, select = np.asarray(delta_rad, dtype=float), np.copysign, np.where
     # A wrapping driver's reading jumps by exactly one turn: true step -+ 2 pi.
-    wrapped = delta - np.copysign(2.0 * np.pi, delta)
-    limit = np.asarray(max_step_rad, dtype=float)
-    fold = (np.abs(delta) > limit) & (np.abs(wrapped) <= limit)
-    return np.where(fold, wrapped, delta)
+    wrapped = delta - copysign(2.0 * math.pi, delta)
+    fold = (abs(delta) > max_step_rad) & (abs(wrapped) <= max_step_rad)
+    return select(fold, wrapped, delta)
+
+
+def _select(condition: bool, if_true: float, if_false: float) -> float:
+    """np.where for one float."""
+    return if_true if condition else if_false
 
 
 def wheel_increments(
@@ -66,13 +73,10 @@ def wheel_increments(
     return ds[..., 0], ds[..., 1]
 
 
-def body_increments(
-    ds_left: ArrayLike, ds_right: ArrayLike, wheel_separation_m: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Wheel distances (m) -> base travel (dsR + dsL)/2 (m), heading change (dsR - dsL)/L (rad)."""
-    left = np.asarray(ds_left, dtype=float)
-    right = np.asarray(ds_right, dtype=float)
-    return 0.5 * (right + left), (right - left) / wheel_separation_m
+def body_increments(ds_left, ds_right, wheel_separation_m: float):
+    """Wheel distances (m; floats or arrays) -> base travel (dsR + dsL)/2 (m) and heading change
+    (dsR - dsL)/L (rad)."""
+    return 0.5 * (ds_right + ds_left), (ds_right - ds_left) * (1.0 / wheel_separation_m)
 
 
 def _sincos(angle):
@@ -116,61 +120,32 @@ def _displacement(yaw, ds, dtheta, method: str):
     raise ValueError(f"unknown integration method {method!r}; expected one of {METHODS}")
 
 
-def integrate_step(pose: ArrayLike, ds: ArrayLike, dtheta: ArrayLike, method: str = 'exact_arc'):
-    """Pose(s) (x, y, yaw) in odom after travelling ds (m) and turning dtheta (rad) in one step.
+def step_columns(yaw, ds_left, ds_right, wheel_separation_m: float, method: str = 'exact_arc'):
+    """One step from heading yaw (rad) over wheel distances ds_left, ds_right (m; floats or
+    arrays): the odom-frame displacement (dx, dy) (m), the base travel ds (m) and heading change
+    dtheta (rad), and the columns (x, y) of d(dx, dy)/d(ds_left) and d(dx, dy)/d(ds_right).
+    d(dtheta)/d(ds_left, ds_right) is (-1/L, 1/L).
 
-    pose (3,) or (..., 3) with matching ds/dtheta; a tuple of floats returns a Pose2 tuple.
+    The step's pose Jacobian is the shear I + u e3^T with u = (-dy, dx, 0), so with these
+    columns G = [[gl_x, gr_x], [gl_y, gr_y], [-1/L, 1/L]] the covariance step is
+    P' = F P F^T + G diag(var_l, var_r) G^T; the per-message (WheelOdometry) and the batch
+    (integrate_path) propagation both build on this, and core.textbook writes it as 3x3 products.
     """
-    if isinstance(pose, tuple) and isinstance(ds, float) and isinstance(dtheta, float):
-        dx, dy, _, _ = _displacement(float(pose[2]), ds, dtheta, method)
-        return (pose[0] + dx, pose[1] + dy, float(wrap_angle(pose[2] + dtheta)))
-    p = np.asarray(pose, dtype=float)
-    dx, dy, _, _ = _displacement(p[..., 2], np.asarray(ds, float), np.asarray(dtheta, float),
-                                 method)
-    return np.stack([p[..., 0] + dx, p[..., 1] + dy, wrap_angle(p[..., 2] + dtheta)], axis=-1)
-
-
-def step_jacobians(
-    yaw: float, ds: float, dtheta: float, wheel_separation_m: float, method: str = 'exact_arc'
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Jacobians of one step w.r.t. the pose (3x3) and the wheel distances [dsL, dsR] (3x2)."""
-    dx, dy, d_ds, d_dth = _displacement(float(yaw), float(ds), float(dtheta), method)
-    j_pose = np.array([[1.0, 0.0, -dy], [0.0, 1.0, dx], [0.0, 0.0, 1.0]])
-    j_body = np.array([[d_ds[0], d_dth[0]], [d_ds[1], d_dth[1]], [0.0, 1.0]])
-    to_body = np.array([[0.5, 0.5], [-1.0 / wheel_separation_m, 1.0 / wheel_separation_m]])
-    return j_pose, j_body @ to_body
-
-
-def propagate_covariance(
-    covariance: ArrayLike,
-    yaw: float,
-    ds_left: float,
-    ds_right: float,
-    wheel_separation_m: float,
-    variance_per_m: tuple[float, float],
-    method: str = 'exact_arc',
-) -> NDArray[np.float64]:
-    """Pose covariance (3x3, x/y/yaw in odom) after one step from heading yaw, wheel distances in m.
-
-    Wheel distance variance is variance_per_m[i] * |ds_i| (m^2), independent per wheel.
-    """
-    ds, dtheta = 0.5 * (ds_right + ds_left), (ds_right - ds_left) / wheel_separation_m
-    j_pose, j_wheels = step_jacobians(yaw, ds, dtheta, wheel_separation_m, method)
-    wheel_var = np.diag([variance_per_m[0] * abs(ds_left), variance_per_m[1] * abs(ds_right)])
-    cov = j_pose @ np.asarray(covariance, float) @ j_pose.T + j_wheels @ wheel_var @ j_wheels.T
-    return 0.5 * (cov + cov.T)
+    ds, dtheta = body_increments(ds_left, ds_right, wheel_separation_m)
+    inv_l = 1.0 / wheel_separation_m
+    dx, dy, (fx, fy), (gx, gy) = _displacement(yaw, ds, dtheta, method)
+    return (dx, dy, ds, dtheta, (0.5 * fx - inv_l * gx, 0.5 * fy - inv_l * gy),
+            (0.5 * fx + inv_l * gx, 0.5 * fy + inv_l * gy))
 
 
 def _step_noise(yaw, ds_left, ds_right, wheel_separation_m, variance_per_m, method):
-    """Per-step (dx, dy, dtheta) and Q = G diag(k|ds|) G^T as arrays (..., 3, 3) (vectorised)."""
-    ds, dtheta = body_increments(ds_left, ds_right, wheel_separation_m)
-    dx, dy, d_ds, d_dth = _displacement(yaw, ds, dtheta, method)
-    inv_l = 1.0 / wheel_separation_m
-    # G = d(dx, dy, dtheta)/d(dsL, dsR), columns for left and right.
-    g_left = np.stack([0.5 * d_ds[0] - inv_l * d_dth[0], 0.5 * d_ds[1] - inv_l * d_dth[1],
-                       np.full_like(ds, -inv_l)], axis=-1)
-    g_right = np.stack([0.5 * d_ds[0] + inv_l * d_dth[0], 0.5 * d_ds[1] + inv_l * d_dth[1],
-                        np.full_like(ds, inv_l)], axis=-1)
+    """Per-step (dx, dy, dtheta), Q = G diag(k|ds|) G^T (..., 3, 3) and the radius-error
+    Jacobian H (..., 3, 2), vectorised over steps."""
+    dx, dy, _, dtheta, (lx, ly), (rx, ry) = step_columns(yaw, ds_left, ds_right,
+                                                          wheel_separation_m, method)
+    inv_l = np.full_like(dtheta, 1.0 / wheel_separation_m)
+    g_left = np.stack([lx, ly, -inv_l], axis=-1)
+    g_right = np.stack([rx, ry, inv_l], axis=-1)
     var_l = variance_per_m[0] * np.abs(ds_left)
     var_r = variance_per_m[1] * np.abs(ds_right)
     q = (var_l[..., None, None] * g_left[..., :, None] * g_left[..., None, :]
@@ -193,8 +168,8 @@ def integrate_path(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Batch dead reckoning: poses (N, 3) in odom and covariances (N, 3, 3) after each of N steps.
 
-    Same numbers as N calls of integrate_step/propagate_covariance, without a Python loop: every
-    step Jacobian is a shear I + u e3^T with u = (-dy, dx, 0), so the products telescope into
+    The same recursion as WheelOdometry (see step_columns), without a Python loop: every step
+    Jacobian is a shear I + u e3^T with u = (-dy, dx, 0), so the products telescope into
     differences of positions and the covariance is a sum of cumulative sums.
     """
     ds_l = np.asarray(ds_left, dtype=float).ravel()
@@ -287,13 +262,21 @@ class WheelOdometryConfig:
 
 
 @dataclass
-class OdometryUpdate:
-    """Outcome of one JointState sample: what to publish (if anything) and what to report."""
-    publish: bool
-    step: StampStep | None = None
-    rejection: Rejection | None = None
-    note: str = ''
+class OdometryUpdate(SampleOutcome):
+    """Outcome of one JointState sample (rejection: a Rejection); wrapped: an encoder wrap was
+    folded back."""
     wrapped: bool = False
+
+
+def _wheel_pair(names, values, il: int, ir: int, kind: str):
+    """(left, right) floats of one JointState field, or the rejection of a malformed one."""
+    if len(values) != len(names):
+        return OdometryUpdate(False, rejection=Rejection.LENGTH_MISMATCH,
+                              note=f'{len(names)} names but {len(values)} {kind}')
+    pair = (float(values[il]), float(values[ir]))
+    if not (math.isfinite(pair[0]) and math.isfinite(pair[1])):
+        return OdometryUpdate(False, rejection=Rejection.NON_FINITE, note=f'wheel {kind} {pair}')
+    return pair
 
 
 @dataclass
@@ -344,37 +327,10 @@ class WheelOdometry:
         joints: tuple[str, str],
     ) -> OdometryUpdate:
         """Take one JointState sample (stamp ns, names, positions rad, velocities rad/s)."""
-        try:
-            il, ir = names.index(joints[0]), names.index(joints[1])
-        except ValueError:
-            missing = [j for j in joints if j not in names]
-            return OdometryUpdate(False, rejection=Rejection.MISSING_JOINT,
-                                  note=f'wheel joint(s) {missing} not in {list(names)}')
-        pos = vel = None
-        if len(positions):
-            if len(positions) != len(names):
-                return OdometryUpdate(False, rejection=Rejection.LENGTH_MISMATCH,
-                                      note=f'{len(names)} names but {len(positions)} positions')
-            pos = (float(positions[il]), float(positions[ir]))
-            if not (math.isfinite(pos[0]) and math.isfinite(pos[1])):
-                return OdometryUpdate(False, rejection=Rejection.NON_FINITE,
-                                      note=f'wheel positions {pos}')
-        elif len(velocities):
-            if len(velocities) != len(names):
-                return OdometryUpdate(False, rejection=Rejection.LENGTH_MISMATCH,
-                                      note=f'{len(names)} names but {len(velocities)} velocities')
-            vel = (float(velocities[il]), float(velocities[ir]))
-            if not (math.isfinite(vel[0]) and math.isfinite(vel[1])):
-                return OdometryUpdate(False, rejection=Rejection.NON_FINITE,
-                                      note=f'wheel velocities {vel}')
-            if max(abs(vel[0]), abs(vel[1])) > self.config.max_wheel_speed_rad_s:
-                return OdometryUpdate(False, rejection=Rejection.IMPLAUSIBLE, note=(
-                    f'wheel velocities {vel} rad/s beyond max_wheel_speed_rad_s '
-                    f'{self.config.max_wheel_speed_rad_s}'))
-        else:
-            return OdometryUpdate(False, rejection=Rejection.NO_DATA,
-                                  note='no positions and no velocities')
-
+        sample = self._read(names, positions, velocities, joints)
+        if isinstance(sample, OdometryUpdate):
+            return sample
+        pos, vel = sample
         step = classify_step(self.stamp_ns, stamp_ns, self.config.max_gap_s)
         if step is StampStep.REPEATED:
             return OdometryUpdate(False, step, Rejection.REPEATED_STAMP,
@@ -390,34 +346,10 @@ class WheelOdometry:
             return OdometryUpdate(True, step, note=note)
 
         dt = (stamp_ns - self.stamp_ns) * 1e-9
-        radii = self.config.radii
-        wrapped = False
-        if pos is not None and self._positions is not None:
-            max_step = self.config.max_wheel_speed_rad_s * dt
-            dphi = []
-            for now, prev in zip(pos, self._positions):
-                d = now - prev
-                if abs(d) > max_step and step is StampStep.OK:
-                    folded = d - math.copysign(2.0 * math.pi, d)
-                    if abs(folded) > max_step:
-                        self._restart(stamp_ns, pos, vel)
-                        return OdometryUpdate(False, step, Rejection.IMPLAUSIBLE, note=(
-                            f'wheel angle jumped {d:.3f} rad in {dt:.4f} s (max '
-                            f'{max_step:.3f} rad); restarted from this reading'))
-                    d, wrapped = folded, True
-                dphi.append(d)
-            ds_l, ds_r = dphi[0] * radii[0], dphi[1] * radii[1]
-        elif vel is not None and self._velocities is not None:
-            # Velocity-only drivers: trapezoidal rule over the interval.
-            ds_l = 0.5 * (vel[0] + self._velocities[0]) * dt * radii[0]
-            ds_r = 0.5 * (vel[1] + self._velocities[1]) * dt * radii[1]
-        elif vel is not None:
-            ds_l, ds_r = vel[0] * dt * radii[0], vel[1] * dt * radii[1]
-        else:
-            # Positions appear after velocity-only samples: anchor on them.
-            self._restart(stamp_ns, pos, vel)
-            return OdometryUpdate(True, step, note='positions appeared; anchored on them')
-
+        rolled = self._wheel_distances(stamp_ns, step, dt, pos, vel)
+        if isinstance(rolled, OdometryUpdate):
+            return rolled
+        ds_l, ds_r, wrapped = rolled
         if step is StampStep.GAP:
             self._inflate_for_gap(ds_l, ds_r)
             note = (f'{dt:.3f} s gap (> max_gap_s {self.config.max_gap_s}): not integrated across; '
@@ -431,22 +363,73 @@ class WheelOdometry:
         return OdometryUpdate(True, step, wrapped=wrapped,
                               note='encoder position wrapped; unwrapped' if wrapped else '')
 
+    def _read(self, names, positions, velocities, joints):
+        """(positions, None) or (None, velocities) of the [left, right] wheels, or the
+        rejection (an OdometryUpdate) of a sample that cannot be used."""
+        try:
+            il, ir = names.index(joints[0]), names.index(joints[1])
+        except ValueError:
+            missing = [j for j in joints if j not in names]
+            return OdometryUpdate(False, rejection=Rejection.MISSING_JOINT,
+                                  note=f'wheel joint(s) {missing} not in {list(names)}')
+        if len(positions):
+            pos = _wheel_pair(names, positions, il, ir, 'positions')
+            return pos if isinstance(pos, OdometryUpdate) else (pos, None)
+        if not len(velocities):
+            return OdometryUpdate(False, rejection=Rejection.NO_DATA,
+                                  note='no positions and no velocities')
+        vel = _wheel_pair(names, velocities, il, ir, 'velocities')
+        if isinstance(vel, OdometryUpdate):
+            return vel
+        if max(abs(vel[0]), abs(vel[1])) > self.config.max_wheel_speed_rad_s:
+            return OdometryUpdate(False, rejection=Rejection.IMPLAUSIBLE, note=(
+                f'wheel velocities {vel} rad/s beyond max_wheel_speed_rad_s '
+                f'{self.config.max_wheel_speed_rad_s}'))
+        return None, vel
+
+    def _wheel_distances(self, stamp_ns: int, step: StampStep, dt: float, pos, vel):
+        """(ds_left, ds_right, wrapped): the distances (m) the wheels rolled since the last
+        sample; or the OdometryUpdate when there is nothing to integrate (restarted)."""
+        radii = self.config.radii
+        if pos is not None and self._positions is not None:
+            max_step = self.config.max_wheel_speed_rad_s * dt
+            dphi, wrapped = [], False
+            for now, prev in zip(pos, self._positions):
+                d = now - prev
+                if abs(d) > max_step and step is StampStep.OK:
+                    folded = unwrap_increments(d, max_step)
+                    if abs(folded) > max_step:
+                        self._restart(stamp_ns, pos, vel)
+                        return OdometryUpdate(False, step, Rejection.IMPLAUSIBLE, note=(
+                            f'wheel angle jumped {d:.3f} rad in {dt:.4f} s (max '
+                            f'{max_step:.3f} rad); restarted from this reading'))
+                    d, wrapped = folded, True
+                dphi.append(d)
+            return dphi[0] * radii[0], dphi[1] * radii[1], wrapped
+        if vel is not None and self._velocities is not None:
+            # Velocity-only drivers: trapezoidal rule over the interval.
+            return (0.5 * (vel[0] + self._velocities[0]) * dt * radii[0],
+                    0.5 * (vel[1] + self._velocities[1]) * dt * radii[1], False)
+        if vel is not None:
+            return vel[0] * dt * radii[0], vel[1] * dt * radii[1], False
+        # Positions appear after velocity-only samples: anchor on them.
+        self._restart(stamp_ns, pos, vel)
+        return OdometryUpdate(True, step, note='positions appeared; anchored on them')
+
     def _integrate(self, ds_l: float, ds_r: float, dt: float) -> None:
-        # The same numbers as propagate_covariance, written out in scalars: this runs once per
-        # message and 3x3 numpy products cost more than the arithmetic.
+        # P' = F P F^T + G diag(var) G^T (see step_columns) written out in scalars: this runs
+        # once per message and 3x3 numpy products cost more than the arithmetic.
         cfg = self.config
         inv_l = 1.0 / cfg.wheel_separation_m
-        ds, dtheta = 0.5 * (ds_r + ds_l), (ds_r - ds_l) * inv_l
         x, y, yaw = self.pose
-        dx, dy, (fx, fy), (gx, gy) = _displacement(yaw, ds, dtheta, cfg.method)
-        # F = I + u e3^T with u = (-dy, dx, 0); G = [g_left g_right] w.r.t. the wheel distances.
+        dx, dy, ds, dtheta, (lx, ly), (rx, ry) = step_columns(yaw, ds_l, ds_r,
+                                                              cfg.wheel_separation_m, cfg.method)
+        # F = I + u e3^T with u = (-dy, dx, 0).
         a, b = -dy, dx
-        lx, ly = 0.5 * fx - inv_l * gx, 0.5 * fy - inv_l * gy
-        rx, ry = 0.5 * fx + inv_l * gx, 0.5 * fy + inv_l * gy
         var_l = cfg.variance_per_m[0] * abs(ds_l)
         var_r = cfg.variance_per_m[1] * abs(ds_r)
-        p = self.random_covariance
-        xx, xy, xt, yy, yt, tt = p[0, 0], p[0, 1], p[0, 2], p[1, 1], p[1, 2], p[2, 2]
+        # As plain floats: arithmetic on numpy scalars costs several times more (same bits).
+        (xx, xy, xt), (_, yy, yt), (_, _, tt) = self.random_covariance.tolist()
         xx2 = xx + 2.0 * a * xt + a * a * tt + var_l * lx * lx + var_r * rx * rx
         xy2 = xy + a * yt + b * xt + a * b * tt + var_l * lx * ly + var_r * rx * ry
         xt2 = xt + a * tt + inv_l * (var_r * rx - var_l * lx)
@@ -455,11 +438,11 @@ class WheelOdometry:
         tt2 = tt + inv_l * inv_l * (var_l + var_r)
         self.random_covariance = np.array([[xx2, xy2, xt2], [xy2, yy2, yt2], [xt2, yt2, tt2]])
         if cfg.radius_multiplier_std > 0.0:
-            j = self.radius_jacobian
+            (jx0, jx1), (jy0, jy1), (jt0, jt1) = self.radius_jacobian.tolist()
             self.radius_jacobian = np.array([
-                [j[0, 0] + a * j[2, 0] + lx * ds_l, j[0, 1] + a * j[2, 1] + rx * ds_r],
-                [j[1, 0] + b * j[2, 0] + ly * ds_l, j[1, 1] + b * j[2, 1] + ry * ds_r],
-                [j[2, 0] - inv_l * ds_l, j[2, 1] + inv_l * ds_r]])
+                [jx0 + a * jt0 + lx * ds_l, jx1 + a * jt1 + rx * ds_r],
+                [jy0 + b * jt0 + ly * ds_l, jy1 + b * jt1 + ry * ds_r],
+                [jt0 - inv_l * ds_l, jt1 + inv_l * ds_r]])
         yaw2 = yaw + dtheta
         if yaw2 > math.pi or yaw2 <= -math.pi:
             yaw2 = float(wrap_angle(yaw2))

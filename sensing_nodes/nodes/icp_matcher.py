@@ -11,6 +11,7 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import LaserScan
 
+from sensing_nodes.core.icp import Convergence, Correspondences, IcpOptions
 from sensing_nodes.core.scan import scan_to_points
 from sensing_nodes.core.scan_matching import (
     KeyframeScanMatcher, OdometryBuffer, ScanMatcherSettings,
@@ -31,6 +32,32 @@ class IcpMatcherNode(Node):
                              'velocity model')
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the published pose')
         self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame (robot base)')
+        s = self._settings = self._declare_settings()
+        self._matcher = KeyframeScanMatcher(s)
+        # Odometry history must reach back to the previous scan, however far apart scans may be
+        # (max_gap_s): a real log's keyframes can be tens of seconds apart.
+        self._odometry = OdometryBuffer(max_age_s=max(10.0, 2.0 * s.max_gap_s),
+                                        max_extrapolation_s=self._odom_extrapolation_s) \
+            if odom_topic else None
+        self._last_scan_ns: int | None = None
+        self._warnings = ThrottledWarnings(self)
+        self.diagnostics = Diagnostics(self)
+        self._publisher = self.create_publisher(Odometry, '/scan_match/odom', ESTIMATE_QOS)
+        self.create_subscription(LaserScan, '/scan', self._on_scan, SENSOR_QOS)
+        if odom_topic:
+            self.create_subscription(Odometry, odom_topic, self._on_odometry, ESTIMATE_QOS)
+        self.diagnostics.values['prediction'] = odom_topic or 'constant_velocity'
+        laser, options = s.laser_pose, s.icp_options
+        self.get_logger().info(
+            f"initial guess from {odom_topic or 'a constant-velocity model'}; laser at "
+            f'({laser[0]}, {laser[1]}, {laser[2]}) in {self._base_frame}; keyframes every '
+            f'{s.keyframe_distance_m} m / {math.degrees(s.keyframe_angle_rad):.1f} deg; '
+            f'{options.method}, robust {options.correspondences.robust}')
+
+    def _declare_settings(self) -> ScanMatcherSettings:
+        """Declare and check the parameters after the frames (laser mount, keyframes, ICP,
+        acceptance gates, fallback, odometry use) in their documented order: a parameter table,
+        hence its length."""
         laser = (declare(self, 'laser_x_m', 0.10, 'laser mount x in base_link (m)'),
                  declare(self, 'laser_y_m', 0.0, 'laser mount y in base_link (m)'),
                  declare(self, 'laser_yaw_rad', 0.0, 'laser mount yaw in base_link (rad)',
@@ -69,9 +96,9 @@ class IcpMatcherNode(Node):
                                    'std added to yaw per fallback step (rad)', minimum=0.0)
         max_gap = declare(self, 'max_gap_s', 1.0,
                           'scans further apart than this restart the keyframe (s)', minimum=0.0)
-        odom_extrapolation = declare(self, 'odom_max_extrapolation_s', 0.1,
-                                     'use odometry up to this far past its newest message (s)',
-                                     minimum=0.0, maximum=1.0)
+        self._odom_extrapolation_s = declare(
+            self, 'odom_max_extrapolation_s', 0.1,
+            'use odometry up to this far past its newest message (s)', minimum=0.0, maximum=1.0)
         self._min_points = declare(self, 'min_points', 20,
                                    'scans with fewer valid points are not matched', minimum=3)
 
@@ -84,33 +111,16 @@ class IcpMatcherNode(Node):
         require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
                 'must not be empty')
         require(max_gap > 0.0, 'max_gap_s', 'must be > 0', max_gap)
-
-        self._settings = ScanMatcherSettings(
+        return ScanMatcherSettings(
             laser_pose=laser, keyframe_distance_m=kf_distance, keyframe_angle_rad=kf_angle,
             max_error_m=max_error, max_jump_m=max_jump, max_jump_rad=max_jump_rad,
             fallback_std_m=fallback_std_m, fallback_std_rad=fallback_std_rad, max_gap_s=max_gap,
-            match_options={'method': method, 'robust': robust, 'max_iterations': max_iterations,
-                           'max_correspondence_distance': max_corr, 'voxel_size': voxel,
-                           'min_inlier_fraction': min_inliers,
-                           'min_points': max(3, self._min_points)})
-        self._matcher = KeyframeScanMatcher(self._settings)
-        # Odometry history must reach back to the previous scan, however far apart scans may be
-        # (max_gap_s): a real log's keyframes can be tens of seconds apart.
-        self._odometry = OdometryBuffer(max_age_s=max(10.0, 2.0 * max_gap),
-                                        max_extrapolation_s=odom_extrapolation) \
-            if odom_topic else None
-        self._last_scan_ns: int | None = None
-        self._warnings = ThrottledWarnings(self)
-        self.diagnostics = Diagnostics(self)
-        self._publisher = self.create_publisher(Odometry, '/scan_match/odom', ESTIMATE_QOS)
-        self.create_subscription(LaserScan, '/scan', self._on_scan, SENSOR_QOS)
-        if odom_topic:
-            self.create_subscription(Odometry, odom_topic, self._on_odometry, ESTIMATE_QOS)
-        self.diagnostics.values['prediction'] = odom_topic or 'constant_velocity'
-        self.get_logger().info(
-            f"initial guess from {odom_topic or 'a constant-velocity model'}; laser at "
-            f'({laser[0]}, {laser[1]}, {laser[2]}) in {self._base_frame}; keyframes every '
-            f'{kf_distance} m / {math.degrees(kf_angle):.1f} deg; {method}, robust {robust}')
+            icp_options=IcpOptions(
+                method=method, voxel_size=voxel,
+                convergence=Convergence(max_iterations=max_iterations),
+                correspondences=Correspondences(
+                    max_correspondence_distance=max_corr, robust=robust,
+                    min_inlier_fraction=min_inliers, min_points=max(3, self._min_points))))
 
     def _on_odometry(self, msg: Odometry) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
