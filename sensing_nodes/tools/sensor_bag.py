@@ -160,7 +160,7 @@ def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
         scan_meta = None
         names: tuple[str, ...] = ()
         done, last_report = 0, time.monotonic()
-        for topic, timestamp, msg in messages(list(chosen)):
+        for topic, timestamp, msg in (messages(list(chosen)) if chosen else ()):
             kind = chosen[topic]
             t = _stamp(msg, int(timestamp))
             if kind == 'joints':
