@@ -33,6 +33,8 @@ AXES = ('x', 'y', 'z')
 # A still IMU: 1 s means of the gyro within this (rad/s) and of |accel| within this (m/s^2).
 STILL_GYRO_RAD_S = 0.02
 STILL_ACCEL_M_S2 = 0.1
+# The ray-cast truth is used only when this share of the beams lands within 0.2 m of it.
+MIN_WORLD_AGREEMENT = 0.8
 
 
 def _plot_allan(results: dict, rate: float, path: Path, title: str) -> None:
@@ -187,10 +189,22 @@ def characterize_lidar(data: SensorData, png_dir: Path | None, world_file: Path,
     span = scans.range_max - scans.range_min
     print(f'LiDAR {scans.topic}: {len(scans.t)} scans x {scans.angles.size} beams, '
           f'{scans.range_min:g}-{scans.range_max:g} m')
-    if data.truth_t is not None:
+    use_truth = data.truth_t is not None
+    if use_truth:
         measured, true = _truth_ranges(data, world_file, laser, every)
         reference = f'ray-cast truth ({world_file.name}, laser at {tuple(laser)})'
-    else:
+        both = np.isfinite(measured) & np.isfinite(true)
+        with np.errstate(invalid='ignore'):
+            agree = float(np.mean(np.abs(measured[both] - true[both]) <= 0.2)) if both.any() \
+                else 0.0
+        if agree < MIN_WORLD_AGREEMENT:
+            # /ground_truth/odom of a converted log (CARMEN's corrected poses) is not in the
+            # world file's map: the ray cast would compare with the wrong walls.
+            print(f'  the bag has {data.truth_t.size} ground-truth poses, but only '
+                  f'{100 * agree:.0f} % of the beams agree with {world_file.name} within 0.2 m: '
+                  'not its world (give --world); using the fitted lines instead')
+            use_truth = False
+    if not use_truth:
         measured, true = _line_residuals(data, every)
         reference = 'lines fitted by line_extractor (core/lines.py)'
     try:
@@ -198,7 +212,7 @@ def characterize_lidar(data: SensorData, png_dir: Path | None, world_file: Path,
     except ValueError as exc:
         print(f'  no range statistics: {exc}')
         return False
-    if data.truth_t is None:
+    if not use_truth:
         # The lines were fitted to these very ranges: they absorb any bias, and each line's two
         # parameters take a little of the scatter.
         errors = ch.RangeErrors(None, errors.sigma_m, None, errors.precision, errors.beams)
@@ -212,8 +226,9 @@ def characterize_lidar(data: SensorData, png_dir: Path | None, world_file: Path,
               f'{errors.precision:.0f}; range bias and accuracy NOT MEASURABLE without ground '
               'truth (the lines absorb a bias)')
     if png_dir is not None:
-        res = measured - true
-        res = res[np.isfinite(res) & (np.abs(res) <= 0.2)]
+        finite = np.isfinite(measured) & np.isfinite(true)
+        res = measured[finite] - true[finite]
+        res = res[np.abs(res) <= 0.2]
 
         def plot(path: Path) -> None:
             import matplotlib
