@@ -46,9 +46,12 @@ def _plot_allan(results: dict, rate: float, path: Path, title: str) -> None:
     for ax, sensor, unit, dens in ((axes[0], 'gyro', 'rad/s', 'rad/s/√Hz'),
                                    (axes[1], 'accel', 'm/s²', 'm/s²/√Hz')):
         for axis, colour in zip(AXES, ('tab:red', 'tab:green', 'tab:blue')):
-            ad, terms = results[(sensor, axis)]
+            ad, terms, bound = results[(sensor, axis)]
             ax.loglog(ad.tau, ad.adev, 'o-', ms=3, color=colour, label=f'{sensor} {axis}')
             tau = ad.tau
+            if bound is not None:
+                ax.loglog(tau, bound / np.sqrt(tau), '--', color=colour, lw=0.8,
+                          label=f'{axis}: N ≤ {bound:.3g} {dens} (bound from the shortest τ)')
             if terms.n is not None:
                 ax.loglog(tau, terms.n / np.sqrt(tau), '--', color=colour, lw=0.8,
                           label=f'{axis}: N = {terms.n:.3g} {dens} (slope −1/2, τ = 1 s)')
@@ -90,14 +93,28 @@ def characterize_imu(data: SensorData, png_dir: Path | None) -> bool:
     accel_span = float(np.ptp(accel_means, axis=0).max()) if accel_means.shape[0] > 1 else 0.0
     still = gyro_span <= STILL_GYRO_RAD_S and accel_span <= STILL_ACCEL_M_S2
     if not still:
-        shortest = float(np.std(gyro[:, 2]))
         print(f'  NOT STILL: 1 s gyro means span {gyro_span:.3f} rad/s, accelerometer means span '
               f'{accel_span:.2f} m/s^2 (still: <= {STILL_GYRO_RAD_S} rad/s, <= '
               f'{STILL_ACCEL_M_S2} m/s^2).')
-        print('  The Allan deviation of a moving IMU measures the motion, not the sensor: '
-              'B and K cannot be read. At most an upper bound on the white noise: '
-              f'N_z <= {shortest / math.sqrt(rate):.3g} rad/s/sqrt(Hz) (sample std / sqrt(rate)).')
-        return False
+        print('  The Allan deviation of a moving IMU measures the motion, not the sensor: B and K '
+              'cannot be read, nor N itself. What it can show: at the shortest cluster time the '
+              'motion changes little between samples, so adev(tau0) * sqrt(tau0) bounds N from '
+              'above (tight when the motion is slow against the sample rate):')
+        results = {}
+        for sensor, values, unit in (('gyro', gyro, 'rad/s/sqrt(Hz)'),
+                                     ('accel', accel, 'm/s^2/sqrt(Hz)')):
+            for i, axis in enumerate(AXES):
+                ad = ch.allan_deviation(values[:, i], rate, min_clusters=9)
+                bound = float(ad.adev[0] * math.sqrt(ad.tau[0]))
+                results[(sensor, axis)] = (ad, ch.NoiseTerms(None, None, None, ()), bound)
+                print(f'    {sensor} {axis}: N <= {bound:.3g} {unit}')
+        if png_dir is not None:
+            path = png_dir / 'imu_allan.png'
+            atomic_write(path, lambda p: _plot_allan(
+                results, rate, p, f'{Path(data.path).name}: {data.imu_topic}, {duration:.0f} s, '
+                'NOT STILL: the curves show the motion; only the N bounds are the sensor\'s'))
+            print(f'  wrote {path}')
+        return True
     gaps = np.flatnonzero(dt > 5.0 * period)
     if gaps.size:
         raise SensorBagError(f'{data.imu_topic}: the still recording has {gaps.size} gap(s), the '
@@ -110,13 +127,13 @@ def characterize_imu(data: SensorData, png_dir: Path | None) -> bool:
     for sensor, values in (('gyro', gyro), ('accel', accel)):
         for i, axis in enumerate(AXES):
             ad = ch.allan_deviation(values[:, i], rate)
-            results[(sensor, axis)] = (ad, ch.fit_noise_terms(ad))
+            results[(sensor, axis)] = (ad, ch.fit_noise_terms(ad), None)
     print('  axis      N (/sqrt(Hz))   B            K (x sqrt(Hz))')
-    for (sensor, axis), (_, terms) in results.items():
+    for (sensor, axis), (_, terms, _) in results.items():
         def show(v):
             return f'{v:12.4g}' if v is not None else '    not seen'
         print(f'  {sensor:5s} {axis}  {show(terms.n)}   {show(terms.b)}   {show(terms.k)}')
-    for (sensor, axis), (_, terms) in results.items():
+    for (sensor, axis), (_, terms, _) in results.items():
         for note in terms.notes:
             print(f'  {sensor} {axis}: {note}')
     gz = results[('gyro', 'z')][1]
