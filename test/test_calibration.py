@@ -191,3 +191,35 @@ def test_nan_encoder_reading_is_refused(tmp_path, capsys):
     assert calibrate.main([str(bad), '--out', str(out), '--quiet']) == 2
     assert 'non-finite wheel position' in capsys.readouterr().err
     assert not out.exists()
+
+
+DATASETS = Path(__file__).resolve().parents[1] / '..' / 'shared' / 'datasets' / 'ros'
+
+
+def test_real_turtlebot3_bag(tmp_path, capsys):
+    """fuse's TurtleBot3 (Gazebo) bag: no truth to judge by, so the figures are checked against
+    the Waffle's published geometry (r 0.033 m, b 0.287 m, laser 0.064 m behind base_link)
+    within what a calibration may move them."""
+    bag = DATASETS / 'fuse-turtlebot3.bag'
+    if not bag.exists():
+        pytest.skip(f'{bag} is not here')
+    out = tmp_path / 'tb3.yaml'
+    assert calibrate.main([str(bag), '--wheel-radius', '0.033', '--wheel-separation', '0.287',
+                           '--laser', '-0.064', '0', '0', '--out', str(out), '--quiet']) == 0
+    report = yaml.safe_load(out.read_text())['sensing_calibrate']['ros__parameters']
+    values = dict(zip(report['parameters'], report['values']))
+    assert all(report['estimated'])
+    assert values['left_radius_m'] == pytest.approx(0.033, rel=0.02)
+    assert values['right_radius_m'] == pytest.approx(0.033, rel=0.02)
+    assert values['wheel_separation_m'] == pytest.approx(0.287, rel=0.03)
+    assert values['laser_x_m'] == pytest.approx(-0.064, abs=0.015)
+    assert 'gyro z: bias' in capsys.readouterr().out
+
+
+def test_real_bag_without_encoders_or_laser_is_refused(capsys):
+    bag = DATASETS / 'robot_localization-test2.bag'
+    if not bag.exists():
+        pytest.skip(f'{bag} is not here')
+    assert calibrate.main([str(bag), '--quiet']) == 2
+    err = capsys.readouterr().err
+    assert 'no wheel encoders' in err and '/jackal_velocity_controller/odom' in err

@@ -87,3 +87,19 @@ def test_bag_without_sensors_is_refused(tmp_path, capsys):
         writer.write('/chatter', String(data='hi'), 1)
     assert characterize.main([str(bag), '--quiet']) == 2
     assert 'no IMU, LaserScan or JointState' in capsys.readouterr().err
+
+
+def test_real_hand_turned_imu_gets_only_a_noise_bound(tmp_path, capsys):
+    from pathlib import Path
+
+    bag = (Path(__file__).resolve().parents[1] / '..' / 'shared' / 'datasets' / 'ros'
+           / 'imu_tools-phidgets_imu_upside_down.bag')
+    if not bag.exists():
+        pytest.skip(f'{bag} is not here')
+    png = tmp_path / 'png'
+    assert characterize.main([str(bag), '--png', str(png), '--quiet']) == 0
+    out = capsys.readouterr().out
+    assert 'NOT STILL' in out and 'B and K cannot be read' in out
+    bound = float(out.split('gyro z: N <= ')[1].split()[0])
+    assert 1e-5 < bound < 1e-3                  # a MEMS gyro's white noise, in rad/s/sqrt(Hz)
+    assert (png / 'imu_allan.png').stat().st_size > 10_000

@@ -26,8 +26,7 @@ from sensing_nodes.core import calibration as cal
 from sensing_nodes.core.scan import scan_to_points
 from sensing_nodes.paths import config_file
 from sensing_nodes.tools.sensor_bag import (
-    EXIT_BAD_INPUT, SensorBagError, atomic_write, describe_topics, read_sensor_bag,
-    stderr_progress,
+    EXIT_BAD_INPUT, SensorBagError, atomic_write, read_sensor_bag, stderr_progress,
 )
 
 PROG = 'sensing_calibrate'
@@ -160,13 +159,8 @@ def run(args: argparse.Namespace) -> int:
     progress = None if args.quiet else stderr_progress(PROG)
     data = read_sensor_bag(args.bag, joint_topic=args.joint_topic, scan_topic=args.scan_topic,
                            imu_topic=args.imu_topic, want=('joints', 'scan', 'imu'),
+                           required=('joints', 'scan'), purpose='calibration needs both',
                            progress=progress)
-    missing = [what for what, ok in (('wheel encoders (sensor_msgs/JointState)', data.joint_t),
-                                     ('laser scans (sensor_msgs/LaserScan)', data.scans))
-               if ok is None]
-    if missing:
-        raise SensorBagError(f'{args.bag} has no {" and no ".join(missing)}: calibration needs '
-                             f'both (topics: {describe_topics(data)})')
     nominal_values = nominal_settings(args.nominal)
     radius = args.wheel_radius or float(nominal_values.get('wheel_radius_m', 0.05))
     separation = args.wheel_separation or float(nominal_values.get('wheel_separation_m', 0.30))

@@ -25,6 +25,9 @@ LASER_SCAN = ('sensor_msgs/msg/LaserScan', 'sensor_msgs/LaserScan')
 IMU = ('sensor_msgs/msg/Imu', 'sensor_msgs/Imu')
 ODOMETRY = ('nav_msgs/msg/Odometry', 'nav_msgs/Odometry')
 GROUND_TRUTH = '/ground_truth/odom'
+_DESCRIPTIONS = {'joints': 'wheel encoders (sensor_msgs/JointState)',
+                 'scan': 'laser scans (sensor_msgs/LaserScan)', 'imu': 'IMU (sensor_msgs/Imu)',
+                 'truth': f'ground truth ({GROUND_TRUTH})'}
 EXIT_BAD_INPUT = 2
 
 
@@ -133,8 +136,11 @@ def _open(path: Path):
 def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
                     scan_topic: str | None = None, imu_topic: str | None = None,
                     want: tuple[str, ...] = ('joints', 'scan', 'imu', 'truth'),
+                    required: tuple[str, ...] = (), purpose: str = '',
                     progress: Callable[[str], None] | None = None) -> SensorData:
-    """Read the streams named in `want` from a rosbag2 folder or ROS 1 .bag file."""
+    """Read the streams named in `want` from a rosbag2 folder or ROS 1 .bag file; the kinds in
+    `required` must be there (SensorBagError naming what is missing for `purpose`, raised
+    before any message is read)."""
     path = Path(path)
     if not path.exists():
         raise SensorBagError(f'{path}: no such bag')
@@ -155,6 +161,10 @@ def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
                 chosen[t] = 'imu'
         if 'truth' in want and topics.get(GROUND_TRUTH, ('', 0))[0] in ODOMETRY:
             chosen[GROUND_TRUTH] = 'truth'
+        missing = [_DESCRIPTIONS[kind] for kind in required if kind not in chosen.values()]
+        if missing:
+            raise SensorBagError(f'{path} has no {" and no ".join(missing)}: {purpose} '
+                                 f'(topics: {_topic_list(topics)})')
         total = sum(topics[t][1] for t in chosen)
         rows: dict[str, list] = {'joints': [], 'scan': [], 'imu': [], 'truth': []}
         scan_meta = None
@@ -235,9 +245,13 @@ def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
     return data
 
 
+def _topic_list(topics: dict[str, tuple[str, int]]) -> str:
+    return '; '.join(f'{t} ({ty}, {n})' for t, (ty, n) in sorted(topics.items()))
+
+
 def describe_topics(data: SensorData) -> str:
-    """One line per topic: name, type, count (for error messages)."""
-    return '; '.join(f'{t} ({ty}, {n})' for t, (ty, n) in sorted(data.topics.items()))
+    """Every topic of the bag: name, type, count (for error messages)."""
+    return _topic_list(data.topics)
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
