@@ -162,7 +162,9 @@ class GyroCalibration:
 class CalibrationResult:
     """Estimates in PARAMETERS order, the 6x6 covariance and correlation over the excited ones
     (NaN rows/columns for the rest), the closed-form solution, what the bag's motion covered,
-    and how many intervals were used, rejected as outliers, or refused by the matcher."""
+    how many intervals were used, rejected as outliers, or refused by the matcher, and the
+    random wheel error the residuals show (variance per metre of wheel travel, the model of
+    core/wheel_odometry.py)."""
 
     nominal: Geometry
     estimates: tuple[Estimate, ...]
@@ -176,6 +178,7 @@ class CalibrationResult:
     turned_rad: float
     residual_std: tuple[float, float, float]
     notes: tuple[str, ...]
+    wheel_variance_per_m: float = float('nan')    # fitted random wheel error (m^2 per m)
     gyro: GyroCalibration | None = None
 
     def geometry(self) -> Geometry:
@@ -519,24 +522,30 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
     wheel_shape = wheel_noise_shapes(data, Geometry.from_vector(values))
     # A floor: the matcher's covariance alone can be optimistic (1 mm, 0.01 deg).
     matcher = data.laser_covariance + np.diag([1e-6, 1e-6, math.radians(0.01) ** 2])
-    k_wheel, k_matcher = 4e-6, 1.0
-    for _round in range(6):
+    noise = (4e-6, 1.0)          # (wheel m^2/m as wheel_odometry's default, matcher scale)
+    def fit(keep: NDArray[np.bool_], noise: tuple[float, float]) -> NDArray[np.float64]:
+        """Whitened least squares over the kept intervals; updates `values`, returns the
+        (rows, 6) Jacobian (zero columns for held parameters)."""
         sub = data.select(keep)
-        res0 = _residuals(sub, values)
-        if _round:
-            k_wheel, k_matcher = _noise_model(res0, wheel_shape[keep], matcher[keep])
-        whiten = _whitener(k_wheel * wheel_shape[keep] + k_matcher * matcher[keep])
+        whiten = _whitener(noise[0] * wheel_shape[keep] + noise[1] * matcher[keep])
 
         def fun(p_free: NDArray[np.float64]) -> NDArray[np.float64]:
             p = values.copy()
             p[free] = p_free
             return np.einsum('kij,kj->ki', whiten, _residuals(sub, p)).ravel()
 
-        fit = least_squares(fun, values[free], x_scale=_SCALES[free], method='lm'
-                            if free.sum() <= sub.t0_ns.size * 3 else 'trf')
-        values[free] = fit.x
-        jac = np.zeros((fit.fun.size, 6))
-        jac[:, free] = fit.jac
+        result = least_squares(fun, values[free], x_scale=_SCALES[free], method='lm'
+                               if free.sum() <= sub.t0_ns.size * 3 else 'trf')
+        values[free] = result.x
+        jac = np.zeros((result.fun.size, 6))
+        jac[:, free] = result.jac
+        return jac
+
+    for _round in range(8):
+        if _round:
+            noise = _noise_model(_residuals(data.select(keep), values), wheel_shape[keep],
+                                 matcher[keep])
+        jac = fit(keep, noise)
         unexcited = _unexcited(jac, free)
         if unexcited.any():
             names = ', '.join(PARAMETERS[i] for i in np.flatnonzero(unexcited))
@@ -545,16 +554,20 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
             values[~free] = nominal.vector()[~free]
             continue
         res = _residuals(data, values)
-        cov_all = k_wheel * wheel_shape + k_matcher * matcher
+        cov_all = noise[0] * wheel_shape + noise[1] * matcher
         mahalanobis = np.einsum('ki,kij,kj->k', res, np.linalg.inv(cov_all), res)
-        # Chi-square with 3 dof: reject_sigma = 4 keeps 4-sigma-equivalent residuals.
+        # Chi-square with 3 dof: 16 + 6 = 22 is about as rare as a 4-sigma normal residual.
         new_keep = mahalanobis <= reject_sigma ** 2 + 6.0
         if np.array_equal(new_keep, keep) and _round >= 2:
             break
         keep = new_keep
+    if not free.any():
+        raise CalibrationError('the motion in the bag excites none of the parameters')
+    # The reported figures come from one consistent fit: the final intervals and noise model.
+    jac = fit(keep, noise)
     sub = data.select(keep)
     res = _residuals(sub, values)
-    cov_sub = k_wheel * wheel_shape[keep] + k_matcher * matcher[keep]
+    cov_sub = noise[0] * wheel_shape[keep] + noise[1] * matcher[keep]
     dof = max(res.size - int(free.sum()), 1)
     chi2 = max(float(np.einsum('ki,kij,kj->', res, np.linalg.inv(cov_sub), res)) / dof, 1.0)
     sigma = np.array([_robust_std(res[:, c]) for c in range(3)])
@@ -587,7 +600,8 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
         nominal=nominal, estimates=tuple(estimates), covariance=covariance,
         correlation=correlation, closed_form=closed, intervals_used=int(keep.sum()),
         outliers=int((~keep).sum()), refused=dict(intervals.rejected), distance_m=distance,
-        turned_rad=turned, residual_std=tuple(float(v) for v in sigma), notes=tuple(notes))
+        turned_rad=turned, residual_std=tuple(float(v) for v in sigma), notes=tuple(notes),
+        wheel_variance_per_m=float(noise[0]))
 
 
 def calibrate_gyro(intervals: Intervals, imu_t: NDArray[np.int64], gyro_z: NDArray[np.float64],

@@ -93,6 +93,9 @@ def params_yaml(result: cal.CalibrationResult, wheel_radius_m: float, bag: str,
         # What calibration leaves: the wheel_odometry systematic error model takes it.
         'radius_multiplier_std': round(float(max(radius_std)), 7) if radius_std else 0.0,
     }
+    if math.isfinite(result.wheel_variance_per_m):
+        # The random part: what the residuals show beyond the matcher's own noise.
+        wheel['wheel_variance_per_m'] = float(f'{result.wheel_variance_per_m:.3g}')
     laser = {'laser_x_m': round(g.laser_x_m, 6), 'laser_y_m': round(g.laser_y_m, 6),
              'laser_yaw_rad': round(g.laser_yaw_rad, 7)}
     doc: dict[str, Any] = {'wheel_odometry': {'ros__parameters': wheel},
@@ -219,6 +222,8 @@ def run(args: argparse.Namespace) -> int:
             print(f'  {e.name:<20} {shown}{rel}')
         else:
             print(f'  {e.name:<20} NOT ESTIMATED: {e.note}')
+    print(f'  random wheel error seen in the residuals: {result.wheel_variance_per_m:.3g} m^2 per '
+          'm of wheel travel (wheel_odometry wheel_variance_per_m)')
     for note in result.notes:
         print(f'  note: {note}')
     names = [e.name for e in result.estimates if e.excited]
