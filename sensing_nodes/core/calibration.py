@@ -84,7 +84,8 @@ class IntervalOptions:
     max_gap_s: float = 0.5
     still_distance_m: float = 1e-3
     still_angle_rad: float = math.radians(0.1)
-    # ICP acceptance, as icp_matcher's defaults.
+    # ICP acceptance: error and inlier gates as icp_matcher's defaults; tighter jump gates
+    # (the guess is one interval of odometry, a few mm and tenths of a degree off).
     max_error_m: float = 0.05
     max_jump_m: float = 0.3
     max_jump_rad: float = math.radians(15.0)
