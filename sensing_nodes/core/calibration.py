@@ -414,8 +414,9 @@ def closed_form(intervals: Intervals, reject_sigma: float = 4.0) -> tuple[Geomet
 
 # --- nonlinear refinement -------------------------------------------------------------------
 
-def _residuals(intervals: Intervals, values: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Measured minus predicted laser motion (K, 3), yaw wrapped."""
+def interval_residuals(intervals: Intervals, values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Scan-matched minus predicted laser motion (K, 3) per interval for the six parameters
+    `values` (PARAMETERS order); yaw wrapped (m, m, rad)."""
     base = integrate_intervals(intervals.wheel_steps, intervals.step_start,
                                intervals.step_count, values[:3])
     predicted = laser_motion_of(base, values[3:])
@@ -533,7 +534,7 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
         def fun(p_free: NDArray[np.float64]) -> NDArray[np.float64]:
             p = values.copy()
             p[free] = p_free
-            return np.einsum('kij,kj->ki', whiten, _residuals(sub, p)).ravel()
+            return np.einsum('kij,kj->ki', whiten, interval_residuals(sub, p)).ravel()
 
         result = least_squares(fun, values[free], x_scale=_SCALES[free], method='lm'
                                if free.sum() <= sub.t0_ns.size * 3 else 'trf')
@@ -544,7 +545,7 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
 
     for _round in range(8):
         if _round:
-            noise = _noise_model(_residuals(data.select(keep), values), wheel_shape[keep],
+            noise = _noise_model(interval_residuals(data.select(keep), values), wheel_shape[keep],
                                  matcher[keep])
         jac = fit(keep, noise)
         unexcited = _unexcited(jac, free)
@@ -554,7 +555,7 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
             free &= ~unexcited
             values[~free] = nominal.vector()[~free]
             continue
-        res = _residuals(data, values)
+        res = interval_residuals(data, values)
         cov_all = noise[0] * wheel_shape + noise[1] * matcher
         mahalanobis = np.einsum('ki,kij,kj->k', res, np.linalg.inv(cov_all), res)
         # Chi-square with 3 dof: 16 + 6 = 22 is about as rare as a 4-sigma normal residual.
@@ -567,7 +568,7 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
     # The reported figures come from one consistent fit: the final intervals and noise model.
     jac = fit(keep, noise)
     sub = data.select(keep)
-    res = _residuals(sub, values)
+    res = interval_residuals(sub, values)
     cov_sub = noise[0] * wheel_shape[keep] + noise[1] * matcher[keep]
     dof = max(res.size - int(free.sum()), 1)
     chi2 = max(float(np.einsum('ki,kij,kj->', res, np.linalg.inv(cov_sub), res)) / dof, 1.0)

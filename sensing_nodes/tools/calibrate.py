@@ -137,8 +137,8 @@ def plot(result: cal.CalibrationResult, intervals: cal.Intervals, path: Path) ->
     import matplotlib.pyplot as plt
 
     moving = intervals.select(~intervals.still)
-    before = cal._residuals(moving, result.nominal.vector())
-    after = cal._residuals(moving, result.geometry().vector())
+    before = cal.interval_residuals(moving, result.nominal.vector())
+    after = cal.interval_residuals(moving, result.geometry().vector())
     t = (moving.t0_ns - moving.t0_ns[0]) * 1e-9
     fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
     labels = ('x residual (mm)', 'y residual (mm)', 'yaw residual (deg)')
