@@ -22,6 +22,8 @@ EXECUTABLES = {
     'carmen_to_bag': 'sensing_nodes.tools.carmen_to_bag:main',
     'sensing_eval': 'sensing_nodes.tools.eval:main',
     'sensing_soak': 'sensing_nodes.tools.soak:main',
+    'sensing_calibrate': 'sensing_nodes.tools.calibrate:main',
+    'sensing_characterize': 'sensing_nodes.tools.characterize:main',
 }
 
 def bag_files():

@@ -5,7 +5,8 @@ each block's sensor samples; `simulate` drives it for a batch run, the `sensor_s
 the same engine and publishes each sample as a message, so both give the same numbers.
 
 Frames and units: the truth is base_link in the map frame (x, y in m, yaw in rad); ranges in m
-in the `laser` frame (mounted at laser_x_m, laser_y_m, laser_yaw_rad in base_link); IMU in
+in the `laser` frame (mounted at laser_x_m, laser_y_m, laser_yaw_rad in base_link, plus the
+laser_*_error injected mount error: the nodes are told the former); IMU in
 `imu_link`, which coincides with base_link; wheel joint angles in rad. Every time is int64
 nanoseconds of simulated time, starting at start_time_s (a fixed epoch).
 """
@@ -84,6 +85,8 @@ class SimParams:
     left_slip: float = _p(0.0, 'systematic slip: the left wheel turns (1 + this) times what '
                           'its travel needs', -0.5, 0.5)
     right_slip: float = _p(0.0, 'systematic slip of the right wheel, as left_slip', -0.5, 0.5)
+    wheel_separation_error: float = _p(0.0, 'systematic: true wheel separation = '
+                                       'wheel_separation_m * (1 + this)', -0.5, 0.5)
     slip_noise_sqrt_m: float = _p(0.002, 'random slip: each wheel travel increment d gets an '
                                   'error of std this * sqrt(|d|) (m^0.5)', 0.0, 1.0)
     encoder_counts_per_rev: int = _p(2000, 'encoder lines per wheel revolution', 1, 10_000_000)
@@ -94,6 +97,13 @@ class SimParams:
     gyro_bias_rad_s: float = _p(math.radians(0.5), 'constant bias of the yaw rate (rad/s)')
     gyro_noise_std_rad_s: float = _p(0.001, 'white noise std of each gyro sample, all axes '
                                      '(rad/s)', 0.0)
+    gyro_scale_error: float = _p(0.0, 'scale factor error: the gyro reads (1 + this) x the '
+                                 'true rate, all axes', -0.5, 0.5)
+    gyro_bias_random_walk: float = _p(0.0, 'rate random walk K of the bias, all axes '
+                                      '(rad/s/sqrt(s)); 0 = none', 0.0)
+    gyro_bias_instability_rad_s: float = _p(0.0, 'bias instability B, all axes (rad/s): '
+                                            'flicker-like bias whose Allan deviation is flat at '
+                                            '0.664 B from ~3 s to ~3000 s; 0 = none', 0.0)
     accel_bias_x_m_s2: float = _p(0.02, 'accelerometer bias, x (m/s^2)')
     accel_bias_y_m_s2: float = _p(-0.02, 'accelerometer bias, y (m/s^2)')
     accel_bias_z_m_s2: float = _p(0.0, 'accelerometer bias, z (m/s^2)')
@@ -113,6 +123,11 @@ class SimParams:
     laser_x_m: float = _p(0.10, 'laser mount x in base_link (m)')
     laser_y_m: float = _p(0.0, 'laser mount y in base_link (m)')
     laser_yaw_rad: float = _p(0.0, 'laser mount yaw in base_link (rad)')
+    laser_x_error_m: float = _p(0.0, 'mount error: the laser truly sits at laser_x_m + this '
+                                '(laser_x_m is what the nodes are told) (m)', -1.0, 1.0)
+    laser_y_error_m: float = _p(0.0, 'mount error on y, as laser_x_error_m (m)', -1.0, 1.0)
+    laser_yaw_error_rad: float = _p(0.0, 'mount error on yaw, as laser_x_error_m (rad)',
+                                    -math.pi, math.pi)
     # Truth and clock
     truth_rate_hz: float = _p(100.0, '/ground_truth/odom rate (Hz)', 1e-3)
     clock_rate_hz: float = _p(100.0, '/clock rate (Hz of simulated time)', 1e-3)
@@ -136,6 +151,17 @@ class SimParams:
     def start_ns(self) -> int:
         """Stamp of the first sample (ns)."""
         return int(self.start_time_s) * NS_PER_S
+
+    @property
+    def true_wheel_separation_m(self) -> float:
+        """Distance between the wheels the robot really has (m)."""
+        return self.wheel_separation_m * (1.0 + self.wheel_separation_error)
+
+    @property
+    def true_laser_pose(self) -> tuple[float, float, float]:
+        """Where the laser really sits in base_link (x m, y m, yaw rad): told mount + error."""
+        return (self.laser_x_m + self.laser_x_error_m, self.laser_y_m + self.laser_y_error_m,
+                self.laser_yaw_rad + self.laser_yaw_error_rad)
 
 
 class SimParameterError(ValueError):
@@ -298,6 +324,53 @@ class CommandedMotion:
         return Motion(distance, heading, speed, yaw_rate, accel_v)
 
 
+# Correlation times (s) of the first-order Gauss-Markov processes whose sum imitates flicker
+# bias noise: half a decade apart, their Allan deviations add up to a flat floor from ~3 s to
+# ~3000 s; each has std BIAS_INSTABILITY_STD_PER_B x B so that the floor is 0.664 B.
+BIAS_CORRELATION_TIMES_S = tuple(10.0 ** (k / 2.0) for k in range(-2, 9))
+BIAS_INSTABILITY_STD_PER_B = 0.664 / 1.0893
+
+
+class GyroBiasProcess:
+    """The time-varying part of the gyro bias (rad/s, 3 axes): a random walk of density
+    `random_walk` (rad/s/sqrt(s)) plus flicker-like bias instability `instability` (rad/s),
+    sampled every `period_s`. Stateful: successive calls continue the same process."""
+
+    def __init__(self, random_walk: float, instability: float, period_s: float,
+                 rng: np.random.Generator) -> None:
+        self.random_walk, self.instability, self.period_s = random_walk, instability, period_s
+        self._rng = rng
+        self._walk = np.zeros(3)
+        self._decay = np.exp(-period_s / np.asarray(BIAS_CORRELATION_TIMES_S))
+        self._state = np.zeros((len(BIAS_CORRELATION_TIMES_S), 3))
+
+    @property
+    def active(self) -> bool:
+        """False when both parts are zero (the bias stays constant and no numbers are drawn)."""
+        return self.random_walk > 0.0 or self.instability > 0.0
+
+    def sample(self, n: int) -> NDArray[np.float64]:
+        """The next n samples (n, 3) of the varying bias (rad/s)."""
+        from scipy.signal import lfilter
+
+        out = np.zeros((n, 3))
+        if n == 0 or not self.active:
+            return out
+        if self.random_walk > 0.0:
+            steps = self._rng.standard_normal((n, 3)) * (self.random_walk * math.sqrt(self.period_s))
+            out += self._walk + np.cumsum(steps, axis=0)
+            self._walk = out[-1].copy()
+        if self.instability > 0.0:
+            std = BIAS_INSTABILITY_STD_PER_B * self.instability
+            for i, a in enumerate(self._decay):
+                # Exact AR(1) discretisation of a Gauss-Markov process with stationary std `std`.
+                drive = self._rng.standard_normal((n, 3)) * (std * math.sqrt(1.0 - a * a))
+                values, _ = lfilter([1.0], [1.0, -a], drive, axis=0, zi=(a * self._state[i])[None])
+                out += values
+                self._state[i] = values[-1]
+        return out
+
+
 @dataclass
 class SimBlock:
     """The samples of one block of simulated time (times int64 ns, see SimRun for the rest)."""
@@ -354,13 +427,19 @@ class SensorSim:
         self.block_ticks = max(1, params.physics_rate_hz // 10)
         self.periods = {name: period_ticks(params, name + '_rate_hz')
                         for name in ('scan', 'imu', 'joint', 'truth', 'clock')}
-        scan_seq, imu_seq, wheel_seq = np.random.SeedSequence(self.seed).spawn(3)
+        # A fourth stream for the varying gyro bias: spawn(4) leaves the first three as they were.
+        scan_seq, imu_seq, wheel_seq, bias_seq = np.random.SeedSequence(self.seed).spawn(4)
         self._rng_scan = np.random.Generator(np.random.PCG64(scan_seq))
         self._rng_imu = np.random.Generator(np.random.PCG64(imu_seq))
         self._rng_wheels = np.random.Generator(np.random.PCG64(wheel_seq))
         self.beam_angles = (params.scan_angle_min_rad
                             + params.scan_angle_increment_rad * np.arange(params.scan_beams))
         p = params
+        self._gyro_bias = GyroBiasProcess(
+            p.gyro_bias_random_walk, p.gyro_bias_instability_rad_s,
+            self.periods['imu'] * self.tick_ns / NS_PER_S,
+            np.random.Generator(np.random.PCG64(bias_seq)))
+        self._laser_pose = p.true_laser_pose
         self._true_radius = p.wheel_radius_m * np.array([1.0 + p.left_radius_error,
                                                          1.0 + p.right_radius_error])
         self._slip = np.array([1.0 + p.left_slip, 1.0 + p.right_slip])
@@ -387,7 +466,7 @@ class SensorSim:
         return self.block_ticks * self.tick_ns
 
     def _wheel_travel(self, distance: NDArray, heading: NDArray) -> NDArray[np.float64]:
-        half = 0.5 * self.params.wheel_separation_m
+        half = 0.5 * self.params.true_wheel_separation_m
         return np.column_stack((distance - half * heading, distance + half * heading))
 
     def advance(self) -> SimBlock:
@@ -428,7 +507,12 @@ class SensorSim:
         vel = np.concatenate(([self._imu_last[1]], speed[k]))
         noise = self._rng_imu.standard_normal((k.size, 6))
         imu_gyro = p.gyro_noise_std_rad_s * noise[:, :3]
-        imu_gyro[:, 2] += np.diff(head) / period_s + p.gyro_bias_rad_s
+        true_rate = np.diff(head) / period_s
+        if p.gyro_scale_error:
+            true_rate = true_rate * (1.0 + p.gyro_scale_error)
+        imu_gyro[:, 2] += true_rate + p.gyro_bias_rad_s
+        if self._gyro_bias.active:
+            imu_gyro += self._gyro_bias.sample(k.size)
         imu_accel = p.accel_noise_std_m_s2 * noise[:, 3:]
         imu_accel += np.column_stack((np.diff(vel) / period_s, speed[k] * yaw_rate[k],
                                       np.full(k.size, p.gravity_m_s2)))
@@ -469,13 +553,13 @@ class SensorSim:
     def _scans(self, x: NDArray, y: NDArray, yaw: NDArray) -> NDArray[np.float32]:
         """Noisy ranges (m, float32 as published) of scans taken at base poses (x, y, yaw)."""
         p = self.params
+        laser_x, laser_y, laser_yaw = self._laser_pose
         out = np.empty((x.size, p.scan_beams), dtype=np.float32)
         noise = self._rng_scan.standard_normal((x.size, p.scan_beams))
         for i in range(x.size):
             c, s = math.cos(yaw[i]), math.sin(yaw[i])
-            origin = (x[i] + c * p.laser_x_m - s * p.laser_y_m,
-                      y[i] + s * p.laser_x_m + c * p.laser_y_m)
-            true = raycast(self.world.segments, origin, yaw[i] + p.laser_yaw_rad + self.beam_angles)
+            origin = (x[i] + c * laser_x - s * laser_y, y[i] + s * laser_x + c * laser_y)
+            true = raycast(self.world.segments, origin, yaw[i] + laser_yaw + self.beam_angles)
             out[i] = measured_ranges(true, noise[i], p)
         return out
 

@@ -19,7 +19,7 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-AREAS = ['sim', 'dead_reckoning', 'lines', 'icp']
+AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'allan']
 
 
 def demo_figures(quick: bool) -> dict:

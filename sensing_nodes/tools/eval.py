@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +25,7 @@ from sensing_nodes.core.evaluation import (
     relations_from_trajectory,
     relative_pose_errors,
 )
+from sensing_nodes.tools.sensor_bag import atomic_write
 
 EXIT_BAD_INPUT = 2
 ODOMETRY = 'nav_msgs/msg/Odometry'
@@ -176,18 +175,6 @@ def plot(report: dict, path: Path, reference: str = REFERENCE) -> None:
     plt.close(fig)
 
 
-def _atomic_write(path: Path, write) -> None:
-    """Write through a temporary file in the same folder, so a failure leaves no partial file."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix=path.suffix)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='sensing_eval', description=__doc__.split('\n\n')[0])
     parser.add_argument('bag', help='rosbag2 bag with the estimate topics (nav_msgs/Odometry)')
@@ -214,11 +201,11 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     print(table(report))
     if args.png is not None:
-        _atomic_write(args.png, lambda p: plot(report, p, args.reference))
+        atomic_write(args.png, lambda p: plot(report, p, args.reference))
         print(f'wrote {args.png}')
     if args.json is not None:
         public = {k: v for k, v in report.items() if not k.startswith('_')}
-        _atomic_write(args.json, lambda p: p.write_text(json.dumps(public, indent=2) + '\n'))
+        atomic_write(args.json, lambda p: p.write_text(json.dumps(public, indent=2) + '\n'))
         print(f'wrote {args.json}')
     return 0
 

@@ -1,0 +1,276 @@
+"""Raw sensor streams of a bag as arrays, for the offline tools (sensing_calibrate,
+sensing_characterize): rosbag2 folders and ROS 1 .bag files alike (rosbags' AnyReader), topics
+found by type, header stamps in int64 ns, progress on long bags.
+
+Non-finite encoder or IMU values are bad input (SensorBagError naming topic and stamp); scan
+ranges keep their REP 117 values (NaN, +-inf mean no measurement).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+JOINT_STATE = ('sensor_msgs/msg/JointState', 'sensor_msgs/JointState')
+LASER_SCAN = ('sensor_msgs/msg/LaserScan', 'sensor_msgs/LaserScan')
+IMU = ('sensor_msgs/msg/Imu', 'sensor_msgs/Imu')
+ODOMETRY = ('nav_msgs/msg/Odometry', 'nav_msgs/Odometry')
+GROUND_TRUTH = '/ground_truth/odom'
+_DESCRIPTIONS = {'joints': 'wheel encoders (sensor_msgs/JointState)',
+                 'scan': 'laser scans (sensor_msgs/LaserScan)', 'imu': 'IMU (sensor_msgs/Imu)',
+                 'truth': f'ground truth ({GROUND_TRUTH})'}
+EXIT_BAD_INPUT = 2
+
+
+class SensorBagError(Exception):
+    """The bag cannot give what a tool needs; the message says what and where."""
+
+
+@dataclass
+class ScanStream:
+    """LaserScans: stamps (S,) ns, ranges (S, B) float (REP 117 values kept), beam angles (B,)
+    rad in the laser frame, range limits (m), frame id."""
+
+    topic: str
+    t: NDArray[np.int64]
+    ranges: NDArray[np.float64]
+    angles: NDArray[np.float64]
+    range_min: float
+    range_max: float
+    frame_id: str
+
+
+@dataclass
+class SensorData:
+    """What one bag holds for calibration and characterisation (None: absent)."""
+
+    path: str
+    topics: dict[str, tuple[str, int]]                  # topic -> (type, count)
+    joint_topic: str | None = None
+    joint_names: tuple[str, ...] = ()
+    joint_t: NDArray[np.int64] | None = None
+    joint_position: NDArray[np.float64] | None = None  # (J, n joints) rad
+    scans: ScanStream | None = None
+    imu_topic: str | None = None
+    imu_t: NDArray[np.int64] | None = None
+    imu_gyro: NDArray[np.float64] | None = None         # (K, 3) rad/s
+    imu_accel: NDArray[np.float64] | None = None        # (K, 3) m/s^2
+    truth_t: NDArray[np.int64] | None = None
+    truth_pose: NDArray[np.float64] | None = None       # (N, 3) x, y, yaw
+    notes: list[str] = field(default_factory=list)
+
+
+def _stamp(msg, fallback: int) -> int:
+    header = getattr(msg, 'header', None)
+    if header is None:
+        return fallback
+    ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return ns if ns > 0 else fallback
+
+
+def _choose(topics: dict[str, tuple[str, int]], types: tuple[str, ...], wanted: str | None,
+            preferred: tuple[str, ...], exclude: tuple[str, ...] = ()) -> str | None:
+    """The topic to read for a message type: the one asked for, a preferred name, or the
+    busiest topic of that type."""
+    if wanted:
+        if wanted not in topics:
+            raise SensorBagError(f'topic {wanted} is not in the bag')
+        if topics[wanted][0] not in types:
+            raise SensorBagError(f'topic {wanted} holds {topics[wanted][0]}, not {types[0]}')
+        return wanted
+    candidates = [t for t, (ty, n) in topics.items() if ty in types and n > 0 and t not in exclude]
+    for name in preferred:
+        if name in candidates:
+            return name
+    return max(candidates, key=lambda t: topics[t][1]) if candidates else None
+
+
+@contextmanager
+def _open(path: Path):
+    """(topics: topic -> (type, count), messages(topics) -> iterator of (topic, bag ns, msg)):
+    a rosbag2 folder through the package's reader (rclpy's own deserialiser), anything else
+    (a ROS 1 .bag) through rosbags' AnyReader."""
+    if path.is_dir():
+        from sensing_nodes.bag import read_messages, topic_counts
+
+        try:
+            topics = topic_counts(path)
+        except Exception as exc:                  # rosbags raises several unrelated types
+            raise SensorBagError(f'{path}: cannot read the bag ({type(exc).__name__}: {exc})') \
+                from None
+        yield topics, lambda wanted: read_messages(path, wanted)
+        return
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+        reader.open()
+    except Exception as exc:
+        raise SensorBagError(f'{path}: cannot read the bag ({type(exc).__name__}: {exc})') from None
+    try:
+        topics: dict[str, tuple[str, int]] = {}
+        for c in reader.connections:
+            kind, count = topics.get(c.topic, (c.msgtype, 0))
+            topics[c.topic] = (kind, count + c.msgcount)
+
+        def messages(wanted):
+            connections = [c for c in reader.connections if c.topic in set(wanted)]
+            for connection, timestamp, raw in reader.messages(connections=connections):
+                yield connection.topic, timestamp, reader.deserialize(raw, connection.msgtype)
+
+        yield topics, messages
+    finally:
+        reader.close()
+
+
+def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
+                    scan_topic: str | None = None, imu_topic: str | None = None,
+                    want: tuple[str, ...] = ('joints', 'scan', 'imu', 'truth'),
+                    required: tuple[str, ...] = (), purpose: str = '',
+                    progress: Callable[[str], None] | None = None) -> SensorData:
+    """Read the streams named in `want` from a rosbag2 folder or ROS 1 .bag file; the kinds in
+    `required` must be there (SensorBagError naming what is missing for `purpose`, raised
+    before any message is read)."""
+    path = Path(path)
+    if not path.exists():
+        raise SensorBagError(f'{path}: no such bag')
+    with _open(path) as (topics, messages):
+        data = SensorData(str(path), topics)
+        chosen: dict[str, str] = {}
+        if 'joints' in want:
+            t = _choose(topics, JOINT_STATE, joint_topic, ('/joint_states',))
+            if t:
+                chosen[t] = 'joints'
+        if 'scan' in want:
+            t = _choose(topics, LASER_SCAN, scan_topic, ('/scan',))
+            if t:
+                chosen[t] = 'scan'
+        if 'imu' in want:
+            t = _choose(topics, IMU, imu_topic, ('/imu/data_raw', '/imu', '/imu/data'))
+            if t:
+                chosen[t] = 'imu'
+        if 'truth' in want and topics.get(GROUND_TRUTH, ('', 0))[0] in ODOMETRY:
+            chosen[GROUND_TRUTH] = 'truth'
+        missing = [_DESCRIPTIONS[kind] for kind in required if kind not in chosen.values()]
+        if missing:
+            raise SensorBagError(f'{path} has no {" and no ".join(missing)}: {purpose} '
+                                 f'(topics: {_topic_list(topics)})')
+        total = sum(topics[t][1] for t in chosen)
+        rows: dict[str, list] = {'joints': [], 'scan': [], 'imu': [], 'truth': []}
+        scan_meta = None
+        names: tuple[str, ...] = ()
+        done, last_report = 0, time.monotonic()
+        for topic, timestamp, msg in (messages(list(chosen)) if chosen else ()):
+            kind = chosen[topic]
+            t = _stamp(msg, int(timestamp))
+            if kind == 'joints':
+                if not names:
+                    names = tuple(msg.name)
+                if tuple(msg.name) != names:
+                    order = [list(msg.name).index(n) if n in msg.name else -1 for n in names]
+                    if min(order) < 0:
+                        continue
+                    position = [msg.position[i] for i in order]
+                else:
+                    position = list(msg.position)
+                if len(position) != len(names):
+                    continue                       # velocity-only or malformed sample
+                rows['joints'].append((t, position))
+            elif kind == 'scan':
+                meta = (float(msg.angle_min), float(msg.angle_increment), len(msg.ranges),
+                        float(msg.range_min), float(msg.range_max), msg.header.frame_id)
+                if scan_meta is None:
+                    scan_meta = meta
+                if meta[:3] != scan_meta[:3]:
+                    data.notes.append(f'a scan at {t} ns has another beam layout: skipped')
+                    continue
+                rows['scan'].append((t, np.asarray(msg.ranges, dtype=float)))
+            elif kind == 'imu':
+                g, a = msg.angular_velocity, msg.linear_acceleration
+                rows['imu'].append((t, (g.x, g.y, g.z), (a.x, a.y, a.z)))
+            else:
+                p, q = msg.pose.pose.position, msg.pose.pose.orientation
+                yaw = np.arctan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+                rows['truth'].append((t, (p.x, p.y, float(yaw))))
+            done += 1
+            if progress is not None and time.monotonic() - last_report > 2.0:
+                progress(f'read {done}/{total} messages ({100.0 * done / max(total, 1):.0f} %)')
+                last_report = time.monotonic()
+
+    by_kind = {kind: topic for topic, kind in chosen.items()}
+    if rows['joints']:
+        t = np.array([r[0] for r in rows['joints']], dtype=np.int64)
+        pos = np.array([r[1] for r in rows['joints']], dtype=float)
+        order = np.argsort(t, kind='stable')
+        t, pos = t[order], pos[order]
+        bad = ~np.isfinite(pos).all(axis=1)
+        if bad.any():
+            raise SensorBagError(f'{by_kind["joints"]}: non-finite wheel position at stamp '
+                                 f'{int(t[bad][0])} ns ({int(bad.sum())} samples)')
+        data.joint_topic, data.joint_names, data.joint_t, data.joint_position = \
+            by_kind['joints'], names, t, pos
+    if rows['scan']:
+        t = np.array([r[0] for r in rows['scan']], dtype=np.int64)
+        ranges = np.array([r[1] for r in rows['scan']], dtype=float)
+        order = np.argsort(t, kind='stable')
+        amin, inc, n, rmin, rmax, frame = scan_meta
+        data.scans = ScanStream(by_kind['scan'], t[order], ranges[order],
+                                amin + inc * np.arange(n), rmin, rmax, frame)
+    if rows['imu']:
+        t = np.array([r[0] for r in rows['imu']], dtype=np.int64)
+        gyro = np.array([r[1] for r in rows['imu']], dtype=float)
+        accel = np.array([r[2] for r in rows['imu']], dtype=float)
+        order = np.argsort(t, kind='stable')
+        t, gyro, accel = t[order], gyro[order], accel[order]
+        bad = ~(np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1))
+        if bad.any():
+            raise SensorBagError(f'{by_kind["imu"]}: non-finite IMU values at stamp '
+                                 f'{int(t[bad][0])} ns ({int(bad.sum())} samples)')
+        data.imu_topic, data.imu_t, data.imu_gyro, data.imu_accel = by_kind['imu'], t, gyro, accel
+    if rows['truth']:
+        t = np.array([r[0] for r in rows['truth']], dtype=np.int64)
+        pose = np.array([r[1] for r in rows['truth']], dtype=float)
+        order = np.argsort(t, kind='stable')
+        data.truth_t, data.truth_pose = t[order], pose[order]
+    return data
+
+
+def _topic_list(topics: dict[str, tuple[str, int]]) -> str:
+    return '; '.join(f'{t} ({ty}, {n})' for t, (ty, n) in sorted(topics.items()))
+
+
+def describe_topics(data: SensorData) -> str:
+    """Every topic of the bag: name, type, count (for error messages)."""
+    return _topic_list(data.topics)
+
+
+def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
+    """Write through a temporary file in the same folder, renamed over `path` only when
+    write(tmp) returned: a failure leaves no partial file."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else '.',
+                               prefix=f'.{path.name}.', suffix=path.suffix)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def stderr_progress(prefix: str) -> Callable[[str], None]:
+    """A progress callback printing `prefix: text` on stderr."""
+    def report(text: str) -> None:
+        print(f'{prefix}: {text}', file=sys.stderr, flush=True)
+    return report
