@@ -50,7 +50,7 @@ class NoiseModel:
     variance_per_rad: float = 1e-3        # rad^2 per rad
     yaw_variance_per_m: float = 1e-4      # rad^2 per m
     yaw_variance_per_s: float = 0.0       # rad^2 per s (a gyro's white rate noise density^2)
-    min_variance: float = 1e-8
+    min_variance: float = 1e-12
 
     def increment_covariance(self, increment: Pose2, dt: float = 0.0) -> NDArray[np.float64]:
         """3x3 covariance over (x, y, yaw) of a body-frame increment over dt seconds."""
@@ -419,6 +419,17 @@ class EkfFusion:
             _, j = se2.compose_jacobians(self._origin[cfg.name], pose)
             pose = se2.compose(self._origin[cfg.name], pose)
             cov = j @ cov @ j.T
+        if cfg.pose_mode == 'absolute' and cfg.name not in self._origin:
+            # As robot_localization: the first absolute reading sets what it measures (an
+            # IMU's heading in its world frame is where the fused frame's heading starts).
+            self._origin[cfg.name] = pose
+            rows = [i for i in range(3) if cfg.mask[i]]
+            for i in rows:
+                self.x[i] = pose[i]
+                self.p[i, :] = 0.0
+                self.p[:, i] = 0.0
+            self.p[np.ix_(rows, rows)] = cov[np.ix_(rows, rows)]
+            return Outcome(note='first absolute reading: state set to it')
         residual = np.array([pose[0] - self.x[X], pose[1] - self.x[Y],
                              _wrap(pose[2] - float(self.x[YAW]))])
         h = np.zeros((3, self._size))
@@ -505,3 +516,39 @@ def mask_from_names(names: list[str] | tuple[str, ...]) -> tuple[bool, ...]:
         raise ValueError(f'unknown quantities {unknown}: use {list(QUANTITIES)}')
     return tuple(q in names for q in QUANTITIES)
 
+
+
+# The fusion node's per-input parameters (`<input>.<key>`) and their defaults: one table for
+# the node, the YAML files and the tools that run the core over a bag.
+INPUT_DEFAULTS: dict[str, dict] = {
+    'wheel_odom': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential', 'covariance': 'auto',
+                   'covariance_scale': 1.0, 'variance_per_m': 1e-4, 'variance_per_rad': 1e-3,
+                   'yaw_variance_per_m': 1e-4, 'yaw_variance_per_s': 0.0,
+                   'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 0.0},
+    'imu': {'mask': ['yaw'], 'pose_mode': 'differential', 'covariance': 'model',
+            'covariance_scale': 1.0, 'variance_per_m': 0.0, 'variance_per_rad': 0.0,
+            'yaw_variance_per_m': 0.0, 'yaw_variance_per_s': 5e-8,
+            'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 16.0},
+    'scan_match': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential',
+                   'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,
+                   'variance_per_rad': 1e-3, 'yaw_variance_per_m': 1e-4,
+                   'yaw_variance_per_s': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
+                   'gate_chi2': 25.0},
+}
+
+
+def input_config(name: str, values: dict, **fixed) -> InputConfig:
+    """InputConfig of input `name` from its parameter values (missing ones: INPUT_DEFAULTS);
+    `fixed` sets what the input's kind decides (keyframes, gyro_bias, max_gap_s).
+    ValueError for an unknown quantity in the mask."""
+    v = {**INPUT_DEFAULTS[name], **values}
+    gate = float(v['gate_chi2'])
+    return InputConfig(
+        name=name, mask=mask_from_names(list(v['mask'])), pose_mode=v['pose_mode'],
+        covariance=v['covariance'], covariance_scale=float(v['covariance_scale']),
+        noise=NoiseModel(variance_per_m=float(v['variance_per_m']),
+                         variance_per_rad=float(v['variance_per_rad']),
+                         yaw_variance_per_m=float(v['yaw_variance_per_m']),
+                         yaw_variance_per_s=float(v['yaw_variance_per_s'])),
+        twist_variance=tuple(float(x) for x in v['twist_variance']),
+        gate_chi2=gate if gate > 0.0 else math.inf, **fixed)

@@ -7,26 +7,41 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import yaml
 from numpy.typing import NDArray
 
 from sensing_nodes.core import se2
-from sensing_nodes.core.ekf_fusion import EkfFusion, EkfSettings, InputConfig, Reading
+from sensing_nodes.core.ekf_fusion import (
+    INPUT_DEFAULTS, EkfFusion, EkfSettings, InputConfig, Reading, input_config,
+)
 from sensing_nodes.core.evaluation import express_in_reference_frame, interpolate_poses
 from sensing_nodes.core.fusion import ComplementaryFusion, FusionSettings
 from sensing_nodes.core.sim_pipeline import FusionInputs
+from sensing_nodes.paths import config_file
 
 WHEEL, GYRO, SCAN = 0, 1, 2   # processing rank at equal stamps (as the node)
 
 
+def inputs_from_params(params: dict) -> tuple[InputConfig, ...]:
+    """The EKF inputs a complementary_fusion parameter dict (as in its YAML file) configures,
+    the IMU as gyro_integrator's heading unless imu.source says otherwise."""
+    use = {'wheel_odom': params.get('use_wheel_odom', True), 'imu': params.get('use_imu', True),
+           'scan_match': params.get('use_scan_match_position', True)
+           or params.get('use_scan_match_heading', True)}
+    max_gap_s = float(params.get('max_gap_s', 2.0))
+    return tuple(
+        input_config(name, {k: v for k, v in params.get(name, {}).items()
+                            if k in INPUT_DEFAULTS[name]},
+                     keyframes=name == 'scan_match', max_gap_s=max_gap_s,
+                     gyro_bias=name == 'imu' and params.get('imu', {}).get('source') == 'rate')
+        for name in ('wheel_odom', 'imu', 'scan_match') if use[name])
+
+
 def default_inputs() -> tuple[InputConfig, ...]:
-    """The inputs of config/complementary_fusion.yaml's EKF: wheel odometry x, y, yaw
-    differential; gyro_integrator heading differential; scan matches keyframe-relative."""
-    return (
-        InputConfig('wheel_odom', mask=(True, True, True, False, False, False)),
-        InputConfig('imu', mask=(False, False, True, False, False, False)),
-        InputConfig('scan_match', mask=(True, True, True, False, False, False), keyframes=True,
-                    gate_chi2=25.0),
-    )
+    """The EKF inputs of config/complementary_fusion.yaml."""
+    with open(config_file('complementary_fusion.yaml')) as f:
+        params = yaml.safe_load(f)['complementary_fusion']['ros__parameters']
+    return inputs_from_params(params)
 
 
 @dataclass(frozen=True)

@@ -38,10 +38,9 @@ def quaternion_matrix(q: ArrayLike) -> NDArray[np.float64]:
     ])
 
 
-def base_yaw(q_imu: ArrayLike, mount: NDArray[np.float64]) -> float:
-    """Yaw (rad) of base_link in the IMU's world frame from the IMU's orientation quaternion."""
-    r = quaternion_matrix(q_imu) @ mount.T
-    return math.atan2(r[1, 0], r[0, 0])
+def base_orientation(q_imu: ArrayLike, mount: NDArray[np.float64]) -> NDArray[np.float64]:
+    """3x3 orientation of base_link in the IMU's world frame from the IMU's quaternion."""
+    return quaternion_matrix(q_imu) @ mount.T
 
 
 def to_base(vector: ArrayLike, mount: NDArray[np.float64]) -> NDArray[np.float64]:

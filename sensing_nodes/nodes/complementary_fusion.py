@@ -20,16 +20,15 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
 from sensing_nodes.core.ekf_fusion import (
-    EkfFusion, EkfSettings, InputConfig, NoiseModel, Reading, mask_from_names,
+    INPUT_DEFAULTS, EkfFusion, EkfSettings, InputConfig, input_config, with_mask,
 )
 from sensing_nodes.core.fusion import (
-    ComplementaryMethod, FusionSettings, InputRecord, StampOrderedBuffer, covariance_problem,
-    pose_problem, watermark,
+    ComplementaryMethod, FusionSettings, InputRecord, StampOrderedBuffer, pose_problem, watermark,
 )
-from sensing_nodes.core.imu_mount import base_yaw, mount_rotation, to_base
-from sensing_nodes.ros.conversions import (
-    KEYFRAME_PREFIX, NO_KEYFRAME, keyframe_stamp, make_odometry, odometry_pose, odometry_twist, quaternion_to_yaw, ros_covariance_to_planar,
-    stamp_to_ns,
+from sensing_nodes.core.imu_mount import mount_rotation
+from sensing_nodes.ros.conversions import make_odometry, quaternion_to_yaw, ros_covariance_to_planar, stamp_to_ns
+from sensing_nodes.ros.fusion_readings import (
+    IMU, IMU_SOURCES, SCAN, WHEEL, ReadingConverter, unit_quaternion,
 )
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
@@ -39,16 +38,7 @@ from sensing_nodes.ros.run import run_node
 
 # Processing rank at equal stamps: dead reckoning up to a stamp is in before the scan match
 # at that stamp is fused.
-WHEEL, IMU, SCAN = 'wheel_odom', 'imu', 'scan_match'
 RANK = {WHEEL: 0, IMU: 1, SCAN: 2}
-IMU_SOURCES = ('integrated', 'orientation', 'rate')
-
-
-def unit_quaternion(q) -> bool:
-    """Finite and of unit length (within 1 %): an infinite or all-zero orientation still gives
-    a finite yaw from atan2, but it is no rotation at all."""
-    norm2 = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
-    return math.isfinite(norm2) and abs(norm2 - 1.0) <= 0.02
 
 
 class ComplementaryFusionNode(Node):
@@ -135,7 +125,11 @@ class ComplementaryFusionNode(Node):
                                    'scan matching poses (icp_matcher)')
         self._buffer = StampOrderedBuffer(int(window_s * 1e9))
         self._start_ns: int | None = None
-        self._previous_scan_stamp: int | None = None
+        level = declare(self, 'level_with_imu_tilt', False,
+                        "ekf, imu.source 'orientation': count only the horizontal part of body "
+                        "velocities (the IMU's roll and pitch), for a robot on slopes")
+        self._converter = ReadingConverter(
+            method, getattr(self._fusion, 'inputs', {}), self._imu_source, self._mount, level)
         self._last_arrival = time.monotonic()
 
         self._warnings = ThrottledWarnings(self)
@@ -157,62 +151,39 @@ class ComplementaryFusionNode(Node):
         self.get_logger().info(f'method {method}; inputs: ' + ', '.join(
             f'{name} ({topics[name]})' for name, r in self._records.items() if r.enabled))
 
-    def _declare_input(self, name: str, mask: list[str], enabled: bool, max_gap_s: float,
-                       **overrides) -> InputConfig | None:
+    _DESCRIPTIONS = {
+        'mask': 'quantities fused, of x, y, yaw, vx, vy, vyaw (robot_localization order)',
+        'pose_mode': "pose quantities: 'absolute', 'relative' (to the first message) or "
+                     "'differential' (the motion between consecutive messages)",
+        'covariance': "'auto' (the message's unless static or zero, then the noise model), "
+                      "'message' or 'model'",
+        'covariance_scale': "the message's covariance times this (distrust: > 1)",
+        'variance_per_m': 'noise model: x/y variance per metre travelled (m^2/m)',
+        'variance_per_rad': 'noise model: yaw variance per radian turned (rad^2/rad)',
+        'yaw_variance_per_m': 'noise model: yaw variance per metre travelled (rad^2/m)',
+        'yaw_variance_per_s': 'noise model: yaw variance per second (rad^2/s)',
+        'twist_variance': 'vx, vy, vyaw variances when the message has none',
+        'gate_chi2': 'refuse a measurement whose squared Mahalanobis distance exceeds this '
+                     '(chi-square value); 0 = no gate',
+    }
+
+    def _declare_input(self, name: str, enabled: bool, **fixed) -> InputConfig | None:
         """Declare one input's EKF parameters (name.*) and return its validated config."""
-        d = NoiseModel()
-        names = declare(self, f'{name}.mask', mask,
-                        'quantities fused, of x, y, yaw, vx, vy, vyaw (robot_localization order)')
+        values = {}
+        for key, default in INPUT_DEFAULTS[name].items():
+            numeric = isinstance(default, float)
+            values[key] = declare(self, f'{name}.{key}', default, self._DESCRIPTIONS[key],
+                                  minimum=0.0 if numeric else None)
         try:
-            mask_tuple = mask_from_names(list(names))
+            cfg = input_config(name, values, **fixed)
         except ValueError as error:
-            raise ParameterError(f'{name}.mask', str(error), names) from None
-        gate = declare(self, f'{name}.gate_chi2', overrides.pop('gate_chi2', 0.0),
-                       'reject a measurement whose squared Mahalanobis distance exceeds this '
-                       '(chi-square value); 0 = no gate', minimum=0.0)
-        cfg = InputConfig(
-            name=name, mask=mask_tuple,
-            pose_mode=declare(self, f'{name}.pose_mode', overrides.pop('pose_mode', 'differential'),
-                              "pose quantities: 'absolute', 'relative' (to the first message) "
-                              "or 'differential' (motion between consecutive messages)"),
-            covariance=declare(self, f'{name}.covariance', overrides.pop('covariance', 'auto'),
-                               "'auto' (the message's unless static or zero, then the noise "
-                               "model), 'message' or 'model'"),
-            noise=NoiseModel(
-                variance_per_m=declare(self, f'{name}.variance_per_m',
-                                       overrides.pop('variance_per_m', d.variance_per_m),
-                                       'noise model: x/y variance per metre (m^2/m)', minimum=0.0),
-                variance_per_rad=declare(self, f'{name}.variance_per_rad',
-                                         overrides.pop('variance_per_rad', d.variance_per_rad),
-                                         'noise model: yaw variance per radian (rad^2/rad)',
-                                         minimum=0.0),
-                yaw_variance_per_m=declare(self, f'{name}.yaw_variance_per_m',
-                                           overrides.pop('yaw_variance_per_m',
-                                                         d.yaw_variance_per_m),
-                                           'noise model: yaw variance per metre (rad^2/m)',
-                                           minimum=0.0),
-                yaw_variance_per_s=declare(self, f'{name}.yaw_variance_per_s',
-                                           overrides.pop('yaw_variance_per_s',
-                                                         d.yaw_variance_per_s),
-                                           'noise model: yaw variance per second (rad^2/s)',
-                                           minimum=0.0)),
-            covariance_scale=declare(self, f'{name}.covariance_scale',
-                                     overrides.pop('covariance_scale', 1.0),
-                                     "the message's covariance times this (distrust: > 1)",
-                                     minimum=1e-6),
-            twist_variance=tuple(declare(
-                self, f'{name}.twist_variance', list(overrides.pop('twist_variance',
-                                                                   (1e-4, 1e-4, 1e-4))),
-                'vx, vy, vyaw variances when the message has none')),
-            gate_chi2=gate if gate > 0.0 else math.inf, max_gap_s=max_gap_s, **overrides)
+            raise ParameterError(f'{name}.mask', str(error), values['mask']) from None
         for field, problem, value in cfg.problems():
             require(not enabled, f'{name}.{field}', problem, value)
         return cfg if enabled else None
 
     def _declare_ekf(self, use_wheel, use_imu, use_scan_pos, use_scan_heading, max_gap_s
                      ) -> tuple[InputConfig, ...]:
-        configs = []
-        wheel = self._declare_input(WHEEL, ['x', 'y', 'yaw'], use_wheel, max_gap_s)
         self._imu_source = declare(self, 'imu.source', 'integrated',
                                    "'integrated' (gyro_integrator's heading), 'orientation' "
                                    "(the IMU's own orientation) or 'rate' (raw gyro rate, bias "
@@ -220,23 +191,23 @@ class ComplementaryFusionNode(Node):
         require(self._imu_source in IMU_SOURCES, 'imu.source', f'must be one of {IMU_SOURCES}',
                 self._imu_source)
         mount = [declare(self, f'imu.mount_{axis}_rad', 0.0,
-                         f'IMU mount {axis} in base_link (rad); upside down: roll = pi',
+                         f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi',
                          minimum=-2 * math.pi, maximum=2 * math.pi)
                  for axis in ('roll', 'pitch', 'yaw')]
         self._mount = mount_rotation(*mount)
-        rate = self._imu_source == 'rate'
-        imu = self._declare_input(
-            IMU, ['vyaw'] if rate else ['yaw'], use_imu, max_gap_s, gyro_bias=rate,
-            covariance='model' if self._imu_source == 'integrated' else 'auto',
-            yaw_variance_per_s=5e-8, variance_per_rad=0.0, yaw_variance_per_m=0.0,
-            variance_per_m=0.0, gate_chi2=16.0)
-        scan_mask = (['x', 'y'] if use_scan_pos else []) + (['yaw'] if use_scan_heading else [])
-        scan = self._declare_input(SCAN, scan_mask or ['x'], use_scan_pos or use_scan_heading,
-                                   max_gap_s, keyframes=True, covariance='message', gate_chi2=25.0)
-        for cfg in (wheel, imu, scan):
-            if cfg is not None:
-                configs.append(cfg)
-        return tuple(configs)
+        configs = [
+            self._declare_input(WHEEL, use_wheel, max_gap_s=max_gap_s),
+            self._declare_input(IMU, use_imu, max_gap_s=max_gap_s,
+                                gyro_bias=self._imu_source == 'rate'),
+            self._declare_input(SCAN, use_scan_pos or use_scan_heading, max_gap_s=max_gap_s,
+                                keyframes=True),
+        ]
+        scan = configs[2]
+        if scan is not None:
+            # use_scan_match_position / _heading switch the scan's quantities off.
+            configs[2] = with_mask(scan, **({} if use_scan_pos else {'x': False, 'y': False}),
+                                   **({} if use_scan_heading else {'yaw': False}))
+        return tuple(cfg for cfg in configs if cfg is not None)
 
     # -- input -------------------------------------------------------------------------------
     def _on_message(self, source: str, msg) -> None:
@@ -254,7 +225,7 @@ class ComplementaryFusionNode(Node):
             self.diagnostics.count('resets')
             self._process(self._buffer.flush())  # what was held belongs to the old timeline
             self._reset()
-        reading, problem = self._reading(source, msg, stamp)
+        reading, problem = self._converter.reading(source, msg, stamp, record)
         if reading is None:
             self.diagnostics.count(f'{source}_rejected')
             self._warnings.warn(f'{source}_rejected', f'{source}: rejected a message ({problem})')
@@ -273,101 +244,6 @@ class ComplementaryFusionNode(Node):
         self._process(self._buffer.pop_ready(watermark(
             list(self._records.values()), self._buffer.newest_ns, self._start_ns,
             self._input_timeout_s)))
-
-    def _reading(self, source: str, msg, stamp: int) -> tuple[Reading | None, str]:
-        """A validated core Reading from a message, or (None, why not)."""
-        record = self._records[source]
-        if source == IMU:
-            return self._imu_reading(msg, stamp, record)
-        if not unit_quaternion(msg.pose.pose.orientation):
-            return None, 'orientation is not a unit quaternion'
-        if source == SCAN and self._method == 'ekf':
-            return self._keyframe_reading(msg, stamp)
-        pose, cov = odometry_pose(msg)
-        twist, twist_cov = odometry_twist(msg)
-        zero_ok = self._method == 'ekf' and self._fusion.inputs[source].covariance == 'model'
-        problem = pose_problem(pose, cov, record.origin, zero_ok)
-        if not problem and self._method == 'ekf' and any(self._fusion.inputs[source].mask[3:]):
-            if not all(math.isfinite(v) for v in twist):
-                problem = 'twist is not finite'
-            else:
-                problem = covariance_problem(twist_cov)
-        if problem:
-            return None, problem
-        if record.origin is None:
-            record.origin = pose
-        increment_cov = None
-        if source == SCAN:
-            # Only accepted matches may start the interval of the next one's covariance.
-            increment_cov = self._scan_increment_covariance(twist_cov, stamp)
-        return Reading(stamp, pose, cov, twist,
-                       increment_cov if source == SCAN else twist_cov), ''
-
-    def _imu_reading(self, msg, stamp: int, record: InputRecord) -> tuple[Reading | None, str]:
-        if self._imu_source == 'rate':
-            w = msg.angular_velocity
-            rate = float(to_base((w.x, w.y, w.z), self._mount)[2])
-            var = float(msg.angular_velocity_covariance[8])
-            if not math.isfinite(rate):
-                return None, 'angular velocity is not finite'
-            if not math.isfinite(var) or var < 0.0:
-                return None, 'angular velocity variance is not finite or negative'
-            cov = np.diag([0.0, 0.0, var])
-            return Reading(stamp, twist=(0.0, 0.0, rate), twist_covariance=cov), ''
-        if msg.orientation_covariance[0] == -1.0:
-            return None, 'orientation_covariance[0] = -1: the IMU provides no orientation'
-        if not unit_quaternion(msg.orientation):
-            return None, 'orientation is not a unit quaternion'
-        q = msg.orientation
-        if self._imu_source == 'integrated':
-            yaw = quaternion_to_yaw(q)
-            var = float(msg.orientation_covariance[8])
-        else:
-            yaw = base_yaw((q.x, q.y, q.z, q.w), self._mount)
-            orientation_cov = np.asarray(msg.orientation_covariance, dtype=float).reshape(3, 3)
-            problem = covariance_problem(orientation_cov)
-            if problem:
-                return None, f'orientation {problem}'
-            var = float((self._mount @ orientation_cov @ self._mount.T)[2, 2])
-        if not math.isfinite(var) or var < 0.0:
-            return None, 'yaw variance is not finite or negative'
-        if record.origin is None:
-            record.origin = yaw
-        if var == 0.0 and yaw != record.origin and self._method == 'complementary':
-            return None, 'yaw variance is zero after turning'
-        w = msg.angular_velocity
-        rate = float(to_base((w.x, w.y, w.z), self._mount)[2])
-        cov = np.diag([0.0, 0.0, var])
-        rate_cov = np.diag([0.0, 0.0, max(float(msg.angular_velocity_covariance[8]), 0.0)])
-        return Reading(stamp, (0.0, 0.0, yaw), cov,
-                       (0.0, 0.0, rate) if math.isfinite(rate) else None, rate_cov), ''
-
-    def _keyframe_reading(self, msg, stamp: int) -> tuple[Reading | None, str]:
-        """icp_matcher's keyframe-relative match (docs/fusion.md: frame ids name keyframes)."""
-        new_keyframe = keyframe_stamp(msg.child_frame_id) == stamp
-        keyframe = keyframe_stamp(msg.header.frame_id)
-        if msg.header.frame_id != NO_KEYFRAME and keyframe is None:
-            return None, (f"frame_id '{msg.header.frame_id}' names no keyframe "
-                          f"('{KEYFRAME_PREFIX}<stamp ns>' or '{NO_KEYFRAME}')")
-        if keyframe is None:
-            return Reading(stamp, new_keyframe=new_keyframe), ''
-        pose, cov = odometry_pose(msg)
-        problem = pose_problem(pose, cov, None, False) or (
-            '' if np.all(np.diag(cov) > 0.0) else 'a match must have a covariance')
-        if problem:
-            return None, problem
-        return Reading(stamp, pose, cov, keyframe_ns=keyframe, new_keyframe=new_keyframe), ''
-
-    def _scan_increment_covariance(self, twist_cov, stamp: int):
-        """Covariance of the motion since the matcher's previous output, from its twist
-        covariance (twist = motion / dt), when it provides one; else None and the fusion core
-        recovers it from the cumulative covariances."""
-        previous, self._previous_scan_stamp = self._previous_scan_stamp, stamp
-        if previous is None or stamp <= previous or not np.all(np.isfinite(twist_cov)) \
-                or not np.all(np.diag(twist_cov) > 0.0):
-            return None
-        dt = (stamp - previous) * 1e-9
-        return twist_cov * dt * dt
 
     def _on_set_pose(self, msg: PoseWithCovarianceStamped) -> None:
         p = msg.pose.pose
@@ -390,7 +266,7 @@ class ComplementaryFusionNode(Node):
         for record in self._records.values():
             record.clear()
         self._start_ns = None
-        self._previous_scan_stamp = None
+        self._converter.reset()
 
     def _flush_if_idle(self) -> None:
         if len(self._buffer) and time.monotonic() - self._last_arrival > self._flush_after_s:
