@@ -241,6 +241,7 @@ class EkfFusion:
         self._pending: dict[str, Reading] = {}   # coalesced differential readings
         self._last_seen: dict[str, int] = {}     # stamp of each input's newest reading
         self._origin: dict[str, Pose2] = {}      # relative mode: source pose -> fused pose
+        self._initialized = False                # an absolute reading has set the state
         self.updates = 0
         self.gated: dict[str, int] = {}          # readings refused by the Mahalanobis gate
 
@@ -419,10 +420,10 @@ class EkfFusion:
             _, j = se2.compose_jacobians(self._origin[cfg.name], pose)
             pose = se2.compose(self._origin[cfg.name], pose)
             cov = j @ cov @ j.T
-        if cfg.pose_mode == 'absolute' and cfg.name not in self._origin:
-            # As robot_localization: the first absolute reading sets what it measures (an
-            # IMU's heading in its world frame is where the fused frame's heading starts).
-            self._origin[cfg.name] = pose
+        if cfg.pose_mode == 'absolute' and not self._initialized:
+            # As robot_localization: the filter's first absolute reading sets what it measures
+            # (an IMU's heading in its world frame is where the fused frame's heading starts).
+            self._initialized = True
             rows = [i for i in range(3) if cfg.mask[i]]
             for i in rows:
                 self.x[i] = pose[i]
@@ -527,7 +528,7 @@ INPUT_DEFAULTS: dict[str, dict] = {
                    'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 0.0},
     'imu': {'mask': ['yaw'], 'pose_mode': 'differential', 'covariance': 'model',
             'covariance_scale': 1.0, 'variance_per_m': 0.0, 'variance_per_rad': 0.0,
-            'yaw_variance_per_m': 0.0, 'yaw_variance_per_s': 5e-8,
+            'yaw_variance_per_m': 0.0, 'yaw_variance_per_s': 1e-8,
             'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 16.0},
     'scan_match': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential',
                    'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,

@@ -71,7 +71,8 @@ class ReadingConverter:
         pose, cov = odometry_pose(msg)
         twist, twist_cov = odometry_twist(msg)
         cfg = self.configs.get(source)
-        zero_ok = cfg is not None and (cfg.covariance == 'model' or not any(cfg.mask[:3]))
+        # A static or zero covariance is what the EKF's noise model is for ('auto', 'model').
+        zero_ok = cfg is not None and (cfg.covariance != 'message' or not any(cfg.mask[:3]))
         problem = pose_problem(pose, cov, record.origin, zero_ok)
         if not problem and cfg is not None and any(cfg.mask[3:]):
             if not all(math.isfinite(v) for v in twist):
