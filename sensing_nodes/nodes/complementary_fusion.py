@@ -228,7 +228,8 @@ class ComplementaryFusionNode(Node):
         reading, problem = self._converter.reading(source, msg, stamp, record)
         if reading is None:
             self.diagnostics.count(f'{source}_rejected')
-            self._warnings.warn(f'{source}_rejected', f'{source}: rejected a message ({problem})')
+            self._warnings.warn(f'{source}_rejected: {problem}',
+                                f'{source}: rejected a message ({problem})')
             return
         if not self._buffer.push(stamp, RANK[source], (source, reading)):
             self.diagnostics.count(f'{source}_dropped_late')
