@@ -181,10 +181,12 @@ class IcpMatcherNode(Node):
             diag.values['last_iterations'] = str(step.result.iterations)
         if not step.publish:
             return
+        # The keyframe-relative message first: a consumer waiting for /scan_match/odom (a lockstep
+        # replay) then knows the fusion's input for this scan is already on its way.
+        self._keyframe_publisher.publish(keyframe_odometry(step, self._base_frame))
         self._publisher.publish(make_odometry(
             stamp, self._odom_frame, self._base_frame, step.pose, step.covariance,
             step.twist, step.twist_covariance))
-        self._keyframe_publisher.publish(keyframe_odometry(step, self._base_frame))
         diag.count('published')
         diag.last_stamp_ns = max(diag.last_stamp_ns, stamp)
         diag.values['pose'] = '%.4f %.4f %.4f' % step.pose
