@@ -84,3 +84,51 @@ def test_upside_down_imu_heading_is_the_rotation_about_base_z():
     assert abs(segment[-1]) > 0.05
     assert heading[b] - heading[a] == pytest.approx(segment[-1], abs=2e-4)
     assert abs(math.degrees(heading[-1])) > 90.0    # it was turned by hand: a real rotation
+
+
+def test_gyro_integrator_node_with_an_upside_down_mount(probe):
+    """Over DDS: gyro_integrator with mount_roll_rad = pi reads an IMU lying upside down (-g on
+    its z) as level, learns the bias while still and integrates minus the IMU's z rate; its
+    output is in base_link."""
+    import time
+
+    import rclpy
+    from harness import Collector, NodeProcess, publish_until, spin_until
+    from sensor_msgs.msg import Imu
+
+    from sensing_nodes.ros.conversions import ns_to_stamp, quaternion_to_yaw, stamp_to_ns
+    from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+
+    t0, step, bias = 1_700_000_000 * 1_000_000_000, 5_000_000, math.radians(0.5)
+
+    def raw(k):
+        msg = Imu()
+        msg.header.stamp = ns_to_stamp(t0 + k * step)
+        msg.header.frame_id = 'imu_link'
+        msg.angular_velocity.z = bias + (0.5 if k >= 300 else 0.0)   # IMU z: turning +0.5 rad/s
+        msg.linear_acceleration.z = -9.81                             # lying upside down
+        msg.orientation_covariance[0] = -1.0
+        return msg
+
+    pub = probe.create_publisher(Imu, '/imu/data_raw', SENSOR_QOS)
+    out = Collector(probe, Imu, '/imu/data', ESTIMATE_QOS)
+    with NodeProcess('gyro_integrator', params={'mount_roll_rad': math.pi,
+                                                'use_wheel_odom': False}) as node:
+        first = raw(0)
+        assert publish_until(probe, pub, first, lambda: len(out.messages) > 0), node.output()
+        for k in range(1, 500):
+            pub.publish(raw(k))
+            time.sleep(0.001)
+            rclpy.spin_once(probe, timeout_sec=0)
+        last = t0 + 499 * step
+        assert spin_until(probe, lambda: any(stamp_to_ns(m.header.stamp) == last
+                                             for m in out.messages), 20), node.output()
+        assert node.alive()
+    pub_out = [m for m in out.messages if stamp_to_ns(m.header.stamp) == last][-1]
+    out.close()
+    probe.destroy_publisher(pub)
+    # 1 s turning at 0.5 rad/s about the IMU's z is -0.5 rad about base_link's z once the bias
+    # (learnt while still: the -g reading counted as level) is taken off.
+    assert quaternion_to_yaw(pub_out.orientation) == pytest.approx(-0.5, abs=0.004)  # bias off: -0.509
+    assert pub_out.header.frame_id == 'base_link'
+    assert pub_out.linear_acceleration.z == pytest.approx(9.81)
