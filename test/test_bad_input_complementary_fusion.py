@@ -205,7 +205,9 @@ def stream(probe):
         'scan': probe.create_publisher(Odometry, '/scan_match/odom', ESTIMATE_QOS),
     }
     out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
-    with NodeProcess('complementary_fusion',
+    # The seed's complementary method: this suite checks its worked behaviour; the EKF's bad
+    # input is test_fusion_ekf_node.py's.
+    with NodeProcess('complementary_fusion', params={'method': 'complementary'},
                      params_file=config_file('complementary_fusion.yaml')) as node:
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0
                           and all(p.get_subscription_count() > 0 for p in publishers.values()),

@@ -90,7 +90,8 @@ def _run(probe, publishers, events, params=None, before_stop=None, expected_coun
     out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
     # A long idle flush: on a loaded machine the test's own publishing may stall for a moment,
     # and an idle flush mid-stream would (correctly) drop what arrives after it as late.
-    params = {'reorder_window_s': 0.5, 'flush_after_s': 3.0, **(params or {})}
+    params = {'method': 'complementary', 'reorder_window_s': 0.5, 'flush_after_s': 3.0,
+              **(params or {})}
     with NodeProcess('complementary_fusion', params=params) as node:
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 20)
         _send(probe, publishers, events)

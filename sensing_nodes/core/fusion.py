@@ -112,7 +112,11 @@ class ComplementaryFusion:
         self.settings = settings
         self.reset()
 
-    def reset(self) -> None:
+    def reset(self, pose: Pose2 = (0.0, 0.0, 0.0),
+              covariance: NDArray[np.float64] | None = None) -> None:
+        """Start again; the first input starts the fused pose at `pose` with `covariance`."""
+        self._start = (tuple(pose), np.zeros((3, 3)) if covariance is None
+                       else np.asarray(covariance, dtype=float).copy())
         self.state: FusionState | None = None
         self._wheel = _Source()
         self._gyro_stamp: int | None = None
@@ -135,7 +139,7 @@ class ComplementaryFusion:
 
     def _ensure_started(self, stamp_ns: int) -> None:
         if self.state is None:
-            self.state = FusionState(stamp_ns, (0.0, 0.0, 0.0), np.zeros((3, 3)))
+            self.state = FusionState(stamp_ns, self._start[0], self._start[1].copy())
             self._anchor = FusionState(stamp_ns, self.state.pose, self.state.covariance.copy())
 
     def _propagated(self) -> tuple[Pose2, NDArray[np.float64]]:
@@ -340,3 +344,132 @@ class StampOrderedBuffer:
         if ready:
             self.released_ns = ready[-1][0]
         return [(stamp, item) for stamp, _, _, item in ready]
+
+
+# -- what the fusion node keeps per input, and the acceptance rules of its messages ----------
+@dataclass
+class InputRecord:
+    """Bookkeeping of one fusion input (stamps ns): what arrived, what was processed, and the
+    reference an exactly-known covariance is allowed at (its first accepted value)."""
+
+    name: str
+    enabled: bool = True
+    received: int = 0
+    processed: int = 0
+    arrived_ns: int | None = None    # newest stamp accepted into the reorder buffer
+    first_ns: int | None = None      # first and last processed stamps
+    last_ns: int | None = None
+    origin: object = None            # first accepted pose or yaw
+
+    def clear(self) -> None:
+        """Forget the timeline (time went backwards): keep the counts of received messages."""
+        self.processed = 0
+        self.arrived_ns = self.first_ns = self.last_ns = None
+        self.origin = None
+
+    def processed_at(self, stamp_ns: int) -> None:
+        self.processed += 1
+        self.last_ns = stamp_ns
+        if self.first_ns is None:
+            self.first_ns = stamp_ns
+
+    def rate_hz(self) -> float:
+        """Processed messages per second of stamp time (0 before two)."""
+        if self.first_ns is None or self.last_ns is None or self.last_ns <= self.first_ns:
+            return 0.0
+        return (self.processed - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+
+    def age_s(self, newest_ns: int | None) -> float:
+        """Stamp time since this input's last processed message (inf before any)."""
+        if self.last_ns is None or newest_ns is None:
+            return math.inf
+        return (newest_ns - self.last_ns) * 1e-9
+
+
+def watermark(records: list[InputRecord], newest_ns: int | None, start_ns: int | None,
+              timeout_s: float) -> int | None:
+    """The stamp every live input has reached: nothing at or before it can still arrive (each
+    input arrives in order), so it can be processed without waiting for the reorder window.
+    An enabled input not heard from for timeout_s (stamp time) is not waited for."""
+    if newest_ns is None:
+        return None
+    timeout_ns = timeout_s * 1e9
+    reached = []
+    for record in records:
+        if not record.enabled:
+            continue
+        if record.arrived_ns is None:
+            if start_ns is None or newest_ns - start_ns <= timeout_ns:
+                return None  # not heard from yet, but may still be starting up
+            continue
+        if newest_ns - record.arrived_ns <= timeout_ns:
+            reached.append(record.arrived_ns)
+    return min(reached) if reached else None
+
+
+def covariance_problem(cov: ArrayLike) -> str:
+    """Why a covariance cannot be used ('' when it can): not finite, not symmetric, or not
+    positive semi-definite (beyond rounding)."""
+    c = np.asarray(cov, dtype=float)
+    if not np.all(np.isfinite(c)):
+        return 'covariance is not finite'
+    scale = max(float(np.max(np.abs(c))), 1e-300)
+    if np.max(np.abs(c - c.T)) > 1e-9 * scale:
+        return 'covariance is not symmetric'
+    if float(np.min(np.linalg.eigvalsh(0.5 * (c + c.T)))) < -1e-9 * scale:
+        return 'covariance is not positive semi-definite'
+    return ''
+
+
+def pose_problem(pose: Pose2, cov: ArrayLike, origin: Pose2 | None, zero_allowed: bool) -> str:
+    """Why an odometry pose and its 3x3 covariance cannot be used ('' when they can). An exactly
+    known (zero) covariance is only believable at the source's starting pose, unless the input
+    replaces the covariance by its noise model anyway (zero_allowed)."""
+    if not all(math.isfinite(v) for v in pose):
+        return 'pose is not finite'
+    reason = covariance_problem(cov)
+    if reason:
+        return reason
+    diagonal = np.diag(np.asarray(cov, dtype=float))
+    if np.any(diagonal < 0.0):
+        return 'covariance has a negative variance'
+    if not zero_allowed and not np.all(diagonal > 0.0) and \
+            not (np.all(diagonal == 0.0) and (origin is None or tuple(pose) == tuple(origin))):
+        return 'covariance is zero after moving (only a starting pose may be exactly known)'
+    return ''
+
+
+class ComplementaryMethod:
+    """The seed's complementary filter behind the EKF's interface (update(name, Reading),
+    state, reset, set_pose, gated), fed by the inputs named wheel_odom, imu, scan_match."""
+
+    def __init__(self, settings: FusionSettings) -> None:
+        self._filter = ComplementaryFusion(settings)
+        self.gated: dict[str, int] = {}
+
+    def reset(self) -> None:
+        self._filter.reset()
+
+    @property
+    def updates(self) -> int:
+        return self._filter.updates
+
+    def set_pose(self, pose: Pose2, covariance: NDArray[np.float64]) -> None:
+        """Restart at pose: the filter restarts and later inputs continue from there."""
+        self._filter.reset(pose, covariance)
+
+    def update(self, name: str, reading) -> None:
+        """One Reading of wheel_odom (pose, covariance), imu (pose[2] = yaw, covariance[2, 2])
+        or scan_match (pose, covariance; twist covariance x dt^2 as increment covariance)."""
+        if name == 'wheel_odom':
+            self._filter.add_wheel(reading.stamp_ns, reading.pose, reading.pose_covariance)
+        elif name == 'imu':
+            self._filter.add_gyro(reading.stamp_ns, reading.pose[2],
+                                  float(reading.pose_covariance[2, 2]))
+        else:
+            self._filter.add_scan_match(reading.stamp_ns, reading.pose, reading.pose_covariance,
+                                        reading.twist_covariance)
+
+    @property
+    def state(self) -> FusionState | None:
+        return self._filter.state

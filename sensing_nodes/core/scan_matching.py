@@ -59,6 +59,13 @@ class ScanStep:
     prediction: str = ''        # odometry | constant_velocity
     result: icp.MatchResult | None = None
     twist_covariance: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
+    # A match's own measurement: base_link at stamp_ns relative to base_link at the keyframe's
+    # stamp (keyframe_stamp_ns), with the match's covariance. Successive matches against one
+    # keyframe share that keyframe's error; a consumer that keeps its state at keyframe stamps
+    # (stochastic cloning) counts it once. None when nothing was matched (first, gap, fallback).
+    keyframe_stamp_ns: int | None = None
+    relative: Pose2 | None = None
+    relative_covariance: NDArray[np.float64] | None = None
 
     @property
     def publish(self) -> bool:
@@ -101,9 +108,11 @@ class KeyframeScanMatcher:
         self.keyframe: icp.Target | None = None
         self.keyframe_pose: Pose2 = ZERO
         self.keyframe_covariance = np.zeros((3, 3))
+        self.keyframe_stamp_ns: int | None = None
 
-    def _set_keyframe(self, points: NDArray[np.float64]) -> None:
+    def _set_keyframe(self, points: NDArray[np.float64], stamp_ns: int) -> None:
         self.keyframe = icp.prepare_target(points)
+        self.keyframe_stamp_ns = stamp_ns
         self.keyframe_pose = self.pose
         self.keyframe_covariance = self.covariance.copy()
 
@@ -121,7 +130,7 @@ class KeyframeScanMatcher:
             status = 'first' if step is StampStep.FIRST else 'reset_backwards'
             self.reset()
             self.stamp_ns = stamp_ns
-            self._set_keyframe(points)
+            self._set_keyframe(points, stamp_ns)
             reason = '' if step is StampStep.FIRST else 'stamp went backwards: restarted at origin'
             return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, status, reason,
                             new_keyframe=True)
@@ -129,7 +138,7 @@ class KeyframeScanMatcher:
             gap_s = (stamp_ns - self.stamp_ns) * 1e-9
             self.stamp_ns = stamp_ns
             self.twist = (0.0, 0.0, 0.0)
-            self._set_keyframe(points)
+            self._set_keyframe(points, stamp_ns)
             return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, 'gap',
                             f'{gap_s:.2f} s since the previous scan: keyframe restarted here',
                             new_keyframe=True)
@@ -153,6 +162,7 @@ class KeyframeScanMatcher:
 
         reason = self._rejection(result, guess_laser)
         previous = self.pose
+        keyframe_stamp, relative, rel_cov = self.keyframe_stamp_ns, None, None
         if reason:
             fallback_cov = np.diag([s.fallback_std_m ** 2, s.fallback_std_m ** 2,
                                     s.fallback_std_rad ** 2])
@@ -172,14 +182,18 @@ class KeyframeScanMatcher:
             new_keyframe = (math.hypot(relative[0], relative[1]) > s.keyframe_distance_m
                             or abs(relative[2]) > s.keyframe_angle_rad)
         if new_keyframe:
-            self._set_keyframe(points)
+            self._set_keyframe(points, stamp_ns)
+        if status != 'matched':
+            keyframe_stamp = None
         motion = between(previous, self.pose)
         if dt >= MIN_VELOCITY_INTERVAL_S:
             self.twist = (motion[0] / dt, motion[1] / dt, motion[2] / dt)
         self.stamp_ns = stamp_ns
         return ScanStep(stamp_ns, self.pose, self.covariance.copy(), self.twist, status, reason,
                         new_keyframe=new_keyframe, prediction=source, result=result,
-                        twist_covariance=motion_cov / (dt * dt))
+                        twist_covariance=motion_cov / (dt * dt),
+                        keyframe_stamp_ns=keyframe_stamp, relative=relative,
+                        relative_covariance=rel_cov)
 
     def _rejection(self, result: icp.MatchResult, guess: Pose2) -> str:
         """Why a match must not be used ('' when it is fine)."""

@@ -1,4 +1,9 @@
-"""complementary_fusion: /wheel/odom + /imu/data + /scan_match/odom -> /odometry/filtered."""
+"""complementary_fusion: /wheel/odom + /imu/data + scan matching -> /odometry/filtered.
+
+method 'ekf' (default): core.ekf_fusion (EKF with stochastic cloning of the scan matcher's
+keyframes, per-input masks, gates and noise models; docs/fusion.md). method 'complementary':
+the seed's complementary filter (core.fusion.ComplementaryFusion) on /scan_match/odom.
+"""
 
 from __future__ import annotations
 
@@ -8,51 +13,49 @@ import time
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
-from sensing_nodes.core.fusion import ComplementaryFusion, FusionSettings, StampOrderedBuffer
-from sensing_nodes.ros.conversions import (
-    make_odometry,
-    odometry_pose,
-    odometry_twist,
-    quaternion_to_yaw,
-    stamp_to_ns,
+from sensing_nodes.core.ekf_fusion import (
+    INPUT_DEFAULTS, EkfFusion, EkfSettings, InputConfig, input_config, with_mask,
+)
+from sensing_nodes.core.fusion import (
+    ComplementaryMethod, FusionSettings, InputRecord, StampOrderedBuffer, pose_problem, watermark,
+)
+from sensing_nodes.core.imu_mount import mount_rotation
+from sensing_nodes.ros.conversions import make_odometry, quaternion_to_yaw, ros_covariance_to_planar, stamp_to_ns
+from sensing_nodes.ros.fusion_readings import (
+    IMU, IMU_SOURCES, SCAN, WHEEL, ReadingConverter, unit_quaternion,
 )
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
-from sensing_nodes.ros.qos import ESTIMATE_QOS
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 
 # Processing rank at equal stamps: dead reckoning up to a stamp is in before the scan match
 # at that stamp is fused.
-WHEEL, GYRO, SCAN = 0, 1, 2
-INPUT_NAMES = {WHEEL: 'wheel_odom', GYRO: 'imu', SCAN: 'scan_match'}
-
-
-def unit_quaternion(q) -> bool:
-    """Finite and of unit length (within 1 %): an infinite or all-zero orientation still gives
-    a finite yaw from atan2, but it is no rotation at all."""
-    norm2 = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
-    return math.isfinite(norm2) and abs(norm2 - 1.0) <= 0.02
+RANK = {WHEEL: 0, IMU: 1, SCAN: 2}
 
 
 class ComplementaryFusionNode(Node):
     def __init__(self) -> None:
         super().__init__('complementary_fusion')
-        use_wheel = declare(self, 'use_wheel_odom', True, 'fuse x/y increments of /wheel/odom')
-        use_gyro = declare(self, 'use_imu', True, 'heading increments from /imu/data orientation')
+        method = declare(self, 'method', 'ekf',
+                         "'ekf' (docs/fusion.md) or 'complementary' (the seed's filter)")
+        use_wheel = declare(self, 'use_wheel_odom', True, 'fuse /wheel/odom')
+        use_imu = declare(self, 'use_imu', True, 'fuse /imu/data')
         use_scan_pos = declare(self, 'use_scan_match_position', True,
-                               'fuse x/y increments of /scan_match/odom')
+                               'fuse x/y of scan matching')
         use_scan_heading = declare(self, 'use_scan_match_heading', True,
-                                   'absolute heading from /scan_match/odom (complementary filter)')
+                                   'fuse the heading of scan matching')
         alpha = self.declare_parameter(
             'alpha', 0.98, ParameterDescriptor(
-                description="complementary filter weight of the gyro-propagated heading, in "
-                            "[0, 1], or 'auto' to derive it each update from the two variances",
+                description="complementary: weight of the gyro-propagated heading, in [0, 1], "
+                            "or 'auto' to derive it each update from the two variances",
                 dynamic_typing=True, read_only=True)).value
         window_s = declare(self, 'reorder_window_s', 2.0,
                            'longest an input may lag the newest (stamp time) and still be fused '
@@ -74,157 +77,197 @@ class ComplementaryFusionNode(Node):
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the fused pose')
         self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame of the fused pose')
 
+        require(method in ('ekf', 'complementary'), 'method', "must be 'ekf' or 'complementary'",
+                method)
         if alpha == 'auto':
             alpha_value = None
         elif isinstance(alpha, (int, float)) and not isinstance(alpha, bool) and 0.0 <= alpha <= 1.0:
             alpha_value = float(alpha)
         else:
             raise ParameterError('alpha', "must be a number in [0, 1] or 'auto'", alpha)
-        require(use_wheel or use_gyro or use_scan_pos or use_scan_heading, 'use_*',
+        require(use_wheel or use_imu or use_scan_pos or use_scan_heading, 'use_*',
                 'at least one input must be enabled')
         require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
                 'must not be empty')
 
-        self._fusion = ComplementaryFusion(FusionSettings(
-            use_wheel=use_wheel, use_gyro=use_gyro, use_scan_position=use_scan_pos,
-            use_scan_heading=use_scan_heading, alpha=alpha_value, max_gap_s=max_gap_s))
+        self._method = method
+        self._records = {WHEEL: InputRecord(WHEEL, use_wheel), IMU: InputRecord(IMU, use_imu),
+                         SCAN: InputRecord(SCAN, use_scan_pos or use_scan_heading)}
+        topics = {WHEEL: declare(self, 'wheel_odom.topic', '/wheel/odom', 'wheel odometry topic'),
+                  IMU: declare(self, 'imu.topic', '/imu/data', 'IMU topic (sensor_msgs/Imu)')}
+        self._imu_source = 'integrated'
+        self._mount = np.eye(3)
+        if method == 'ekf':
+            configs = self._declare_ekf(use_wheel, use_imu, use_scan_pos, use_scan_heading,
+                                        max_gap_s)
+            settings = EkfSettings(
+                accel_noise_density=declare(
+                    self, 'ekf.accel_noise_density', EkfSettings.accel_noise_density,
+                    'how fast vx, vy may change (m/s^2/sqrt(Hz))', minimum=1e-6),
+                angular_accel_noise_density=declare(
+                    self, 'ekf.angular_accel_noise_density',
+                    EkfSettings.angular_accel_noise_density,
+                    'how fast the yaw rate may change (rad/s^2/sqrt(Hz))', minimum=1e-6),
+                bias_random_walk=declare(self, 'ekf.bias_random_walk',
+                                         EkfSettings.bias_random_walk,
+                                         'gyro bias random walk (rad/s/sqrt(s))', minimum=0.0),
+                initial_bias_std=declare(self, 'ekf.initial_bias_std',
+                                         EkfSettings.initial_bias_std,
+                                         'gyro bias std before any input (rad/s)', minimum=0.0))
+            self._fusion = EkfFusion(configs, settings)
+            topics[SCAN] = declare(self, 'scan_match.topic', '/scan_match/keyframe_odom',
+                                   'keyframe-relative scan matches (icp_matcher)')
+        else:
+            self._fusion = ComplementaryMethod(FusionSettings(
+                use_wheel=use_wheel, use_gyro=use_imu, use_scan_position=use_scan_pos,
+                use_scan_heading=use_scan_heading, alpha=alpha_value, max_gap_s=max_gap_s))
+            topics[SCAN] = declare(self, 'scan_match.topic', '/scan_match/odom',
+                                   'scan matching poses (icp_matcher)')
         self._buffer = StampOrderedBuffer(int(window_s * 1e9))
-        self._enabled = {WHEEL: use_wheel, GYRO: use_gyro, SCAN: use_scan_pos or use_scan_heading}
-        self._last_stamp = {k: None for k in INPUT_NAMES}
-        self._received = {k: 0 for k in INPUT_NAMES}
-        self._arrived = {k: None for k in INPUT_NAMES}
         self._start_ns: int | None = None
-        self._processed = {k: 0 for k in INPUT_NAMES}
-        self._first_stamp = {k: None for k in INPUT_NAMES}
-        self._accepted_first = {k: False for k in INPUT_NAMES}
-        self._origin: dict[int, object] = {}
-        self._previous_scan_stamp: int | None = None
+        level = declare(self, 'level_with_imu_tilt', False,
+                        "ekf, imu.source 'orientation': count only the horizontal part of body "
+                        "velocities (the IMU's roll and pitch), for a robot on slopes")
+        self._converter = ReadingConverter(
+            method, getattr(self._fusion, 'inputs', {}), self._imu_source, self._mount, level)
         self._last_arrival = time.monotonic()
 
         self._warnings = ThrottledWarnings(self)
         self._publisher = self.create_publisher(Odometry, '/odometry/filtered', ESTIMATE_QOS)
         self.diagnostics = Diagnostics(self, update=self._update_diagnostics)
         if use_wheel:
-            self.create_subscription(Odometry, '/wheel/odom',
+            self.create_subscription(Odometry, topics[WHEEL],
                                      lambda m: self._on_message(WHEEL, m), ESTIMATE_QOS)
-        if use_gyro:
-            self.create_subscription(Imu, '/imu/data', lambda m: self._on_message(GYRO, m),
-                                     ESTIMATE_QOS)
+        if use_imu:
+            qos = SENSOR_QOS if self._imu_source != 'integrated' else ESTIMATE_QOS
+            self.create_subscription(Imu, topics[IMU], lambda m: self._on_message(IMU, m), qos)
         if use_scan_pos or use_scan_heading:
-            self.create_subscription(Odometry, '/scan_match/odom',
+            self.create_subscription(Odometry, topics[SCAN],
                                      lambda m: self._on_message(SCAN, m), ESTIMATE_QOS)
+        # robot_localization's set_pose as a topic: a service would need an interface package
+        # of our own, which the PyPI-wheel setup cannot build.
+        self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose, 10)
         self.create_timer(self._flush_after_s / 2.0, self._flush_if_idle)
+        self.get_logger().info(f'method {method}; inputs: ' + ', '.join(
+            f'{name} ({topics[name]})' for name, r in self._records.items() if r.enabled))
+
+    _DESCRIPTIONS = {
+        'mask': 'quantities fused, of x, y, yaw, vx, vy, vyaw (robot_localization order)',
+        'pose_mode': "pose quantities: 'absolute', 'relative' (to the first message) or "
+                     "'differential' (the motion between consecutive messages)",
+        'covariance': "'auto' (the message's unless static or zero, then the noise model), "
+                      "'message' or 'model'",
+        'covariance_scale': "the message's covariance times this (distrust: > 1)",
+        'variance_per_m': 'noise model: x/y variance per metre travelled (m^2/m)',
+        'variance_per_rad': 'noise model: yaw variance per radian turned (rad^2/rad)',
+        'yaw_variance_per_m': 'noise model: yaw variance per metre travelled (rad^2/m)',
+        'yaw_variance_per_s': 'noise model: yaw variance per second (rad^2/s)',
+        'twist_variance': 'vx, vy, vyaw variances when the message has none',
+        'gate_chi2': 'refuse a measurement whose squared Mahalanobis distance exceeds this '
+                     '(chi-square value); 0 = no gate',
+    }
+
+    def _declare_input(self, name: str, enabled: bool, **fixed) -> InputConfig | None:
+        """Declare one input's EKF parameters (name.*) and return its validated config."""
+        values = {}
+        for key, default in INPUT_DEFAULTS[name].items():
+            numeric = isinstance(default, float)
+            values[key] = declare(self, f'{name}.{key}', default, self._DESCRIPTIONS[key],
+                                  minimum=0.0 if numeric else None)
+        try:
+            cfg = input_config(name, values, **fixed)
+        except ValueError as error:
+            raise ParameterError(f'{name}.mask', str(error), values['mask']) from None
+        for field, problem, value in cfg.problems():
+            require(not enabled, f'{name}.{field}', problem, value)
+        return cfg if enabled else None
+
+    def _declare_ekf(self, use_wheel, use_imu, use_scan_pos, use_scan_heading, max_gap_s
+                     ) -> tuple[InputConfig, ...]:
+        self._imu_source = declare(self, 'imu.source', 'integrated',
+                                   "'integrated' (gyro_integrator's heading), 'orientation' "
+                                   "(the IMU's own orientation) or 'rate' (raw gyro rate, bias "
+                                   'estimated in the filter)')
+        require(self._imu_source in IMU_SOURCES, 'imu.source', f'must be one of {IMU_SOURCES}',
+                self._imu_source)
+        mount = [declare(self, f'imu.mount_{axis}_rad', 0.0,
+                         f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi',
+                         minimum=-2 * math.pi, maximum=2 * math.pi)
+                 for axis in ('roll', 'pitch', 'yaw')]
+        self._mount = mount_rotation(*mount)
+        configs = [
+            self._declare_input(WHEEL, use_wheel, max_gap_s=max_gap_s),
+            self._declare_input(IMU, use_imu, max_gap_s=max_gap_s,
+                                gyro_bias=self._imu_source == 'rate'),
+            self._declare_input(SCAN, use_scan_pos or use_scan_heading, max_gap_s=max_gap_s,
+                                keyframes=True),
+        ]
+        scan = configs[2]
+        if scan is not None:
+            # use_scan_match_position / _heading switch the scan's quantities off.
+            configs[2] = with_mask(scan, **({} if use_scan_pos else {'x': False, 'y': False}),
+                                   **({} if use_scan_heading else {'yaw': False}))
+        return tuple(cfg for cfg in configs if cfg is not None)
 
     # -- input -------------------------------------------------------------------------------
-    def _on_message(self, source: int, msg) -> None:
+    def _on_message(self, source: str, msg) -> None:
         self._last_arrival = time.monotonic()
         stamp = stamp_to_ns(msg.header.stamp)
-        name = INPUT_NAMES[source]
-        self._received[source] += 1
+        record = self._records[source]
+        record.received += 1
         # Before the message is read: reading it uses per-timeline state (a source's starting
         # pose), which must already be the new timeline's.
-        previous = self._arrived[source]
-        if previous is not None and previous - stamp > self._reset_jump_s * 1e9:
+        if record.arrived_ns is not None and record.arrived_ns - stamp > self._reset_jump_s * 1e9:
             self.get_logger().warn(
-                f'{name} stamp {stamp * 1e-9:.3f} s is {(previous - stamp) * 1e-9:.3f} s before its '
-                'previous one: time went backwards (looping bag or restarted clock); resetting')
+                f'{source} stamp {stamp * 1e-9:.3f} s is {(record.arrived_ns - stamp) * 1e-9:.3f} '
+                's before its previous one: time went backwards (looping bag or restarted '
+                'clock); resetting')
             self.diagnostics.count('resets')
             self._process(self._buffer.flush())  # what was held belongs to the old timeline
             self._reset()
-        reading = self._reading(source, msg)
+        reading, problem = self._converter.reading(source, msg, stamp, record)
         if reading is None:
+            self.diagnostics.count(f'{source}_rejected')
+            self._warnings.warn(f'{source}_rejected: {problem}',
+                                f'{source}: rejected a message ({problem})')
             return
-        if not self._buffer.push(stamp, source, reading):
-            self.diagnostics.count(f'{name}_dropped_late')
+        if not self._buffer.push(stamp, RANK[source], (source, reading)):
+            self.diagnostics.count(f'{source}_dropped_late')
             self._warnings.warn(
-                f'{name}_late',
-                f'{name} message at {stamp * 1e-9:.3f} s arrived after inputs up to '
+                f'{source}_late',
+                f'{source} message at {stamp * 1e-9:.3f} s arrived after inputs up to '
                 f'{self._buffer.released_ns * 1e-9:.3f} s were fused: dropped '
                 f'({self._buffer.late} so far)')
             return
         if self._start_ns is None:
             self._start_ns = stamp
-        self._arrived[source] = stamp if self._arrived[source] is None else max(self._arrived[source], stamp)
-        self._process(self._buffer.pop_ready(self._watermark()))
+        record.arrived_ns = stamp if record.arrived_ns is None else max(record.arrived_ns, stamp)
+        self._process(self._buffer.pop_ready(watermark(
+            list(self._records.values()), self._buffer.newest_ns, self._start_ns,
+            self._input_timeout_s)))
 
-    def _watermark(self) -> int | None:
-        """The stamp every live input has reached: nothing at or before it can still arrive
-        (each input arrives in order), so it can be processed without waiting for the window.
-        An enabled input not heard from for input_timeout_s (stamp time) is not waited for."""
-        newest = self._buffer.newest_ns
-        timeout_ns = self._input_timeout_s * 1e9
-        reached = []
-        for source, enabled in self._enabled.items():
-            if not enabled:
-                continue
-            last = self._arrived[source]
-            if last is None:
-                if newest - self._start_ns <= timeout_ns:
-                    return None  # not heard from yet, but may still be starting up
-                continue
-            if newest - last <= timeout_ns:
-                reached.append(last)
-        return min(reached) if reached else None
-
-    def _reading(self, source: int, msg):
-        """Validated (pose or yaw, covariance) from a message, or None after a warning."""
-        name = INPUT_NAMES[source]
-        if source == GYRO:
-            yaw_var = float(msg.orientation_covariance[8])
-            yaw = quaternion_to_yaw(msg.orientation)
-            if not self._accepted_first[source]:
-                self._origin[source] = yaw
-            ok = unit_quaternion(msg.orientation) and math.isfinite(yaw_var) and (
-                yaw_var > 0.0 or (yaw_var == 0.0 and yaw == self._origin[source]))
-            if msg.orientation_covariance[0] == -1.0:
-                ok = False
-            reading = (yaw, yaw_var)
-        else:
-            pose, cov = odometry_pose(msg)
-            diagonal = np.diag(cov)
-            if not self._accepted_first[source]:
-                self._origin[source] = pose
-            ok = bool(unit_quaternion(msg.pose.pose.orientation)
-                      and np.all(np.isfinite(pose)) and np.all(np.isfinite(cov)) and (
-                          np.all(diagonal > 0.0) or
-                          (np.all(diagonal == 0.0) and pose == self._origin[source])))
-            reading = (pose, cov)
-        if not ok:
-            self.diagnostics.count(f'{name}_rejected')
-            self._warnings.warn(
-                f'{name}_rejected',
-                f'{name}: rejected a message whose pose or covariance is NaN, negative, absent, '
-                'or zero after moving (only a source\'s starting pose may be exactly known), or '
-                'whose orientation is not a unit quaternion')
-            return None
-        if source == SCAN:
-            # Only accepted matches may start the interval of the next one's covariance.
-            reading = (*reading, self._scan_increment_covariance(msg, stamp_to_ns(msg.header.stamp)))
-        self._accepted_first[source] = True
-        return source, reading
-
-    def _scan_increment_covariance(self, msg, stamp: int):
-        """Covariance of the motion since the matcher's previous output, from its twist
-        covariance (twist = motion / dt), when it provides one; else None and the fusion core
-        recovers it from the cumulative covariances."""
-        _, twist_cov = odometry_twist(msg)
-        previous, self._previous_scan_stamp = self._previous_scan_stamp, stamp
-        if previous is None or stamp <= previous or not np.all(np.isfinite(twist_cov)) \
-                or not np.all(np.diag(twist_cov) > 0.0):
-            return None
-        dt = (stamp - previous) * 1e-9
-        return twist_cov * dt * dt
+    def _on_set_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        p = msg.pose.pose
+        pose = (float(p.position.x), float(p.position.y), quaternion_to_yaw(p.orientation))
+        cov = ros_covariance_to_planar(msg.pose.covariance)
+        problem = '' if unit_quaternion(p.orientation) else 'orientation is not a unit quaternion'
+        problem = problem or pose_problem(pose, cov, None, True)
+        if problem:
+            self.diagnostics.count('set_pose_rejected')
+            self.get_logger().warn(f'set_pose rejected: {problem}')
+            return
+        self._process(self._buffer.flush())
+        self._fusion.set_pose(pose, cov)
+        self.diagnostics.count('set_pose')
+        self.get_logger().info('pose set to x=%.3f m, y=%.3f m, yaw=%.3f rad' % pose)
 
     def _reset(self) -> None:
         self._fusion.reset()
         self._buffer.clear()
-        self._last_stamp = {k: None for k in INPUT_NAMES}
-        self._first_stamp = {k: None for k in INPUT_NAMES}
-        self._arrived = {k: None for k in INPUT_NAMES}
+        for record in self._records.values():
+            record.clear()
         self._start_ns = None
-        self._processed = {k: 0 for k in INPUT_NAMES}
-        self._accepted_first = {k: False for k in INPUT_NAMES}
-        self._previous_scan_stamp = None
+        self._converter.reset()
 
     def _flush_if_idle(self) -> None:
         if len(self._buffer) and time.monotonic() - self._last_arrival > self._flush_after_s:
@@ -233,49 +276,39 @@ class ComplementaryFusionNode(Node):
     # -- fusion and output ---------------------------------------------------------------------
     def _process(self, ready) -> None:
         for stamp, (source, reading) in ready:
-            self._last_stamp[source] = stamp
-            if self._first_stamp[source] is None:
-                self._first_stamp[source] = stamp
-            self._processed[source] += 1
-            if source == WHEEL:
-                self._fusion.add_wheel(stamp, *reading)
-            elif source == GYRO:
-                self._fusion.add_gyro(stamp, *reading)
-                if self._enabled[WHEEL] or self._enabled[SCAN]:
-                    continue  # heading only: published with the next position update
-            else:
-                self._fusion.add_scan_match(stamp, *reading)
+            self._records[source].processed_at(stamp)
+            self._fusion.update(source, reading)
+            if source == IMU and (self._records[WHEEL].enabled or self._records[SCAN].enabled):
+                continue  # heading only: published with the next position update
             self._publish(stamp)
 
     def _publish(self, stamp: int) -> None:
         state = self._fusion.state
         if state is None:
             return
+        twist, twist_cov = getattr(state, 'twist', (0.0, 0.0, 0.0)), \
+            getattr(state, 'twist_covariance', None)
         self._publisher.publish(make_odometry(
-            stamp, self._odom_frame, self._base_frame, state.pose, state.covariance))
+            stamp, self._odom_frame, self._base_frame, state.pose, state.covariance,
+            twist, twist_cov))
         self.diagnostics.count('published')
         self.diagnostics.last_stamp_ns = max(self.diagnostics.last_stamp_ns, stamp)
 
     def _update_diagnostics(self, diag: Diagnostics) -> None:
         newest = self._buffer.newest_ns
         missing = []
-        for source, name in INPUT_NAMES.items():
-            if not self._enabled[source]:
+        for name, record in self._records.items():
+            if not record.enabled:
                 diag.values[f'{name}_state'] = 'disabled'
                 continue
-            last = self._last_stamp[source]
-            diag.values[f'{name}_received'] = str(self._received[source])
-            if last is None or newest is None:
-                age = math.inf
-            else:
-                age = (newest - last) * 1e-9
+            age = record.age_s(newest)
+            diag.values[f'{name}_received'] = str(record.received)
             diag.values[f'{name}_age_s'] = f'{age:.3f}'
-            first = self._first_stamp[source]
-            span = (last - first) * 1e-9 if last is not None and first is not None else 0.0
-            rate = (self._processed[source] - 1) / span if span > 0 else 0.0
-            diag.values[f'{name}_rate_hz'] = f'{rate:.2f}'
+            diag.values[f'{name}_rate_hz'] = f'{record.rate_hz():.2f}'
+            diag.values[f'{name}_gated'] = str(self._fusion.gated.get(name, 0))
             if age > self._input_timeout_s:
                 missing.append(name)
+        diag.values['method'] = self._method
         diag.values['fusion_updates'] = str(self._fusion.updates)
         diag.values['late_dropped_total'] = str(self._buffer.late)
         if missing:

@@ -11,6 +11,7 @@ from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger
 
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
+from sensing_nodes.core.imu_mount import mount_rotation, to_base
 from sensing_nodes.core.timing import StampStep
 from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
@@ -67,8 +68,18 @@ class GyroIntegratorNode(Node):
             'the heading only and keep the bias estimate')
         use_wheels = declare(self, 'use_wheel_odom', True,
                              'veto stillness while /wheel/odom reports motion (slow turns)')
+        mount = [declare(self, f'mount_{axis}_rad', 0.0,
+                         f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi',
+                         minimum=-2 * math.pi, maximum=2 * math.pi)
+                 for axis in ('roll', 'pitch', 'yaw')]
+        # A rotated IMU: rates and accelerations are turned into base_link's axes before
+        # anything else, so stillness, bias and heading are about base_link's z.
+        self._mount = None if all(a == 0.0 for a in mount) else mount_rotation(*mount)
         self._frame_id = declare(self, 'frame_id', '',
-                                 'frame of the output; empty: keep the input frame')
+                                 'frame of the output; empty: keep the input frame (base_link '
+                                 'when a mount rotation is set: the output is about its axes)')
+        if not self._frame_id and self._mount is not None:
+            self._frame_id = 'base_link'
         for name, problem, value in config.problems():
             require(False, {'noise_density': 'gyro_noise_density'}.get(name, name), problem, value)
 
@@ -95,6 +106,9 @@ class GyroIntegratorNode(Node):
     def _on_imu(self, msg: Imu) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         w, a = msg.angular_velocity, msg.linear_acceleration
+        rate, accel = (w.x, w.y, w.z), (a.x, a.y, a.z)
+        if self._mount is not None:
+            rate, accel = to_base(rate, self._mount), to_base(accel, self._mount)
         gi = self._integrator
         if self._restart_on_backwards and gi.stamp_ns is not None and stamp < gi.stamp_ns:
             self.diagnostics.count(StampStep.BACKWARDS.value)
@@ -104,7 +118,7 @@ class GyroIntegratorNode(Node):
                 '(heading 0, bias estimate from scratch)'))
             gi = self._integrator = GyroIntegrator(self._config)
             self._was_still = False
-        result = gi.update(stamp, (w.x, w.y, w.z), (a.x, a.y, a.z))
+        result = gi.update(stamp, rate, accel)
         diag = self.diagnostics
         if result.rejection is not None:
             key = result.rejection.value
@@ -121,9 +135,9 @@ class GyroIntegratorNode(Node):
                 self.get_logger().info(
                     f'moving at {stamp * 1e-9:.3f} s; gyro bias z = {gi.bias[2]:.6f} rad/s '
                     f'(std {math.sqrt(gi.p_bias):.2e})')
-        self._publish(msg, stamp)
+        self._publish(msg, stamp, accel)
 
-    def _publish(self, raw: Imu, stamp: int) -> None:
+    def _publish(self, raw: Imu, stamp: int, accel) -> None:
         gi = self._integrator
         # One Imu refilled in place: publish serialises it at once, and building a message per
         # sample costs more than the integration.
@@ -138,7 +152,8 @@ class GyroIntegratorNode(Node):
         out.angular_velocity.x, out.angular_velocity.y, out.angular_velocity.z = (
             float(rate[0]), float(rate[1]), float(rate[2]))
         out.angular_velocity_covariance[_DIAGONAL] = gi.rate_variance()
-        out.linear_acceleration = raw.linear_acceleration
+        out.linear_acceleration.x, out.linear_acceleration.y, out.linear_acceleration.z = (
+            float(accel[0]), float(accel[1]), float(accel[2]))
         out.linear_acceleration_covariance = raw.linear_acceleration_covariance
         self._publisher.publish(out)
         diag = self.diagnostics

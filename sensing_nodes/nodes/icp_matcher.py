@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 import sys
 
+import numpy as np
+
 from diagnostic_msgs.msg import DiagnosticStatus
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
@@ -14,14 +16,28 @@ from sensor_msgs.msg import LaserScan
 from sensing_nodes.core.icp import Convergence, Correspondences, IcpOptions
 from sensing_nodes.core.scan import scan_to_points
 from sensing_nodes.core.scan_matching import (
-    KeyframeScanMatcher, OdometryBuffer, ScanMatcherSettings,
+    ZERO, KeyframeScanMatcher, OdometryBuffer, ScanMatcherSettings, ScanStep,
 )
-from sensing_nodes.ros.conversions import make_odometry, odometry_pose, scan_arrays, stamp_to_ns
+from sensing_nodes.ros.conversions import (
+    keyframe_frame_id, make_odometry, odometry_pose, scan_arrays, stamp_to_ns,
+)
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+
+
+def keyframe_odometry(step: ScanStep, base_frame: str) -> Odometry:
+    """A scan step as /scan_match/keyframe_odom: header.frame_id 'keyframe/<stamp ns>' names the
+    keyframe the pose (base_link at the scan, in the keyframe's base_link) is relative to, or is
+    'keyframe/none' when nothing was matched; child_frame_id is 'keyframe/<this stamp>' when this
+    scan becomes the next keyframe, else the base frame."""
+    matched = step.keyframe_stamp_ns is not None and step.relative is not None
+    frame = keyframe_frame_id(step.keyframe_stamp_ns if matched else None)
+    child = keyframe_frame_id(step.stamp_ns) if step.new_keyframe else base_frame
+    return make_odometry(step.stamp_ns, frame, child, step.relative if matched else ZERO,
+                         step.relative_covariance if matched else np.zeros((3, 3)))
 
 
 class IcpMatcherNode(Node):
@@ -43,6 +59,10 @@ class IcpMatcherNode(Node):
         self._warnings = ThrottledWarnings(self)
         self.diagnostics = Diagnostics(self)
         self._publisher = self.create_publisher(Odometry, '/scan_match/odom', ESTIMATE_QOS)
+        # Each match relative to its keyframe, the keyframe named by its stamp, for a fusion
+        # that keeps its state at keyframe stamps (docs/fusion.md, "Keyframe-relative matches").
+        self._keyframe_publisher = self.create_publisher(
+            Odometry, '/scan_match/keyframe_odom', ESTIMATE_QOS)
         self.create_subscription(LaserScan, '/scan', self._on_scan, SENSOR_QOS)
         if odom_topic:
             self.create_subscription(Odometry, odom_topic, self._on_odometry, ESTIMATE_QOS)
@@ -171,6 +191,9 @@ class IcpMatcherNode(Node):
             diag.values['last_iterations'] = str(step.result.iterations)
         if not step.publish:
             return
+        # The keyframe-relative message first: a consumer waiting for /scan_match/odom (a lockstep
+        # replay) then knows the fusion's input for this scan is already on its way.
+        self._keyframe_publisher.publish(keyframe_odometry(step, self._base_frame))
         self._publisher.publish(make_odometry(
             stamp, self._odom_frame, self._base_frame, step.pose, step.covariance,
             step.twist, step.twist_covariance))

@@ -107,3 +107,22 @@ def scan_arrays(msg) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """sensor_msgs/LaserScan -> (ranges, angles) as float64 arrays of equal length (rad, m)."""
     ranges = np.asarray(msg.ranges, dtype=float)
     return ranges, beam_angles(msg.angle_min, msg.angle_increment, ranges.size)
+
+
+# Keyframe-relative scan matches (/scan_match/keyframe_odom, docs/fusion.md): frame ids name a
+# keyframe by its scan's stamp in ns, 'keyframe/<ns>'; 'keyframe/none' means no keyframe.
+KEYFRAME_PREFIX = 'keyframe/'
+NO_KEYFRAME = KEYFRAME_PREFIX + 'none'
+
+
+def keyframe_frame_id(stamp_ns: int | None) -> str:
+    """The frame id naming the keyframe taken at stamp_ns (None: no keyframe)."""
+    return NO_KEYFRAME if stamp_ns is None else f'{KEYFRAME_PREFIX}{int(stamp_ns)}'
+
+
+def keyframe_stamp(frame_id: str) -> int | None:
+    """The keyframe stamp (ns) a frame id 'keyframe/<ns>' names; None for anything else."""
+    if not frame_id.startswith(KEYFRAME_PREFIX) or frame_id == NO_KEYFRAME:
+        return None
+    digits = frame_id[len(KEYFRAME_PREFIX):]
+    return int(digits) if digits.isdigit() else None

@@ -57,7 +57,9 @@ SIM_TOPICS = {
 }
 # Topics between processing nodes, and how many subscribers each has in the graph (the
 # recorder included) once every node has matched.
-INTERNAL_EDGES = {'/wheel/odom': 4, '/imu/data': 2, '/scan_match/odom': 2}
+# /scan_match/odom: the recorder; /scan_match/keyframe_odom: the fusion (method ekf).
+INTERNAL_EDGES = {'/wheel/odom': 4, '/imu/data': 2, '/scan_match/odom': 1,
+                  '/scan_match/keyframe_odom': 1}
 SCAN_SUBSCRIBERS = 3  # line_extractor, icp_matcher and the recorder
 # Simulator topics and their subscribers among the processing nodes. The simulator (started with
 # them) counts the recorder's subscription too, so they must be there before the recorder's.

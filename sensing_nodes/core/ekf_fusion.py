@@ -1,0 +1,555 @@
+"""Planar EKF with stochastic cloning: fuses odometry, IMU and keyframe scan matches.
+
+State (odom frame, SI units): pose x, y (m), yaw (rad); body velocities vx, vy (m/s), yaw rate
+wz (rad/s); gyro z bias bg (rad/s); followed by clones of the pose (3 each). A clone is the pose
+at an earlier stamp, kept jointly with the current state, so that a measurement of the motion
+since that stamp ("differential": consecutive odometry messages; a scan match relative to its
+keyframe) is fused exactly once, with its correlation to the current pose, instead of being
+turned into a velocity or counted again at every scan (the keyframe's error is shared by every
+match against it).
+
+Process model: constant body velocity (white acceleration noise), random-walk gyro bias.
+Measurement kinds, each with a per-input mask over (x, y, yaw, vx, vy, vyaw):
+  - pose, absolute (in the source's frame, which is the fused frame), relative to the source's
+    first message, or differential (the motion between consecutive messages, via a clone);
+  - twist (vx, vy, vyaw) in base_link; a raw gyro rate measures wz + bg;
+  - keyframe-relative pose (scan matcher), via a clone at the keyframe's stamp.
+Every measurement passes a Mahalanobis gate (squared distance against a per-input chi-square
+threshold) before it is fused.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sensing_nodes.core import se2
+from sensing_nodes.core.fusion import increment_covariance
+from sensing_nodes.core.se2 import Pose2
+
+QUANTITIES = ('x', 'y', 'yaw', 'vx', 'vy', 'vyaw')
+POSE_MODES = ('absolute', 'relative', 'differential')
+BASE = 7                      # x, y, yaw, vx, vy, wz, bg
+X, Y, YAW, VX, VY, WZ, BG = range(BASE)
+# Smallest variance a measurement component may claim: an exactly known increment would make
+# the innovation covariance singular.
+MIN_VARIANCE = 1e-12
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Variance of a differential pose input's increment, used when the source publishes a
+    static or zero covariance: x and y get variance_per_m per metre travelled, yaw
+    variance_per_rad per radian turned (plus yaw_variance_per_m per metre), each at least
+    min_variance."""
+
+    variance_per_m: float = 1e-4          # m^2 per m
+    variance_per_rad: float = 1e-3        # rad^2 per rad
+    yaw_variance_per_m: float = 1e-4      # rad^2 per m
+    yaw_variance_per_s: float = 0.0       # rad^2 per s (a gyro's white rate noise density^2)
+    min_variance: float = 1e-12
+
+    def increment_covariance(self, increment: Pose2, dt: float = 0.0) -> NDArray[np.float64]:
+        """3x3 covariance over (x, y, yaw) of a body-frame increment over dt seconds."""
+        distance = math.hypot(increment[0], increment[1])
+        xy = max(self.variance_per_m * distance, self.min_variance)
+        yaw = max(self.variance_per_rad * abs(increment[2]) + self.yaw_variance_per_m * distance
+                  + self.yaw_variance_per_s * dt, self.min_variance)
+        return np.diag([xy, xy, yaw])
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    """What one input contributes: mask over QUANTITIES, how its pose is read, its gate.
+
+    covariance 'auto' uses the message's covariance unless it is static (does not change
+    between messages) or zero, then the noise model; 'message' and 'model' force one of them.
+    """
+
+    name: str
+    mask: tuple[bool, bool, bool, bool, bool, bool] = (False,) * 6
+    pose_mode: str = 'differential'
+    covariance: str = 'auto'
+    noise: NoiseModel = NoiseModel()
+    twist_variance: tuple[float, float, float] = (1e-4, 1e-4, 1e-4)  # when the message has none
+    covariance_scale: float = 1.0        # the message's covariance times this (>= 1: distrust)
+    gate_chi2: float = math.inf          # squared Mahalanobis distance above which: rejected
+    # The input is a gyro whose bias the filter estimates: a vyaw rate measures wz + bias, a
+    # differential yaw measures the heading change + bias x interval.
+    gyro_bias: bool = False
+    keyframes: bool = False              # pose is relative to a keyframe (scan matcher)
+    max_gap_s: float = 2.0               # differential: no increment across a longer silence
+
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting the filter cannot run with."""
+        out: list[tuple[str, str, object]] = []
+        if self.pose_mode not in POSE_MODES:
+            out.append(('pose_mode', f'must be one of {POSE_MODES}', self.pose_mode))
+        if self.covariance not in ('auto', 'message', 'model'):
+            out.append(('covariance', "must be 'auto', 'message' or 'model'", self.covariance))
+        if not (math.isfinite(self.covariance_scale) and self.covariance_scale > 0.0):
+            out.append(('covariance_scale', 'must be finite and > 0', self.covariance_scale))
+        if not (self.gate_chi2 > 0.0):
+            out.append(('gate_chi2', 'must be > 0 (inf: no gate)', self.gate_chi2))
+        if not any(self.mask):
+            out.append(('mask', 'must select at least one of ' + ', '.join(QUANTITIES),
+                        self.mask))
+        for name in ('variance_per_m', 'variance_per_rad', 'yaw_variance_per_m',
+                     'yaw_variance_per_s', 'min_variance'):
+            value = getattr(self.noise, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                out.append((name, 'must be finite and >= 0', value))
+        if not all(math.isfinite(v) and v > 0.0 for v in self.twist_variance):
+            out.append(('twist_variance', 'must be finite and > 0', self.twist_variance))
+        return out
+
+
+@dataclass(frozen=True)
+class EkfSettings:
+    """Process noise (white-noise densities) and the initial uncertainty of what no input has
+    told yet (velocities, bias)."""
+
+    pose_noise_density: float = 1e-4       # m/sqrt(s) and rad/sqrt(s) on the pose itself
+    accel_noise_density: float = 1.0       # m/s^2/sqrt(Hz): how fast vx, vy may change
+    angular_accel_noise_density: float = 2.0   # rad/s^2/sqrt(Hz)
+    bias_random_walk: float = 1e-5         # rad/s/sqrt(s)
+    initial_velocity_std: float = 1.0      # m/s, rad/s
+    initial_bias_std: float = 0.01         # rad/s
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One input message, already in base_link / the source's odom frame (m, rad, s).
+
+    pose/pose_covariance: a pose (absolute or cumulative); twist/twist_covariance: body
+    velocities (vx, vy, wz); for a keyframe input, pose is relative to keyframe_ns and
+    new_keyframe says this stamp starts the next keyframe (pose None: no match, keyframe only).
+    """
+
+    stamp_ns: int
+    pose: Pose2 | None = None
+    pose_covariance: NDArray[np.float64] | None = None
+    twist: tuple[float, float, float] | None = None
+    twist_covariance: NDArray[np.float64] | None = None
+    keyframe_ns: int | None = None
+    new_keyframe: bool = False
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What the filter did with a reading: fused, gated (rejected by the Mahalanobis test, with
+    its squared distance), or neither (first message of a differential input, unknown
+    keyframe...), with a note."""
+
+    fused: bool = False
+    gated: bool = False
+    distance2: float = 0.0
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class FusedState:
+    """Fused estimate at stamp_ns: pose (odom), 3x3 pose covariance, body twist and its
+    covariance, gyro bias (rad/s) and its variance."""
+
+    stamp_ns: int
+    pose: Pose2
+    covariance: NDArray[np.float64]
+    twist: tuple[float, float, float]
+    twist_covariance: NDArray[np.float64]
+    bias: float
+    bias_variance: float
+
+
+def _symmetric(m: NDArray[np.float64]) -> NDArray[np.float64]:
+    return 0.5 * (m + m.T)
+
+
+def _wrap(angle: float) -> float:
+    """Scalar angle wrapped into [-pi, pi] (rad); math.remainder, much cheaper than arrays."""
+    return math.remainder(angle, 2.0 * math.pi)
+
+
+def relative_jacobian(clone: Pose2, pose: Pose2) -> tuple[Pose2, NDArray[np.float64],
+                                                          NDArray[np.float64]]:
+    """between(clone, pose) and its Jacobians with respect to pose and to clone (3x3 each)."""
+    c, s = math.cos(clone[2]), math.sin(clone[2])
+    dx, dy = pose[0] - clone[0], pose[1] - clone[1]
+    h = (c * dx + s * dy, -s * dx + c * dy, _wrap(pose[2] - clone[2]))
+    j_pose = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    j_clone = np.array([[-c, -s, -s * dx + c * dy], [s, -c, -c * dx - s * dy], [0.0, 0.0, -1.0]])
+    return h, j_pose, j_clone
+
+
+@dataclass
+class _Clone:
+    """A slot of the state holding the pose at `stamp_ns` (None: empty), and for a
+    differential input the reading taken then."""
+
+    offset: int
+    stamp_ns: int | None = None
+    key: object = None
+    reading: Reading | None = None
+
+
+class EkfFusion:
+    """Stamp-ordered EKF over the inputs in `inputs`; feed readings with update(name, reading)
+    in stamp order and read `state`.
+
+    A differential input with a pose mask only is coalesced: its newest reading waits until
+    another kind of reading or a read of `state`, and the increment since its clone is fused
+    once (the same increment, with the same summed covariance, as fusing every message, for a
+    fraction of the work).
+    """
+
+    def __init__(self, inputs: tuple[InputConfig, ...], settings: EkfSettings | None = None
+                 ) -> None:
+        self.settings = settings or EkfSettings()
+        self.inputs = {cfg.name: cfg for cfg in inputs}
+        # One clone slot per differential or keyframe input, at fixed offsets.
+        self._slots: dict[str, _Clone] = {}
+        offset = BASE
+        for cfg in inputs:
+            if cfg.keyframes or (cfg.pose_mode == 'differential' and any(cfg.mask[:3])):
+                self._slots[cfg.name] = _Clone(offset)
+                offset += 3
+        self._size = offset
+        self._angle_rows = [YAW] + [slot.offset + 2 for slot in self._slots.values()]
+        self._q_diagonal = np.array([self.settings.pose_noise_density ** 2] * 3
+                                    + [self.settings.accel_noise_density ** 2] * 2
+                                    + [self.settings.angular_accel_noise_density ** 2,
+                                       self.settings.bias_random_walk ** 2])
+        self.reset()
+
+    # -- state management --------------------------------------------------------------------
+    def reset(self, pose: Pose2 = (0.0, 0.0, 0.0), covariance: NDArray | None = None) -> None:
+        """Start again at pose (odom) with the given 3x3 covariance (zero: exactly known)."""
+        s = self.settings
+        self.x = np.zeros(self._size)
+        self.x[:3] = pose
+        self.p = np.zeros((self._size, self._size))
+        if covariance is not None:
+            self.p[:3, :3] = np.asarray(covariance, dtype=float)
+        self.p[VX, VX] = self.p[VY, VY] = self.p[WZ, WZ] = s.initial_velocity_std ** 2
+        self.p[BG, BG] = s.initial_bias_std ** 2
+        self.stamp_ns: int | None = None
+        for slot in self._slots.values():
+            slot.stamp_ns, slot.key, slot.reading = None, None, None
+        self._pending: dict[str, Reading] = {}   # coalesced differential readings
+        self._last_seen: dict[str, int] = {}     # stamp of each input's newest reading
+        self._origin: dict[str, Pose2] = {}      # relative mode: source pose -> fused pose
+        self._initialized = False                # an absolute reading has set the state
+        self.updates = 0
+        self.gated: dict[str, int] = {}          # readings refused by the Mahalanobis gate
+
+    def set_pose(self, pose: Pose2, covariance: NDArray[np.float64]) -> None:
+        """Put the robot at pose with the given covariance; velocities and bias are kept, every
+        differential and keyframe input starts again from its next message."""
+        self._flush()
+        keep_x, keep_p = self.x[3:BASE].copy(), self.p[3:BASE, 3:BASE].copy()
+        stamp = self.stamp_ns
+        self.reset(pose, covariance)
+        self.x[3:BASE], self.p[3:BASE, 3:BASE] = keep_x, keep_p
+        self.stamp_ns = stamp
+
+    def _clone(self, slot: _Clone, key: object = None, reading: Reading | None = None) -> None:
+        """Copy the current pose (and its correlations) into the slot."""
+        at = slot.offset
+        self._empty(slot)
+        self.x[at:at + 3] = self.x[:3]
+        self.p[at:at + 3, :] = self.p[:3, :]
+        self.p[:, at:at + 3] = self.p[:, :3]
+        self.p[at:at + 3, at:at + 3] = self.p[:3, :3]
+        slot.stamp_ns, slot.key, slot.reading = self.stamp_ns, key, reading
+
+    def _empty(self, slot: _Clone) -> None:
+        at = slot.offset
+        self.x[at:at + 3] = 0.0
+        self.p[at:at + 3, :] = 0.0
+        self.p[:, at:at + 3] = 0.0
+        slot.stamp_ns, slot.key, slot.reading = None, None, None
+
+    @property
+    def pose(self) -> Pose2:
+        return (float(self.x[X]), float(self.x[Y]), float(self.x[YAW]))
+
+    @property
+    def state(self) -> FusedState | None:
+        """The fused estimate after every reading so far (None before the first)."""
+        self._flush()
+        if self.stamp_ns is None:
+            return None
+        p = self.p
+        return FusedState(self.stamp_ns, self.pose, _symmetric(p[:3, :3]),
+                          (float(self.x[VX]), float(self.x[VY]), float(self.x[WZ])),
+                          _symmetric(p[3:6, 3:6]), float(self.x[BG]), float(p[BG, BG]))
+
+    # -- filter steps ------------------------------------------------------------------------
+    def predict(self, stamp_ns: int) -> None:
+        """Constant-velocity prediction of the current state to stamp_ns (clones stay)."""
+        if self.stamp_ns is None:
+            self.stamp_ns = stamp_ns
+            return
+        dt = (stamp_ns - self.stamp_ns) * 1e-9
+        if dt <= 0.0:
+            return
+        yaw, vx, vy, wz = float(self.x[YAW]), float(self.x[VX]), float(self.x[VY]), \
+            float(self.x[WZ])
+        c, si = math.cos(yaw), math.sin(yaw)
+        f = np.eye(BASE)
+        f[X, YAW], f[X, VX], f[X, VY] = (-vx * si - vy * c) * dt, c * dt, -si * dt
+        f[Y, YAW], f[Y, VX], f[Y, VY] = (vx * c - vy * si) * dt, si * dt, c * dt
+        f[YAW, WZ] = dt
+        self.x[X] += (vx * c - vy * si) * dt
+        self.x[Y] += (vx * si + vy * c) * dt
+        self.x[YAW] = _wrap(yaw + wz * dt)
+        p = self.p
+        p[:BASE, :] = f @ p[:BASE, :]
+        p[:, :BASE] = p[:, :BASE] @ f.T
+        p[range(BASE), range(BASE)] += self._q_diagonal * dt
+        self.stamp_ns = stamp_ns
+
+    def _correct(self, residual: NDArray, h: NDArray, r: NDArray, gate_chi2: float) -> Outcome:
+        """EKF update with innovation `residual` (angle rows already wrapped), Jacobian h over
+        the whole state and noise r; refused when the squared Mahalanobis distance exceeds
+        gate_chi2."""
+        ph = self.p @ h.T
+        s = h @ ph + r
+        try:
+            s_inv = np.linalg.inv(s)
+        except np.linalg.LinAlgError:
+            return Outcome(note='singular innovation covariance')
+        d2 = float(residual @ s_inv @ residual)
+        if not math.isfinite(d2) or d2 > gate_chi2:
+            return Outcome(gated=True, distance2=d2,
+                           note=f'squared Mahalanobis distance {d2:.1f} > {gate_chi2:g}')
+        k = ph @ s_inv
+        self.x += k @ residual
+        for i in self._angle_rows:
+            self.x[i] = _wrap(float(self.x[i]))
+        self.p -= k @ ph.T
+        self.p = 0.5 * (self.p + self.p.T)
+        self.updates += 1
+        return Outcome(fused=True, distance2=d2)
+
+    # -- measurements --------------------------------------------------------------------------
+    def _coalesced(self, cfg: InputConfig) -> bool:
+        return cfg.pose_mode == 'differential' and not cfg.keyframes and not any(cfg.mask[3:])
+
+    def update(self, name: str, reading: Reading) -> Outcome:
+        """Fuse one reading of input `name` (stamps must not go backwards: use a
+        StampOrderedBuffer)."""
+        cfg = self.inputs[name]
+        previous_stamp = self._last_seen.get(name)
+        self._last_seen[name] = reading.stamp_ns
+        if self._coalesced(cfg):
+            slot = self._slots[name]
+            gap = previous_stamp is not None and \
+                reading.stamp_ns - previous_stamp > cfg.max_gap_s * 1e9
+            if slot.stamp_ns is not None and not gap:
+                self._pending[name] = reading
+                return Outcome(fused=True, note='increment held until the next output')
+            self._flush()
+            self.predict(reading.stamp_ns)
+            self._clone(slot, reading=reading)
+            return Outcome(note='first message of this differential input (or after a gap)')
+        self._flush()
+        self.predict(reading.stamp_ns)
+        outcomes = []
+        if cfg.keyframes:
+            outcomes.append(self._keyframe(cfg, reading))
+        elif reading.pose is not None and any(cfg.mask[:3]):
+            outcomes.append(self._pose(cfg, reading))
+        if reading.twist is not None and any(cfg.mask[3:]):
+            outcomes.append(self._twist(cfg, reading))
+        if not outcomes:
+            return Outcome(note="nothing in this reading is in the input's mask")
+        gated = [o for o in outcomes if o.gated]
+        if gated:
+            self.gated[name] = self.gated.get(name, 0) + 1
+            return gated[0]
+        fused = [o for o in outcomes if o.fused]
+        return fused[0] if fused else outcomes[0]
+
+    def _flush(self) -> Outcome | None:
+        """Fuse the held differential readings, oldest first; the outcome of a gated one."""
+        gated = None
+        while self._pending:
+            name = min(self._pending, key=lambda n: self._pending[n].stamp_ns)
+            reading = self._pending.pop(name)
+            self.predict(reading.stamp_ns)
+            outcome = self._differential(self.inputs[name], reading)
+            if outcome.gated:
+                gated = outcome
+                self.gated[name] = self.gated.get(name, 0) + 1
+        return gated
+
+    @staticmethod
+    def _masked(mask: tuple[bool, ...], residual, h, r) -> tuple:
+        if all(mask):
+            return residual, h, r
+        rows = [i for i, used in enumerate(mask) if used]
+        return residual[rows], h[rows], r[np.ix_(rows, rows)]
+
+    @staticmethod
+    def _pose_noise(cfg: InputConfig, covariance, increment: Pose2 | None,
+                    static: bool, dt: float = 0.0) -> NDArray[np.float64]:
+        use_model = cfg.covariance == 'model' or (
+            cfg.covariance == 'auto' and (covariance is None or static or not np.any(covariance)))
+        if use_model:
+            if increment is None:
+                return np.diag([max(cfg.noise.min_variance, MIN_VARIANCE)] * 3)
+            return cfg.noise.increment_covariance(increment, dt)
+        cov = _symmetric(np.asarray(covariance, dtype=float)) * cfg.covariance_scale
+        cov[range(3), range(3)] += MIN_VARIANCE
+        return cov
+
+    def _pose(self, cfg: InputConfig, reading: Reading) -> Outcome:
+        if cfg.pose_mode == 'differential':
+            return self._differential(cfg, reading)
+        pose = reading.pose
+        cov = self._pose_noise(cfg, reading.pose_covariance, None, False)
+        if cfg.pose_mode == 'relative':
+            if cfg.name not in self._origin:
+                # The source's first pose is where we are now: later ones are relative to it.
+                self._origin[cfg.name] = se2.compose(self.pose, se2.inverse(pose))
+                return Outcome(note='first message: origin of the relative input')
+            _, j = se2.compose_jacobians(self._origin[cfg.name], pose)
+            pose = se2.compose(self._origin[cfg.name], pose)
+            cov = j @ cov @ j.T
+        if cfg.pose_mode == 'absolute' and not self._initialized:
+            # As robot_localization: the filter's first absolute reading sets what it measures
+            # (an IMU's heading in its world frame is where the fused frame's heading starts).
+            self._initialized = True
+            rows = [i for i in range(3) if cfg.mask[i]]
+            for i in rows:
+                self.x[i] = pose[i]
+                self.p[i, :] = 0.0
+                self.p[:, i] = 0.0
+            self.p[np.ix_(rows, rows)] = cov[np.ix_(rows, rows)]
+            return Outcome(note='first absolute reading: state set to it')
+        residual = np.array([pose[0] - self.x[X], pose[1] - self.x[Y],
+                             _wrap(pose[2] - float(self.x[YAW]))])
+        h = np.zeros((3, self._size))
+        h[0, X] = h[1, Y] = h[2, YAW] = 1.0
+        return self._correct(*self._masked(cfg.mask[:3], residual, h, cov), cfg.gate_chi2)
+
+    def _differential(self, cfg: InputConfig, reading: Reading) -> Outcome:
+        """The motion from the slot's reading to this one, fused against the clone."""
+        slot = self._slots[cfg.name]
+        previous = slot.reading
+        if previous is None:
+            self._clone(slot, reading=reading)
+            return Outcome(note='first message of this differential input (or after a gap)')
+        increment = se2.between(previous.pose, reading.pose)
+        static = False
+        cov = None
+        if reading.pose_covariance is not None and previous.pose_covariance is not None:
+            static = bool(np.array_equal(reading.pose_covariance, previous.pose_covariance))
+            if not static:
+                cov = increment_covariance(previous.pose, previous.pose_covariance,
+                                           reading.pose, reading.pose_covariance)
+        dt = (reading.stamp_ns - previous.stamp_ns) * 1e-9
+        noise = self._pose_noise(cfg, cov, increment, static, dt)
+        outcome = self._relative_update(cfg, slot, increment, noise, dt)
+        self._clone(slot, reading=reading)
+        return outcome
+
+    def _relative_update(self, cfg: InputConfig, slot: _Clone, measured: Pose2,
+                         noise: NDArray, dt: float = 0.0) -> Outcome:
+        at = slot.offset
+        clone = (float(self.x[at]), float(self.x[at + 1]), float(self.x[at + 2]))
+        predicted, j_pose, j_clone = relative_jacobian(clone, self.pose)
+        h = np.zeros((3, self._size))
+        h[:, :3] = j_pose
+        h[:, at:at + 3] = j_clone
+        yaw = predicted[2]
+        if cfg.gyro_bias:
+            # Heading increments of a gyro carry its remaining bias times the interval.
+            h[2, BG] = dt
+            yaw += float(self.x[BG]) * dt
+        residual = np.array([measured[0] - predicted[0], measured[1] - predicted[1],
+                             _wrap(measured[2] - yaw)])
+        return self._correct(*self._masked(cfg.mask[:3], residual, h, noise), cfg.gate_chi2)
+
+    def _keyframe(self, cfg: InputConfig, reading: Reading) -> Outcome:
+        slot = self._slots[cfg.name]
+        outcome = Outcome(note='no match in this reading')
+        if reading.pose is not None and reading.keyframe_ns is not None:
+            if slot.key == reading.keyframe_ns:
+                noise = self._pose_noise(cfg, reading.pose_covariance, reading.pose, False)
+                outcome = self._relative_update(cfg, slot, reading.pose, noise)
+            else:
+                outcome = Outcome(note='keyframe not known (started after it): not fused')
+        if reading.new_keyframe:
+            self._clone(slot, key=reading.stamp_ns)
+        return outcome
+
+    def _twist(self, cfg: InputConfig, reading: Reading) -> Outcome:
+        cov = reading.twist_covariance
+        if cfg.covariance == 'model' or cov is None or not np.all(np.diag(cov) > 0.0):
+            cov = np.diag(cfg.twist_variance)
+        cov = _symmetric(np.asarray(cov, dtype=float))
+        cov[range(3), range(3)] += MIN_VARIANCE
+        h = np.zeros((3, self._size))
+        h[0, VX] = h[1, VY] = h[2, WZ] = 1.0
+        if cfg.gyro_bias:
+            h[2, BG] = 1.0
+        residual = np.asarray(reading.twist, dtype=float) - h @ self.x
+        return self._correct(*self._masked(cfg.mask[3:], residual, h, cov), cfg.gate_chi2)
+
+
+def with_mask(cfg: InputConfig, **quantities: bool) -> InputConfig:
+    """cfg with the named QUANTITIES switched on or off."""
+    mask = list(cfg.mask)
+    for name, used in quantities.items():
+        mask[QUANTITIES.index(name)] = used
+    return replace(cfg, mask=tuple(mask))
+
+
+def mask_from_names(names: list[str] | tuple[str, ...]) -> tuple[bool, ...]:
+    """Mask tuple from quantity names (e.g. ['x', 'y', 'yaw']); ValueError for unknown ones."""
+    unknown = [n for n in names if n not in QUANTITIES]
+    if unknown:
+        raise ValueError(f'unknown quantities {unknown}: use {list(QUANTITIES)}')
+    return tuple(q in names for q in QUANTITIES)
+
+
+
+# The fusion node's per-input parameters (`<input>.<key>`) and their defaults: one table for
+# the node, the YAML files and the tools that run the core over a bag.
+INPUT_DEFAULTS: dict[str, dict] = {
+    'wheel_odom': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential', 'covariance': 'auto',
+                   'covariance_scale': 1.0, 'variance_per_m': 1e-4, 'variance_per_rad': 1e-3,
+                   'yaw_variance_per_m': 1e-4, 'yaw_variance_per_s': 0.0,
+                   'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 0.0},
+    'imu': {'mask': ['yaw'], 'pose_mode': 'differential', 'covariance': 'model',
+            'covariance_scale': 1.0, 'variance_per_m': 0.0, 'variance_per_rad': 0.0,
+            'yaw_variance_per_m': 0.0, 'yaw_variance_per_s': 1e-8,
+            'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 16.0},
+    'scan_match': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential',
+                   'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,
+                   'variance_per_rad': 1e-3, 'yaw_variance_per_m': 1e-4,
+                   'yaw_variance_per_s': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
+                   'gate_chi2': 25.0},
+}
+
+
+def input_config(name: str, values: dict, **fixed) -> InputConfig:
+    """InputConfig of input `name` from its parameter values (missing ones: INPUT_DEFAULTS);
+    `fixed` sets what the input's kind decides (keyframes, gyro_bias, max_gap_s).
+    ValueError for an unknown quantity in the mask."""
+    v = {**INPUT_DEFAULTS[name], **values}
+    gate = float(v['gate_chi2'])
+    return InputConfig(
+        name=name, mask=mask_from_names(list(v['mask'])), pose_mode=v['pose_mode'],
+        covariance=v['covariance'], covariance_scale=float(v['covariance_scale']),
+        noise=NoiseModel(variance_per_m=float(v['variance_per_m']),
+                         variance_per_rad=float(v['variance_per_rad']),
+                         yaw_variance_per_m=float(v['yaw_variance_per_m']),
+                         yaw_variance_per_s=float(v['yaw_variance_per_s'])),
+        twist_variance=tuple(float(x) for x in v['twist_variance']),
+        gate_chi2=gate if gate > 0.0 else math.inf, **fixed)

@@ -1,0 +1,227 @@
+"""The fusion over recorded or simulated input streams, without ROS, and its error against
+ground truth: the accuracy checks of docs/fusion.md (position m, heading deg, consistency)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from sensing_nodes.core import se2
+from sensing_nodes.core.ekf_fusion import (
+    INPUT_DEFAULTS, EkfFusion, EkfSettings, InputConfig, Reading, input_config,
+)
+from sensing_nodes.core.evaluation import express_in_reference_frame, interpolate_poses
+from sensing_nodes.core.fusion import ComplementaryFusion, FusionSettings
+from sensing_nodes.core.sim_pipeline import FusionInputs
+from sensing_nodes.paths import config_file
+
+WHEEL, GYRO, SCAN = 0, 1, 2   # processing rank at equal stamps (as the node)
+
+
+def inputs_from_params(params: dict) -> tuple[InputConfig, ...]:
+    """The EKF inputs a complementary_fusion parameter dict (as in its YAML file) configures,
+    the IMU as gyro_integrator's heading unless imu.source says otherwise."""
+    use = {'wheel_odom': params.get('use_wheel_odom', True), 'imu': params.get('use_imu', True),
+           'scan_match': params.get('use_scan_match_position', True)
+           or params.get('use_scan_match_heading', True)}
+    max_gap_s = float(params.get('max_gap_s', 2.0))
+    return tuple(
+        input_config(name, {k: v for k, v in params.get(name, {}).items()
+                            if k in INPUT_DEFAULTS[name]},
+                     keyframes=name == 'scan_match', max_gap_s=max_gap_s,
+                     gyro_bias=name == 'imu' and params.get('imu', {}).get('source') == 'rate')
+        for name in ('wheel_odom', 'imu', 'scan_match') if use[name])
+
+
+def default_inputs() -> tuple[InputConfig, ...]:
+    """The EKF inputs of config/complementary_fusion.yaml."""
+    with open(config_file('complementary_fusion.yaml')) as f:
+        params = yaml.safe_load(f)['complementary_fusion']['ros__parameters']
+    return inputs_from_params(params)
+
+
+@dataclass(frozen=True)
+class FusedTrack:
+    """Fused output at each published stamp: poses (N, 3), covariances (N, 3, 3)."""
+
+    t: NDArray[np.int64]
+    pose: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    gated: int
+
+
+def _events(inputs: FusionInputs) -> list[tuple[int, int, int]]:
+    return sorted([(int(t), WHEEL, i) for i, t in enumerate(inputs.wheel_t)]
+                  + [(int(t), GYRO, i) for i, t in enumerate(inputs.gyro_t)]
+                  + [(int(t), SCAN, i) for i, t in enumerate(inputs.scan_t)])
+
+
+def run_ekf(inputs: FusionInputs, configs: tuple[InputConfig, ...] | None = None,
+            settings: EkfSettings | None = None) -> FusedTrack:
+    """The EKF over every stream in stamp order; output at each wheel and scan stamp."""
+    ekf = EkfFusion(configs or default_inputs(), settings)
+    names = {cfg.name for cfg in ekf.inputs.values()}
+    out_t, out_p, out_c = [], [], []
+    for stamp, kind, i in _events(inputs):
+        if kind == WHEEL and 'wheel_odom' in names:
+            ekf.update('wheel_odom', Reading(
+                stamp, tuple(inputs.wheel_pose[i]), inputs.wheel_cov[i],
+                tuple(inputs.wheel_twist[i]), None))
+        elif kind == GYRO and 'imu' in names:
+            cfg = ekf.inputs['imu']
+            rate = inputs.raw_rate[i] if cfg.gyro_bias else inputs.gyro_rate[i]
+            var = np.zeros((3, 3))
+            var[2, 2] = inputs.gyro_yaw_var[i]
+            ekf.update('imu', Reading(
+                stamp, (0.0, 0.0, float(inputs.gyro_yaw[i])), var, (0.0, 0.0, float(rate)),
+                None))
+            continue
+        elif kind == SCAN and 'scan_match' in names:
+            kf = int(inputs.scan_keyframe_t[i])
+            ekf.update('scan_match', Reading(
+                stamp, tuple(inputs.scan_relative[i]) if kf >= 0 else None,
+                inputs.scan_relative_cov[i], keyframe_ns=kf if kf >= 0 else None,
+                new_keyframe=bool(inputs.scan_new_keyframe[i])))
+        else:
+            continue
+        state = ekf.state
+        out_t.append(stamp)
+        out_p.append(state.pose)
+        out_c.append(state.covariance)
+    return FusedTrack(np.array(out_t, dtype=np.int64), np.array(out_p), np.array(out_c),
+                      sum(ekf.gated.values()))
+
+
+def run_complementary(inputs: FusionInputs, settings: FusionSettings | None = None
+                      ) -> FusedTrack:
+    """The seed's complementary filter over the streams (as the node feeds it)."""
+    fusion = ComplementaryFusion(settings or FusionSettings(max_gap_s=2.0))
+    out_t, out_p, out_c = [], [], []
+    previous_scan = None
+    for stamp, kind, i in _events(inputs):
+        if kind == WHEEL:
+            fusion.add_wheel(stamp, tuple(inputs.wheel_pose[i]), inputs.wheel_cov[i])
+        elif kind == GYRO:
+            fusion.add_gyro(stamp, float(inputs.gyro_yaw[i]), float(inputs.gyro_yaw_var[i]))
+            continue
+        else:
+            # The node's increment covariance from the matcher's twist covariance: for a match,
+            # the relative covariance against its keyframe.
+            inc = inputs.scan_relative_cov[i] if inputs.scan_keyframe_t[i] >= 0 else None
+            fusion.add_scan_match(stamp, tuple(inputs.scan_pose[i]), inputs.scan_cov[i],
+                                  inc if previous_scan is not None else None)
+            previous_scan = stamp
+        state = fusion.state
+        out_t.append(stamp)
+        out_p.append(state.pose)
+        out_c.append(state.covariance)
+    return FusedTrack(np.array(out_t, dtype=np.int64), np.array(out_p), np.array(out_c), 0)
+
+
+def track_errors(truth_t, truth_pose, t, poses, covariances=None) -> dict[str, float]:
+    """RMS and final position (m) and heading (deg) errors of a track whose frame starts at the
+    truth's first pose; with covariances, the consistency shares and the largest heading step
+    beyond the truth's step in units of the step's sigma (chatter)."""
+    reference = interpolate_poses(truth_t, truth_pose, t)
+    keep = np.all(np.isfinite(reference), axis=1)
+    reference, poses, t = reference[keep], poses[keep], t[keep]
+    origin = tuple(truth_pose[0])
+    estimate = express_in_reference_frame(origin, poses)
+    error_xy = estimate[:, :2] - reference[:, :2]
+    position = np.hypot(error_xy[:, 0], error_xy[:, 1])
+    heading = se2.wrap_angle(estimate[:, 2] - reference[:, 2])
+    out = {
+        'rms_position_m': float(np.sqrt(np.mean(position ** 2))),
+        'final_position_m': float(position[-1]),
+        'rms_heading_deg': float(np.degrees(np.sqrt(np.mean(heading ** 2)))),
+        'final_heading_deg': float(np.degrees(abs(heading[-1]))),
+    }
+    if covariances is not None:
+        cov = covariances[keep]
+        # Covariance is in the estimate's frame (odom); errors rotated into it.
+        rot = se2.rotation(-origin[2])
+        e = error_xy @ rot.T
+        cxy = cov[:, :2, :2] + np.eye(2) * 1e-18
+        d2 = np.einsum('ni,nij,nj->n', e, np.linalg.inv(cxy), e)
+        d = np.sqrt(d2)
+        sigma_yaw = np.sqrt(np.maximum(cov[:, 2, 2], 1e-30))
+        z = np.abs(heading) / sigma_yaw
+        out.update({
+            'position_within_3': float(np.mean(d <= 3.0)),
+            'position_beyond_1': float(np.mean(d > 1.0)),
+            'heading_within_3': float(np.mean(z <= 3.0)),
+            'heading_beyond_1': float(np.mean(z > 1.0)),
+        })
+        est_step = se2.wrap_angle(np.diff(estimate[:, 2]))
+        true_step = se2.wrap_angle(np.diff(reference[:, 2]))
+        step_sigma = np.sqrt(np.abs(np.diff(cov[:, 2, 2])) + 1e-30)
+        out['chatter_max_sigma'] = float(np.max(np.abs(est_step - true_step) / step_sigma)) \
+            if len(est_step) else 0.0
+    return out
+
+
+def input_errors(inputs: FusionInputs) -> dict[str, dict[str, float]]:
+    """Errors of each input on its own: wheel odometry, scan matching (pose), gyro (heading)."""
+    truth_t, truth_pose = inputs.truth_t, inputs.truth_pose
+    gyro = np.column_stack([np.zeros((len(inputs.gyro_t), 2)), inputs.gyro_yaw])
+    g = track_errors(truth_t, truth_pose, inputs.gyro_t, gyro)
+    return {
+        'wheel': track_errors(truth_t, truth_pose, inputs.wheel_t, inputs.wheel_pose),
+        'scan': track_errors(truth_t, truth_pose, inputs.scan_t, inputs.scan_pose),
+        'gyro': {k: v for k, v in g.items() if 'heading' in k},
+    }
+
+
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Table of fused (EKF and complementary) and per-input errors over seeds of the default
+    route and of the strong_errors configuration (docs/fusion.md's figures)."""
+    import argparse
+    import json
+
+    from sensing_nodes.core.sim import load_params_file, params_from_dict
+    from sensing_nodes.core.sim_pipeline import simulated_inputs
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument('--seeds', type=int, default=8)
+    parser.add_argument('--configs', default='default,strong_errors')
+    parser.add_argument('--json', help='write every figure here')
+    args = parser.parse_args(argv)
+    rows = []
+    for name in args.configs.split(','):
+        params = None if name == 'default' else params_from_dict(
+            load_params_file(config_file(f'bags_{name}.yaml')))
+        for seed in range(args.seeds):
+            inputs = simulated_inputs(seed, params)
+            track = run_ekf(inputs)
+            comp = run_complementary(inputs)
+            row = {'config': name, 'seed': seed, **input_errors(inputs),
+                   'ekf': track_errors(inputs.truth_t, inputs.truth_pose, track.t, track.pose,
+                                       track.covariance),
+                   'complementary': track_errors(inputs.truth_t, inputs.truth_pose, comp.t,
+                                                 comp.pose, comp.covariance),
+                   'gated': track.gated}
+            rows.append(row)
+            e, c = row['ekf'], row['complementary']
+            print(f"{name} seed {seed}: RMS position ekf {e['rms_position_m']:.4f} "
+                  f"complementary {c['rms_position_m']:.4f} wheel "
+                  f"{row['wheel']['rms_position_m']:.4f} scan {row['scan']['rms_position_m']:.4f}"
+                  f" | RMS heading ekf {e['rms_heading_deg']:.4f} complementary "
+                  f"{c['rms_heading_deg']:.4f} gyro {row['gyro']['rms_heading_deg']:.4f} scan "
+                  f"{row['scan']['rms_heading_deg']:.4f} wheel "
+                  f"{row['wheel']['rms_heading_deg']:.4f} | within 3 / beyond 1: position "
+                  f"{e['position_within_3']:.3f} / {e['position_beyond_1']:.3f}, heading "
+                  f"{e['heading_within_3']:.3f} / {e['heading_beyond_1']:.3f}", flush=True)
+    if args.json:
+        with open(args.json, 'w') as f:
+            json.dump(rows, f, indent=1)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,145 @@
+"""The package's dead reckoning and scan matching over a simulated run, without ROS: the
+fusion's input streams, as the nodes would publish them, for accuracy checks of the fusion.
+
+Frames and units as the topics: wheel odometry and scan matching are base_link poses in their
+own odom frames (m, rad) with 3x3 covariances over (x, y, yaw); the gyro stream is
+gyro_integrator's heading (rad, its variance rad^2) and bias-corrected yaw rate (rad/s); the raw
+stream is the IMU's z rate (rad/s). Stamps are int64 ns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
+from sensing_nodes.core.scan import scan_to_points
+from sensing_nodes.core.scan_matching import (
+    KeyframeScanMatcher, OdometryBuffer, ScanMatcherSettings,
+)
+from sensing_nodes.core.sim import SimParams, SimRun, make_route, simulate
+from sensing_nodes.core.wheel_odometry import WheelOdometry, WheelOdometryConfig
+from sensing_nodes.core.world import load_world
+from sensing_nodes.paths import config_file
+
+JOINTS = ('left_wheel_joint', 'right_wheel_joint')
+
+
+@dataclass(frozen=True)
+class FusionInputs:
+    """Every input of the fusion over one run, plus the ground truth (map frame)."""
+
+    truth_t: NDArray[np.int64]
+    truth_pose: NDArray[np.float64]          # (T, 3)
+    wheel_t: NDArray[np.int64]
+    wheel_pose: NDArray[np.float64]          # (W, 3)
+    wheel_cov: NDArray[np.float64]           # (W, 3, 3)
+    wheel_twist: NDArray[np.float64]         # (W, 3) vx, vy, wz in base_link
+    gyro_t: NDArray[np.int64]
+    gyro_yaw: NDArray[np.float64]            # integrated heading (rad)
+    gyro_yaw_var: NDArray[np.float64]        # its variance (rad^2)
+    gyro_rate: NDArray[np.float64]           # bias-corrected z rate (rad/s)
+    raw_rate: NDArray[np.float64]            # the IMU's z rate before any correction (rad/s)
+    scan_t: NDArray[np.int64]
+    scan_pose: NDArray[np.float64]           # (S, 3) cumulative matcher pose
+    scan_cov: NDArray[np.float64]            # (S, 3, 3)
+    scan_keyframe_t: NDArray[np.int64]       # keyframe of each match's relative pose; -1: none
+    scan_relative: NDArray[np.float64]       # (S, 3) pose relative to that keyframe
+    scan_relative_cov: NDArray[np.float64]   # (S, 3, 3)
+    scan_new_keyframe: NDArray[np.bool_]     # this scan is the keyframe of the next matches
+
+
+def wheel_config(params: SimParams) -> WheelOdometryConfig:
+    """Wheel odometry as config/wheel_odometry.yaml sets it for the simulated robot."""
+    return WheelOdometryConfig(wheel_radius_m=params.wheel_radius_m,
+                               wheel_separation_m=params.wheel_separation_m,
+                               right_radius_multiplier=1.01)
+
+
+def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
+                    gyro: GyroConfig | None = None,
+                    matcher: ScanMatcherSettings | None = None) -> FusionInputs:
+    """Run wheel odometry, the gyro integrator (with the wheel stillness veto) and the keyframe
+    scan matcher (predicted by the wheel odometry) over a simulated run, in stamp order."""
+    params = run.params
+    odometry = WheelOdometry(wheel or wheel_config(params))
+    integrator = GyroIntegrator(gyro or GyroConfig())
+    scan_matcher = KeyframeScanMatcher(matcher or ScanMatcherSettings(
+        laser_pose=(params.laser_x_m, params.laser_y_m, params.laser_yaw_rad)))
+    buffer = OdometryBuffer(max_age_s=10.0, max_extrapolation_s=0.1)
+    wt, wp, wc, wtw = [], [], [], []
+    gt, gy, gv, gr, raw = [], [], [], [], []
+    st, sp, sc, skt, srel, src, snew = [], [], [], [], [], [], []
+    angles = run.scan_angles
+    # Same-stamp order as the graph delivers it closely enough: joints, IMU, then scans.
+    events = sorted([(int(t), 0, i) for i, t in enumerate(run.joint_t)]
+                    + [(int(t), 1, i) for i, t in enumerate(run.imu_t)]
+                    + [(int(t), 2, i) for i, t in enumerate(run.scan_t)])
+    last_scan = None
+    for stamp, kind, i in events:
+        if kind == 0:
+            result = odometry.update(stamp, list(JOINTS), run.joint_position[i],
+                                     run.joint_velocity[i], JOINTS)
+            if result.publish:
+                wt.append(stamp)
+                wp.append(odometry.pose)
+                wc.append(odometry.covariance.copy())
+                wtw.append(odometry.twist)
+                buffer.add(stamp, odometry.pose)
+                integrator.observe_wheels(stamp, odometry.twist[0], odometry.twist[2])
+        elif kind == 1:
+            result = integrator.update(stamp, run.imu_gyro[i], run.imu_accel[i])
+            if result.publish:
+                gt.append(stamp)
+                gy.append(integrator.heading)
+                gv.append(integrator.heading_variance)
+                gr.append(float(integrator.rate[2]))
+                raw.append(float(run.imu_gyro[i][2]))
+        else:
+            points, _ = scan_to_points(run.scan_ranges[i], angles, run.scan_range_min,
+                                       run.scan_range_max)
+            prediction = buffer.motion_between(last_scan, stamp) if last_scan is not None else None
+            step = scan_matcher.process(stamp, points, prediction)
+            if not step.publish:
+                continue
+            last_scan = stamp
+            st.append(stamp)
+            sp.append(step.pose)
+            sc.append(step.covariance)
+            skt.append(-1 if step.keyframe_stamp_ns is None else step.keyframe_stamp_ns)
+            srel.append(step.relative or (0.0, 0.0, 0.0))
+            src.append(step.relative_covariance if step.relative_covariance is not None
+                       else np.zeros((3, 3)))
+            snew.append(step.new_keyframe)
+    return FusionInputs(
+        truth_t=run.truth_t, truth_pose=run.truth_pose,
+        wheel_t=np.array(wt, dtype=np.int64), wheel_pose=np.array(wp), wheel_cov=np.array(wc),
+        wheel_twist=np.array(wtw),
+        gyro_t=np.array(gt, dtype=np.int64), gyro_yaw=np.array(gy), gyro_yaw_var=np.array(gv),
+        gyro_rate=np.array(gr), raw_rate=np.array(raw),
+        scan_t=np.array(st, dtype=np.int64), scan_pose=np.array(sp), scan_cov=np.array(sc),
+        scan_keyframe_t=np.array(skt, dtype=np.int64), scan_relative=np.array(srel),
+        scan_relative_cov=np.array(src).reshape(-1, 3, 3),
+        scan_new_keyframe=np.array(snew, dtype=bool))
+
+
+def simulated_inputs(seed: int = 0, params: SimParams | None = None,
+                     laps: float = 1.0) -> FusionInputs:
+    """Simulate `laps` of the route (default world) and run the fusion's input chain over it."""
+    params = params or SimParams()
+    run = simulate(params, load_world(config_file('default_world.yaml')),
+                   laps * make_route(params).period_s, seed)
+    return inputs_from_run(run)
+
+
+def save(inputs: FusionInputs, path: str) -> None:
+    """Write the streams to an .npz file (a cache for repeated experiments)."""
+    np.savez_compressed(path, **{k: getattr(inputs, k) for k in FusionInputs.__dataclass_fields__})
+
+
+def load(path: str) -> FusionInputs:
+    """Read streams written by save()."""
+    with np.load(path) as data:
+        return FusionInputs(**{k: data[k] for k in FusionInputs.__dataclass_fields__})

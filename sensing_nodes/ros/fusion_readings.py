@@ -1,0 +1,161 @@
+"""Messages of the fusion's inputs -> validated core Readings, for the fusion node and for
+tools that run the fusion core over a bag (one conversion, one set of acceptance rules).
+
+Inputs: 'wheel_odom' (nav_msgs/Odometry), 'imu' (sensor_msgs/Imu: gyro_integrator's heading,
+the IMU's own orientation, or its raw rate, with the IMU mount rotation), 'scan_match'
+(nav_msgs/Odometry: keyframe-relative matches for the EKF, cumulative poses for the
+complementary filter). Poses in m and rad, stamps in ns.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sensing_nodes.core.ekf_fusion import InputConfig, Reading
+from sensing_nodes.core.fusion import InputRecord, covariance_problem, pose_problem
+from sensing_nodes.core.imu_mount import base_orientation, to_base
+from sensing_nodes.ros.conversions import (
+    NO_KEYFRAME, keyframe_stamp, odometry_pose, odometry_twist, quaternion_to_yaw,
+)
+
+WHEEL, IMU, SCAN = 'wheel_odom', 'imu', 'scan_match'
+IMU_SOURCES = ('integrated', 'orientation', 'rate')
+
+
+def unit_quaternion(q) -> bool:
+    """Finite and of unit length (within 1 %): an infinite or all-zero orientation still gives
+    a finite yaw from atan2, but it is no rotation at all."""
+    norm2 = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
+    return math.isfinite(norm2) and abs(norm2 - 1.0) <= 0.02
+
+
+@dataclass
+class ReadingConverter:
+    """Converts and validates input messages for one fusion method ('ekf' or
+    'complementary'); `configs` are the EKF's inputs (empty for the complementary filter)."""
+
+    method: str
+    configs: dict[str, InputConfig] = field(default_factory=dict)
+    imu_source: str = 'integrated'
+    mount: NDArray[np.float64] = field(default_factory=lambda: np.eye(3))
+    # Project body velocities onto the horizontal plane with the IMU's latest roll and pitch
+    # (orientation source): on a slope the planar pose moves by the horizontal part only.
+    level_with_imu_tilt: bool = False
+    previous_scan_ns: int | None = None
+    tilt: NDArray[np.float64] = field(default_factory=lambda: np.eye(3))
+
+    def reset(self) -> None:
+        self.previous_scan_ns = None
+        self.tilt = np.eye(3)
+
+    def _level(self, vx: float, vy: float, wz: float) -> tuple[float, float, float]:
+        """Body twist -> its horizontal part (in the yaw-only frame) and vertical rotation."""
+        if not self.level_with_imu_tilt:
+            return vx, vy, wz
+        v = self.tilt @ np.array([vx, vy, 0.0])
+        return float(v[0]), float(v[1]), float(self.tilt[2, 2] * wz)
+
+    def reading(self, source: str, msg, stamp: int, record: InputRecord
+                ) -> tuple[Reading | None, str]:
+        """A validated core Reading from a message, or (None, why not)."""
+        if source == IMU:
+            return self._imu(msg, stamp, record)
+        if not unit_quaternion(msg.pose.pose.orientation):
+            return None, 'orientation is not a unit quaternion'
+        if source == SCAN and self.method == 'ekf':
+            return self._keyframe(msg, stamp)
+        pose, cov = odometry_pose(msg)
+        twist, twist_cov = odometry_twist(msg)
+        cfg = self.configs.get(source)
+        # A static or zero covariance is what the EKF's noise model is for ('auto', 'model').
+        zero_ok = cfg is not None and (cfg.covariance != 'message' or not any(cfg.mask[:3]))
+        problem = pose_problem(pose, cov, record.origin, zero_ok)
+        if not problem and cfg is not None and any(cfg.mask[3:]):
+            if not all(math.isfinite(v) for v in twist):
+                problem = 'twist is not finite'
+            else:
+                problem = covariance_problem(twist_cov)
+        if problem:
+            return None, problem
+        if record.origin is None:
+            record.origin = pose
+        if source == SCAN:
+            # Only accepted matches may start the interval of the next one's covariance.
+            return Reading(stamp, pose, cov, twist, self._scan_increment_covariance(
+                twist_cov, stamp)), ''
+        return Reading(stamp, pose, cov, self._level(*twist), twist_cov), ''
+
+    def _imu(self, msg, stamp: int, record: InputRecord) -> tuple[Reading | None, str]:
+        w = msg.angular_velocity
+        rate = float(to_base((w.x, w.y, w.z), self.mount)[2])
+        rate_var = float(msg.angular_velocity_covariance[8])
+        if self.imu_source == 'rate':
+            if not math.isfinite(rate):
+                return None, 'angular velocity is not finite'
+            problem = covariance_problem(
+                np.asarray(msg.angular_velocity_covariance, dtype=float).reshape(3, 3))
+            if problem:
+                return None, f'angular velocity {problem}'
+            return Reading(stamp, twist=(0.0, 0.0, rate),
+                           twist_covariance=np.diag([0.0, 0.0, rate_var])), ''
+        if msg.orientation_covariance[0] == -1.0:
+            return None, 'orientation_covariance[0] = -1: the IMU provides no orientation'
+        if not unit_quaternion(msg.orientation):
+            return None, 'orientation is not a unit quaternion'
+        q = msg.orientation
+        if self.imu_source == 'integrated':
+            yaw = quaternion_to_yaw(q)
+            var = float(msg.orientation_covariance[8])
+        else:
+            base = base_orientation((q.x, q.y, q.z, q.w), self.mount)
+            yaw = math.atan2(base[1, 0], base[0, 0])
+            c, si = math.cos(yaw), math.sin(yaw)
+            self.tilt = np.array([[c, si, 0.0], [-si, c, 0.0], [0.0, 0.0, 1.0]]) @ base
+            if self.level_with_imu_tilt:
+                rate = float((self.tilt @ to_base((w.x, w.y, w.z), self.mount))[2])
+            orientation_cov = np.asarray(msg.orientation_covariance, dtype=float).reshape(3, 3)
+            problem = covariance_problem(orientation_cov)
+            if problem:
+                return None, f'orientation {problem}'
+            var = float((self.mount @ orientation_cov @ self.mount.T)[2, 2])
+        if not math.isfinite(var) or var < 0.0:
+            return None, 'yaw variance is not finite or negative'
+        if record.origin is None:
+            record.origin = yaw
+        cfg = self.configs.get(IMU)
+        if var == 0.0 and yaw != record.origin and (cfg is None or cfg.covariance != 'model'):
+            return None, 'yaw variance is zero after turning'
+        twist = (0.0, 0.0, rate) if math.isfinite(rate) else None
+        return Reading(stamp, (0.0, 0.0, yaw), np.diag([0.0, 0.0, var]), twist,
+                       np.diag([0.0, 0.0, max(rate_var, 0.0)])), ''
+
+    def _keyframe(self, msg, stamp: int) -> tuple[Reading | None, str]:
+        """icp_matcher's keyframe-relative match (frame ids name keyframes: docs/fusion.md)."""
+        new_keyframe = keyframe_stamp(msg.child_frame_id) == stamp
+        keyframe = keyframe_stamp(msg.header.frame_id)
+        if msg.header.frame_id != NO_KEYFRAME and keyframe is None:
+            return None, (f"frame_id '{msg.header.frame_id}' names no keyframe "
+                          f"('keyframe/<stamp ns>' or '{NO_KEYFRAME}')")
+        if keyframe is None:
+            return Reading(stamp, new_keyframe=new_keyframe), ''
+        pose, cov = odometry_pose(msg)
+        problem = pose_problem(pose, cov, None, False) or (
+            '' if np.all(np.diag(cov) > 0.0) else 'a match must have a covariance')
+        if problem:
+            return None, problem
+        return Reading(stamp, pose, cov, keyframe_ns=keyframe, new_keyframe=new_keyframe), ''
+
+    def _scan_increment_covariance(self, twist_cov, stamp: int):
+        """Covariance of the motion since the matcher's previous output, from its twist
+        covariance (twist = motion / dt), when it provides one; else None and the fusion core
+        recovers it from the cumulative covariances."""
+        previous, self.previous_scan_ns = self.previous_scan_ns, stamp
+        if previous is None or stamp <= previous or not np.all(np.isfinite(twist_cov)) \
+                or not np.all(np.diag(twist_cov) > 0.0):
+            return None
+        dt = (stamp - previous) * 1e-9
+        return twist_cov * dt * dt

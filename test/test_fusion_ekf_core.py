@@ -1,0 +1,155 @@
+"""EKF core (core/ekf_fusion.py): worked numbers, Jacobians, cloning, gates, masks, noise model."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sensing_nodes.core import se2
+from sensing_nodes.core.ekf_fusion import (
+    EkfFusion, EkfSettings, InputConfig, NoiseModel, Reading, input_config, mask_from_names,
+    relative_jacobian,
+)
+
+# Nearly no process noise and exactly known velocities: the numbers are the measurements'.
+QUIET = EkfSettings(pose_noise_density=0.0, accel_noise_density=1e-9,
+                    angular_accel_noise_density=1e-9, initial_velocity_std=1e-9)
+T0 = 1_000_000_000
+
+
+def absolute(name, *quantities, **kw):
+    return InputConfig(name, mask=mask_from_names(quantities), pose_mode='absolute',
+                       covariance='message', **kw)
+
+
+def test_two_absolute_readings_fuse_by_inverse_variance():
+    """The first absolute reading sets x (5.00, var 0.01); a second input's 5.40 (var 0.09)
+    gives the inverse-variance mean 5.04 with variance 0.009, as core.fusion's worked numbers."""
+    ekf = EkfFusion((absolute('a', 'x'), absolute('b', 'x')), QUIET)
+    ekf.update('a', Reading(T0, (5.0, 0.0, 0.0), np.diag([0.01, 1.0, 1.0])))
+    ekf.update('b', Reading(T0, (5.4, 0.0, 0.0), np.diag([0.09, 1.0, 1.0])))
+    state = ekf.state
+    assert state.pose[0] == pytest.approx(5.04, abs=1e-9)
+    assert state.covariance[0, 0] == pytest.approx(0.009, abs=1e-9)
+    assert state.pose[1] == 0.0 and state.pose[2] == 0.0   # not in the masks
+
+
+def test_relative_jacobian_matches_finite_differences():
+    clone, pose = (1.0, -2.0, 0.7), (1.8, -1.1, 1.9)
+    h, j_pose, j_clone = relative_jacobian(clone, pose)
+    assert h == pytest.approx(se2.between(clone, pose), abs=1e-12)
+    eps = 1e-7
+    for i in range(3):
+        for base, jac, other in ((pose, j_pose, clone), (clone, j_clone, pose)):
+            moved = list(base)
+            moved[i] += eps
+            moved_h = relative_jacobian(other, tuple(moved))[0] if base is pose else \
+                relative_jacobian(tuple(moved), other)[0]
+            numeric = (np.array(moved_h) - np.array(h)) / eps
+            assert jac[:, i] == pytest.approx(numeric, abs=1e-5)
+
+
+def test_matches_against_one_keyframe_do_not_shrink_its_own_error():
+    """Stochastic cloning: a hundred matches against one keyframe (each 0.01 m std) cannot
+    make the pose better known than the keyframe itself (0.1 m std); counting each as an
+    independent increment would. The matches' own noise averages down."""
+    scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
+                       keyframes=True, covariance='message')
+    ekf = EkfFusion((scan,), QUIET)
+    ekf.reset(covariance=np.diag([0.01, 0.01, 1e-4]))
+    ekf.update('scan_match', Reading(T0, new_keyframe=True))
+    for k in range(1, 101):
+        ekf.update('scan_match', Reading(T0 + k * 10_000_000, (0.0, 0.0, 0.0),
+                                         np.diag([1e-4, 1e-4, 1e-6]), keyframe_ns=T0))
+    var = ekf.state.covariance[0, 0]
+    assert 0.01 <= var <= 0.01 + 1e-4 / 100 + 1e-6
+    # The matched relative pose is known far better: pose minus keyframe.
+    assert ekf.updates == 100
+
+
+def test_a_match_against_an_unknown_keyframe_is_not_fused():
+    scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
+                       keyframes=True, covariance='message')
+    ekf = EkfFusion((scan,), QUIET)
+    outcome = ekf.update('scan_match', Reading(T0, (1.0, 0.0, 0.0), np.eye(3) * 1e-4,
+                                               keyframe_ns=T0 - 5))
+    assert not outcome.fused and 'keyframe' in outcome.note and ekf.pose == (0.0, 0.0, 0.0)
+
+
+def test_gate_refuses_an_outlier_and_counts_it():
+    ekf = EkfFusion((absolute('a', 'x'), absolute('b', 'x', gate_chi2=9.0)), QUIET)
+    ekf.update('a', Reading(T0, (0.0, 0.0, 0.0), np.diag([0.01, 1.0, 1.0])))
+    outcome = ekf.update('b', Reading(T0, (1.0, 0.0, 0.0), np.diag([0.01, 1.0, 1.0])))
+    # innovation 1.0, its variance 0.02: squared distance 50 > 9
+    assert outcome.gated and outcome.distance2 == pytest.approx(50.0)
+    assert ekf.gated == {'b': 1} and ekf.state.pose[0] == 0.0
+    assert ekf.update('b', Reading(T0, (0.3, 0.0, 0.0), np.diag([0.01, 1.0, 1.0]))).fused
+
+
+def test_static_covariance_gives_way_to_the_noise_model():
+    """Odometry with a static covariance: each increment's variance comes from the noise model
+    (variance_per_m x distance), so the fused x variance after 1 m in ten 0.1 m steps is 1e-3."""
+    wheel = InputConfig('wheel_odom', mask=(True, False, False, False, False, False),
+                        noise=NoiseModel(variance_per_m=1e-3, variance_per_rad=0.0,
+                                         yaw_variance_per_m=0.0))
+    ekf = EkfFusion((wheel,), EkfSettings(pose_noise_density=0.0, accel_noise_density=100.0,
+                                          initial_velocity_std=100.0))
+    static = np.diag([1e-3, 1e-3, 1e-3])
+    for k in range(11):
+        ekf.update('wheel_odom', Reading(T0 + k * 100_000_000, (0.1 * k, 0.0, 0.0), static))
+    state = ekf.state
+    assert state.pose[0] == pytest.approx(1.0, abs=1e-6)
+    assert state.covariance[0, 0] == pytest.approx(1e-3, rel=0.02)
+
+
+def test_a_propagated_covariance_is_used_for_its_increments():
+    wheel = InputConfig('wheel_odom', mask=(True, False, False, False, False, False))
+    ekf = EkfFusion((wheel,), EkfSettings(pose_noise_density=0.0, accel_noise_density=100.0,
+                                          initial_velocity_std=100.0))
+    for k in range(11):
+        ekf.update('wheel_odom', Reading(T0 + k * 100_000_000, (0.1 * k, 0.0, 0.0),
+                                         np.diag([2e-4 * k, 1e-6, 1e-6])))
+    assert ekf.state.covariance[0, 0] == pytest.approx(2e-3, rel=0.02)
+
+
+def test_raw_gyro_rate_with_its_bias_estimated_against_absolute_heading():
+    """A gyro reading 0.02 rad/s too much while an absolute heading says the robot is still:
+    the filter puts the 0.02 rad/s in the bias, not in the heading."""
+    gyro = InputConfig('imu', mask=mask_from_names(['vyaw']), gyro_bias=True,
+                       covariance='message')
+    heading = absolute('compass', 'yaw')
+    ekf = EkfFusion((gyro, heading), EkfSettings(initial_bias_std=0.1))
+    for k in range(2000):
+        t = T0 + k * 10_000_000
+        ekf.update('imu', Reading(t, twist=(0.0, 0.0, 0.02),
+                                  twist_covariance=np.diag([0.0, 0.0, 1e-6])))
+        if k % 10 == 0:
+            ekf.update('compass', Reading(t, (0.0, 0.0, 0.0), np.diag([1.0, 1.0, 1e-4])))
+    state = ekf.state
+    assert state.bias == pytest.approx(0.02, abs=1e-3)
+    assert abs(state.pose[2]) < 0.01
+
+
+def test_set_pose_moves_the_estimate_and_later_increments_continue_from_it():
+    wheel = InputConfig('wheel_odom', mask=(True, True, True, False, False, False),
+                        covariance='model', noise=NoiseModel(1e-4, 1e-4, 1e-4))
+    ekf = EkfFusion((wheel,))
+    ekf.update('wheel_odom', Reading(T0, (0.0, 0.0, 0.0), np.zeros((3, 3))))
+    ekf.update('wheel_odom', Reading(T0 + 10**8, (0.1, 0.0, 0.0), np.zeros((3, 3))))
+    ekf.set_pose((5.0, 5.0, math.pi / 2), np.diag([0.01, 0.01, 0.001]))
+    for k in range(2, 12):
+        ekf.update('wheel_odom', Reading(T0 + k * 10**8, (0.1 * k, 0.0, 0.0), np.zeros((3, 3))))
+    pose = ekf.state.pose
+    # The input starts again at the first message after set_pose (9 increments of 0.1 m north);
+    # the kept velocity (1 m/s) carries the robot 0.1 m further from set_pose to that message.
+    assert pose[0] == pytest.approx(5.0, abs=1e-3) and pose[1] == pytest.approx(6.0, abs=1e-3)
+    assert pose[2] == pytest.approx(math.pi / 2, abs=1e-6)
+
+
+def test_input_config_from_parameters_and_its_problems():
+    cfg = input_config('wheel_odom', {'mask': ['vx', 'vyaw'], 'gate_chi2': 0.0})
+    assert cfg.mask == (False, False, False, True, False, True) and cfg.gate_chi2 == math.inf
+    with pytest.raises(ValueError, match='unknown quantities'):
+        input_config('wheel_odom', {'mask': ['z']})
+    bad = input_config('imu', {'pose_mode': 'sideways', 'covariance': 'guess', 'mask': []})
+    assert {field for field, _, _ in bad.problems()} == {'pose_mode', 'covariance', 'mask'}

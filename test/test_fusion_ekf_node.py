@@ -1,0 +1,192 @@
+"""complementary_fusion with method ekf over real DDS: the keyframe-relative scan input, an IMU's
+own orientation (mounted upside down), set_pose, and bad input to the new inputs (non-unit
+quaternions, NaN, a covariance that is not positive semi-definite, orientation_covariance[0] =
+-1 when orientation is asked for): warned, counted on /diagnostics, survived."""
+
+import math
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped, Quaternion
+from harness import Collector, NodeProcess, spin_until
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu
+
+from sensing_nodes.paths import config_file
+from sensing_nodes.ros.conversions import (
+    keyframe_frame_id, make_odometry, ns_to_stamp, odometry_pose, planar_covariance_to_ros,
+    stamp_to_ns, yaw_to_quaternion,
+)
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+
+T0 = 1_700_000_000 * 1_000_000_000
+STEP = 20_000_000      # 50 Hz wheel and IMU; scans every 5th step
+SPEED = 0.5            # m/s straight along x, turning at YAW_RATE
+YAW_RATE = 0.2
+
+
+def truth(k):
+    """Pose after k steps of an arc (m, rad)."""
+    t = k * STEP * 1e-9
+    yaw = YAW_RATE * t
+    r = SPEED / YAW_RATE
+    return (r * math.sin(yaw), r * (1.0 - math.cos(yaw)), yaw)
+
+
+def between(a, b):
+    from sensing_nodes.core.se2 import between as b_
+    return b_(a, b)
+
+
+def upside_down_imu(t, yaw, cov0=None, q=None):
+    """An IMU lying upside down (roll pi in base_link) reporting its own orientation."""
+    msg = Imu()
+    msg.header.stamp = ns_to_stamp(t)
+    msg.header.frame_id = 'imu_link'
+    # IMU orientation = base orientation * mount: yaw about z, then roll pi about x.
+    c, s = math.cos(yaw / 2), math.sin(yaw / 2)
+    msg.orientation = q or Quaternion(x=c, y=s, z=0.0, w=0.0)
+    msg.orientation_covariance = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
+    if cov0 is not None:
+        msg.orientation_covariance[0] = cov0
+    msg.angular_velocity.z = -YAW_RATE
+    msg.angular_velocity_covariance = [1e-6, 0.0, 0.0, 0.0, 1e-6, 0.0, 0.0, 0.0, 1e-6]
+    return msg
+
+
+def stream(count):
+    """(kind, stamp, message) of wheel odometry (static covariance), the upside-down IMU and
+    keyframe-relative scan matches (a keyframe every 10th scan)."""
+    events = []
+    keyframe = None
+    for k in range(count):
+        t = T0 + k * STEP
+        pose = truth(k)
+        events.append(('wheel', t, make_odometry(t, 'odom', 'base_link', pose,
+                                                 np.diag([1e-3, 1e-3, 1e-3]),
+                                                 (SPEED, 0.0, YAW_RATE), np.eye(3) * 1e-3)))
+        events.append(('imu', t, upside_down_imu(t, pose[2])))
+        if k % 5 == 0:
+            new = (k // 5) % 10 == 0
+            if keyframe is None:
+                msg = make_odometry(t, keyframe_frame_id(None), keyframe_frame_id(t),
+                                    (0.0, 0.0, 0.0), np.zeros((3, 3)))
+            else:
+                msg = make_odometry(t, keyframe_frame_id(keyframe[0]),
+                                    keyframe_frame_id(t) if new else 'base_link',
+                                    between(keyframe[1], pose), np.diag([1e-6, 1e-6, 1e-7]))
+            if keyframe is None or new:
+                keyframe = (t, pose)
+            events.append(('scan', t, msg))
+    return events
+
+
+PARAMS = {'imu.source': 'orientation', 'imu.pose_mode': 'relative', 'imu.covariance': 'message',
+          'imu.mount_roll_rad': math.pi, 'imu.gate_chi2': 0.0,
+          'reorder_window_s': 0.5, 'flush_after_s': 3.0}
+
+
+@pytest.fixture
+def graph(probe):
+    pubs = {'wheel': probe.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS),
+            'imu': probe.create_publisher(Imu, '/imu/data', SENSOR_QOS),
+            'scan': probe.create_publisher(Odometry, '/scan_match/keyframe_odom', ESTIMATE_QOS)}
+    set_pose = probe.create_publisher(PoseWithCovarianceStamped, '/complementary_fusion/set_pose',
+                                      10)
+    out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
+    diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 50)
+    with NodeProcess('complementary_fusion', params=PARAMS,
+                     params_file=config_file('complementary_fusion.yaml')) as node:
+        assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0 and all(
+            p.get_subscription_count() > 0 for p in pubs.values()), 30), node.output()
+        spin_until(probe, lambda: False, 1.0)
+        yield probe, node, pubs, set_pose, out, diagnostics
+    out.close()
+    diagnostics.close()
+    for p in (*pubs.values(), set_pose):
+        probe.destroy_publisher(p)
+
+
+def send(probe, pubs, events):
+    for kind, _, msg in events:
+        pubs[kind].publish(msg)
+        time.sleep(0.002)
+        rclpy.spin_once(probe, timeout_sec=0)
+
+
+def counts(diagnostics):
+    for msg in reversed(diagnostics.messages):
+        for status in msg.status:
+            if status.name == 'complementary_fusion':
+                return {kv.key: kv.value for kv in status.values}
+    return {}
+
+
+def test_keyframes_and_upside_down_imu_fuse_and_bad_input_is_counted(graph):
+    probe, node, pubs, _, out, diagnostics = graph
+    events = stream(100)
+    bad = []
+    t_bad = T0 + 40 * STEP + 1
+    bad_q = make_odometry(t_bad, 'odom', 'base_link', truth(40), np.eye(3) * 1e-3)
+    bad_q.pose.pose.orientation = Quaternion(x=0.0, y=0.0, z=0.0, w=2.0)     # not unit
+    bad.append(('wheel', t_bad, bad_q))
+    nan_match = make_odometry(t_bad, keyframe_frame_id(T0), 'base_link', (math.nan, 0.0, 0.0),
+                              np.eye(3) * 1e-6)
+    bad.append(('scan', t_bad, nan_match))
+    not_psd = make_odometry(t_bad + 1, keyframe_frame_id(T0), 'base_link', (0.1, 0.0, 0.0),
+                            np.eye(3))
+    cov = np.array([[1e-4, 1e-3, 0.0], [1e-3, 1e-4, 0.0], [0.0, 0.0, 1e-4]])   # eigen < 0
+    not_psd.pose.covariance = planar_covariance_to_ros(cov)
+    bad.append(('scan', t_bad + 1, not_psd))
+    bad.append(('imu', t_bad, upside_down_imu(t_bad, 0.3, cov0=-1.0)))          # REP 145
+    bad.append(('imu', t_bad + 1, upside_down_imu(t_bad + 1, 0.3,
+                                                  q=Quaternion(x=math.inf, y=0.0, z=0.0, w=0.0))))
+    nan_imu = upside_down_imu(t_bad + 2, 0.3)
+    nan_imu.orientation_covariance[4] = math.nan
+    bad.append(('imu', t_bad + 2, nan_imu))
+    ordered = sorted(events[:240] + bad, key=lambda e: e[1]) + events[240:]
+    send(probe, pubs, ordered)
+    last = events[-1][1]
+    assert spin_until(probe, lambda: any(stamp_to_ns(m.header.stamp) == last
+                                         for m in out.messages), 20), node.output()
+    assert spin_until(probe, lambda: int(counts(diagnostics).get('imu_rejected', 0)) >= 3, 5)
+    log = node.output()
+    assert node.alive(), log
+    values = counts(diagnostics)
+    assert int(values['wheel_odom_rejected']) == 1
+    assert int(values['scan_match_rejected']) == 2
+    assert int(values['imu_rejected']) == 3
+    for reason in ('not a unit quaternion', 'pose is not finite', 'not positive semi-definite',
+                   'provides no orientation', 'orientation covariance is not finite'):
+        assert reason in log, reason
+    final = [m for m in out.messages if stamp_to_ns(m.header.stamp) == last][-1]
+    pose, cov = odometry_pose(final)
+    expected = truth(99)
+    assert np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov) > -1e-12)
+    assert math.hypot(pose[0] - expected[0], pose[1] - expected[1]) < 0.01
+    assert pose[2] == pytest.approx(expected[2], abs=0.01)   # the IMU upside down: +yaw
+
+
+def test_set_pose_moves_the_output(graph):
+    probe, node, pubs, set_pose, out, _ = graph
+    events = stream(60)
+    send(probe, pubs, events[:120])
+    assert spin_until(probe, lambda: len(out.messages) > 20, 20), node.output()
+    msg = PoseWithCovarianceStamped()
+    msg.header.frame_id = 'odom'
+    msg.pose.pose.position.x, msg.pose.pose.position.y = 10.0, -3.0
+    msg.pose.pose.orientation = yaw_to_quaternion(1.0)
+    msg.pose.covariance = planar_covariance_to_ros(np.diag([0.01, 0.01, 0.001]))
+    set_pose.publish(msg)
+    assert spin_until(probe, lambda: 'pose set to' in node.output(), 10), node.output()
+    out.messages.clear()
+    send(probe, pubs, events[120:])
+    last = events[-1][1]
+    assert spin_until(probe, lambda: any(stamp_to_ns(m.header.stamp) == last
+                                         for m in out.messages), 20), node.output()
+    pose, _ = odometry_pose(out.messages[-1])
+    assert math.hypot(pose[0] - 10.0, pose[1] + 3.0) < 1.0
+    assert node.alive()
