@@ -11,12 +11,13 @@ import math
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Quaternion
+from geometry_msgs.msg import Quaternion, TransformStamped
 from nav_msgs.msg import Odometry
 from numpy.typing import ArrayLike, NDArray
 
 from sensing_nodes.core.scan import beam_angles
 from sensing_nodes.core.se2 import Pose2
+from sensing_nodes.core.transform import Transform
 
 # Indices of x, y and yaw in a row-major 6x6 ROS covariance (x, y, z, roll, pitch, yaw).
 _PLANAR = np.array([0, 1, 5])
@@ -107,3 +108,23 @@ def scan_arrays(msg) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """sensor_msgs/LaserScan -> (ranges, angles) as float64 arrays of equal length (rad, m)."""
     ranges = np.asarray(msg.ranges, dtype=float)
     return ranges, beam_angles(msg.angle_min, msg.angle_increment, ranges.size)
+
+
+def make_transform_stamped(stamp_ns: int, parent: str, child: str,
+                           transform: Transform) -> TransformStamped:
+    """geometry_msgs/TransformStamped: the child frame's pose in the parent frame at stamp_ns."""
+    msg = TransformStamped()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = parent
+    msg.child_frame_id = child
+    t, q = msg.transform.translation, msg.transform.rotation
+    t.x, t.y, t.z = (float(v) for v in transform.translation)
+    q.x, q.y, q.z, q.w = (float(v) for v in transform.rotation)
+    return msg
+
+
+def transform_of(msg) -> Transform:
+    """geometry_msgs/Transform (or TransformStamped's .transform) -> Transform, unchecked."""
+    t, q = msg.translation, msg.rotation
+    return Transform((float(t.x), float(t.y), float(t.z)),
+                     (float(q.x), float(q.y), float(q.z), float(q.w)))
