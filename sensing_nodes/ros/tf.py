@@ -141,27 +141,31 @@ class SensorMount:
         self._what = what
         self._reported: set[tuple[str, Transform]] = set()
 
-    def resolve(self, sensor_frame: str) -> Transform:
-        """The mount of sensor_frame in the base frame (the frame id of the message at hand)."""
-        if not sensor_frame or frame_name(sensor_frame) == frame_name(self._base_frame):
-            from_tf = Transform() if sensor_frame else None
-        else:
-            from_tf = self._buffer.lookup(self._base_frame, sensor_frame)
-        if from_tf is None:
-            return self.parameters
-        key = (sensor_frame, from_tf)
-        if key not in self._reported:
-            self._reported.add(key)
-            distance, angle = from_tf.distance_to(self.parameters)
-            x, y, yaw = from_tf.planar()
-            text = (f'{self._what} mount from /tf_static: {self._base_frame} -> {sensor_frame} '
-                    f'x={x:.4f} m y={y:.4f} m yaw={math.degrees(yaw):.3f} deg')
-            if distance > MOUNT_TOLERANCE_M or angle > MOUNT_TOLERANCE_RAD:
-                px, py, pyaw = self.parameters.planar()
-                self._node.get_logger().warning(
-                    f'{text} disagrees with the mount parameters (x={px:.4f} m y={py:.4f} m '
-                    f'yaw={math.degrees(pyaw):.3f} deg; {distance * 1000:.1f} mm, '
-                    f'{math.degrees(angle):.2f} deg apart): using /tf_static')
-            else:
-                self._node.get_logger().info(text)
+    def from_tf(self, sensor_frame: str) -> Transform | None:
+        """The mount of sensor_frame (the frame id of the message at hand) in the base frame
+        from /tf_static, or None when /tf_static does not give it: use the parameters then."""
+        if frame_name(sensor_frame) == frame_name(self._base_frame):
+            return Transform()
+        from_tf = self._buffer.lookup(self._base_frame, sensor_frame) if sensor_frame else None
+        if from_tf is not None:
+            self._report(sensor_frame, from_tf)
         return from_tf
+
+    def _report(self, sensor_frame: str, from_tf: Transform) -> None:
+        """Log a mount from TF once, as a warning where it contradicts the parameters."""
+        key = (sensor_frame, from_tf)
+        if key in self._reported:
+            return
+        self._reported.add(key)
+        distance, angle = from_tf.distance_to(self.parameters)
+        x, y, yaw = from_tf.planar()
+        text = (f'{self._what} mount from /tf_static: {self._base_frame} -> {sensor_frame} '
+                f'x={x:.4f} m y={y:.4f} m yaw={math.degrees(yaw):.3f} deg')
+        if distance > MOUNT_TOLERANCE_M or angle > MOUNT_TOLERANCE_RAD:
+            px, py, pyaw = self.parameters.planar()
+            self._node.get_logger().warning(
+                f'{text} disagrees with the mount parameters (x={px:.4f} m y={py:.4f} m '
+                f'yaw={math.degrees(pyaw):.3f} deg; {distance * 1000:.1f} mm, '
+                f'{math.degrees(angle):.2f} deg apart): using /tf_static')
+        else:
+            self._node.get_logger().info(text)
