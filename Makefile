@@ -1,5 +1,6 @@
 # A newcomer's two commands: `make demo` and `make test`. Both build .venv from nothing
-# (ROS 2 Jazzy rclpy and messages from PyPI wheels; no ROS install) and reuse it once complete.
+# (ROS 2 Jazzy rclpy and messages from PyPI wheels, tf2_msgs built from its definition; no ROS
+# install) and reuse it once complete.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -10,12 +11,13 @@ READY := $(VENV)/.ready
 venv: $(READY)
 
 # The marker is written last, so an interrupted set-up is redone from scratch next time.
-$(READY): requirements.txt setup.py setup.cfg package.xml
+$(READY): requirements.txt setup.py setup.cfg package.xml $(wildcard interfaces/*/*.txt interfaces/*/*.xml interfaces/*/msg/*.msg interfaces/*.sh)
 	rm -rf $(VENV)
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet -r requirements.txt
+	bash interfaces/build_into_venv.sh $(VENV)
 	$(BIN)/pip install --quiet --no-deps --no-build-isolation -e .
-	$(BIN)/python -c "import rclpy, sensor_msgs.msg, rosbags, mcap_ros2, scipy; print('venv ready')"
+	$(BIN)/python -c "import rclpy, sensor_msgs.msg, tf2_msgs.msg, rosbags, mcap_ros2, scipy; print('venv ready')"
 	touch $(READY)
 
 demo: $(READY)

@@ -35,8 +35,8 @@ def truth(k):
     return (-2.5 + 0.06 * k, -2.0 + 0.002 * k * k, 0.02 * k)
 
 
-def scan_msg(k, blank=False, rng=None):
-    laser = compose(truth(k), MOUNT)
+def scan_msg(k, blank=False, rng=None, mount=MOUNT):
+    laser = compose(truth(k), mount)
     angles = beam_angles(ANGLE_MIN, ANGLE_INC, BEAMS)
     ranges = raycast(WORLD.segments, laser[:2], angles + laser[2])
     ranges = np.where(ranges > 8.0, np.inf, ranges + rng.normal(0.0, 0.005, BEAMS))
@@ -76,7 +76,7 @@ def pubs(probe):
     probe.destroy_publisher(odom_pub)
 
 
-def run_sequence(probe, pubs, node, count, blank=(), odometry=True):
+def run_sequence(probe, pubs, node, count, blank=(), odometry=True, mount=MOUNT):
     """Publish odometry (5 per scan interval, ahead of each scan) and scans 0..count-1; return
     the /scan_match/odom messages by stamp."""
     scan_pub, odom_pub = pubs
@@ -85,7 +85,7 @@ def run_sequence(probe, pubs, node, count, blank=(), odometry=True):
     assert spin_until(probe, lambda: scan_pub.get_subscription_count() > 0
                       and (odom_pub.get_subscription_count() > 0 or not odometry), 20), \
         node.output()
-    first = scan_msg(0, rng=rng)
+    first = scan_msg(0, rng=rng, mount=mount)
     for j in range(3):
         odom_pub.publish(odom_msg(T0 + j * SCAN_DT // 5, j / 5))
     deadline = time.monotonic() + 20
@@ -98,7 +98,7 @@ def run_sequence(probe, pubs, node, count, blank=(), odometry=True):
             sub = (k - 1) + (j + 1) / 5 + 0.4     # odometry runs up to 0.4 scans ahead
             odom_pub.publish(odom_msg(T0 + int(sub * SCAN_DT), sub))
         spin_until(probe, lambda: False, 0.01)
-        scan_pub.publish(scan_msg(k, blank=k in blank, rng=rng))
+        scan_pub.publish(scan_msg(k, blank=k in blank, rng=rng, mount=mount))
         spin_until(probe, lambda: len({stamp_to_ns(m.header.stamp) for m in out.messages}) > k, 5)
     out.wait_for(count, 10)
     by_stamp = {stamp_to_ns(m.header.stamp): m for m in out.messages}
@@ -228,3 +228,34 @@ def test_bad_scans_and_backwards_time_keep_the_node_running(probe, pubs):
     assert got[T0 + 2 * SCAN_DT] == (0.0, 0.0, 0.0)        # restarted at the origin
     assert values['reset_backwards'] == '1' and values['too_few_points'] == '1'
     assert 'backwards' in log
+
+
+def test_laser_mount_from_tf_static_and_odom_to_base_link_on_tf(probe, pubs):
+    """The laser sits turned 30 deg and 5 cm left, which /tf_static says and the parameters do
+    not: the node warns, matches with the TF mount, and broadcasts its pose on /tf."""
+    from tf2_msgs.msg import TFMessage
+
+    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.ros.qos import TF_QOS
+    from sensing_nodes.ros.tf import StaticTransformBroadcaster
+
+    mount = (0.10, 0.05, math.radians(30.0))
+    statics = StaticTransformBroadcaster(probe)
+    statics.send(T0, 'base_link', 'laser', Transform.from_planar(*mount))
+    tf = Collector(probe, TFMessage, '/tf', TF_QOS)
+    count = 15
+    with NodeProcess('icp_matcher', params_file=config_file('icp_matcher.yaml'),
+                     params={'publish_tf': True}) as node:
+        out = run_sequence(probe, pubs, node, count, mount=mount)
+        spin_until(probe, lambda: len(tf.messages) >= count, 5)
+        log = node.output()
+    tf.close()
+    assert 'laser mount from /tf_static' in log and 'disagrees with the mount parameters' in log
+    pose, _ = odometry_pose(out[T0 + (count - 1) * SCAN_DT])
+    trans, rot = pose_error(pose, reference(count - 1))
+    assert trans < 0.01 and rot < math.radians(0.3), (pose, reference(count - 1))
+    sent = {stamp_to_ns(t.header.stamp): t for m in tf.messages for t in m.transforms}
+    assert set(sent) == set(out)                      # one transform per published pose
+    last = sent[T0 + (count - 1) * SCAN_DT]
+    assert (last.header.frame_id, last.child_frame_id) == ('odom', 'base_link')
+    assert (last.transform.translation.x, last.transform.translation.y) == pose[:2]

@@ -35,9 +35,14 @@ def live_run(probe):
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import Imu, JointState, LaserScan
 
-    from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
+    from tf2_msgs.msg import TFMessage
+
+    from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS, TF_QOS, \
+        TF_STATIC_READER_QOS
 
     collectors = {
+        '/tf': Collector(probe, TFMessage, '/tf', TF_QOS),
+        '/tf_static': Collector(probe, TFMessage, '/tf_static', TF_STATIC_READER_QOS),
         '/scan': Collector(probe, LaserScan, '/scan', SENSOR_QOS),
         '/imu/data_raw': Collector(probe, Imu, '/imu/data_raw', SENSOR_QOS),
         '/joint_states': Collector(probe, JointState, '/joint_states', SENSOR_QOS),
@@ -104,6 +109,29 @@ def test_live_messages_are_the_batch_simulation_numbers(live_run):
         i = truth_index[stamp_ns(msg)]
         assert (msg.pose.pose.position.x, msg.pose.pose.position.y) == tuple(run.truth_pose[i, :2])
     assert (msg.header.frame_id, msg.child_frame_id) == ('map', 'base_link')
+
+
+def test_mounts_on_tf_static_and_truth_on_tf(live_run):
+    messages, _, _ = live_run
+    statics = messages['/tf_static'][-1].transforms
+    mounts = {(t.header.frame_id, t.child_frame_id): t.transform for t in statics}
+    assert set(mounts) == {('base_link', 'laser'), ('base_link', 'imu_link')}
+    laser = mounts[('base_link', 'laser')]
+    p = sim.SimParams()
+    assert (laser.translation.x, laser.translation.y) == (p.laser_x_m, p.laser_y_m)
+    assert 2 * math.atan2(laser.rotation.z, laser.rotation.w) == pytest.approx(p.laser_yaw_rad)
+    truth = {stamp_ns(m): m for m in messages['/ground_truth/odom']}
+    matched = 0
+    for msg in messages['/tf']:
+        for t in msg.transforms:
+            assert (t.header.frame_id, t.child_frame_id) == ('map', 'base_link_truth')
+            odom = truth.get(stamp_ns(t))
+            if odom is not None:
+                matched += 1
+                assert t.transform.translation.x == odom.pose.pose.position.x
+                assert t.transform.translation.y == odom.pose.pose.position.y
+                assert t.transform.rotation.z == pytest.approx(odom.pose.pose.orientation.z)
+    assert matched >= 0.9 * len(truth)
 
 
 def last_speed(collector) -> float:

@@ -3,6 +3,7 @@ with the initial guess from an odometry topic or a constant-velocity model."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 
@@ -21,11 +22,13 @@ from sensing_nodes.core.scan_matching import (
 from sensing_nodes.ros.conversions import (
     keyframe_frame_id, make_odometry, odometry_pose, scan_arrays, stamp_to_ns,
 )
+from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+from sensing_nodes.ros.tf import SensorMount, StaticTransformBuffer, TransformBroadcaster
 
 
 def keyframe_odometry(step: ScanStep, base_frame: str) -> Odometry:
@@ -57,6 +60,12 @@ class IcpMatcherNode(Node):
             if odom_topic else None
         self._last_scan_ns: int | None = None
         self._warnings = ThrottledWarnings(self)
+        # The laser mount: /tf_static's base_frame -> <scan frame> where it is published, else
+        # the laser_* parameters.
+        self._laser_parameters = s.laser_pose
+        self._mount = SensorMount(self, StaticTransformBuffer(self), self._base_frame,
+                                  Transform.from_planar(*s.laser_pose), 'laser')
+        self._tf = TransformBroadcaster(self) if self._publish_tf else None
         self.diagnostics = Diagnostics(self)
         self._publisher = self.create_publisher(Odometry, '/scan_match/odom', ESTIMATE_QOS)
         # Each match relative to its keyframe, the keyframe named by its stamp, for a fusion
@@ -121,6 +130,9 @@ class IcpMatcherNode(Node):
             'use odometry up to this far past its newest message (s)', minimum=0.0, maximum=1.0)
         self._min_points = declare(self, 'min_points', 20,
                                    'scans with fewer valid points are not matched', minimum=3)
+        self._publish_tf = declare(self, 'publish_tf', False,
+                                   'broadcast odom_frame -> base_frame on /tf (one owner per '
+                                   'tree: the fusion broadcasts it by default)')
 
         require(method in ('point_to_line', 'point_to_point'), 'method',
                 "must be 'point_to_line' or 'point_to_point'", method)
@@ -154,10 +166,21 @@ class IcpMatcherNode(Node):
             self._warnings.warn('odom_backwards', f'odometry stamp {stamp * 1e-9:.3f} s went '
                                 'backwards: odometry buffer cleared')
 
+    def _use_mount(self, laser_pose: tuple[float, float, float]) -> None:
+        """Match with this laser mount; a new mount (a late /tf_static) restarts the keyframe."""
+        if laser_pose == self._settings.laser_pose:
+            return
+        self._settings = dataclasses.replace(self._settings, laser_pose=laser_pose)
+        self._matcher = KeyframeScanMatcher(self._settings)
+        self.diagnostics.count('mount_changes')
+        self.diagnostics.values['laser_mount'] = '%.4f %.4f %.4f' % laser_pose
+
     def _on_scan(self, msg: LaserScan) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         diag = self.diagnostics
         diag.count('scans')
+        mount = self._mount.from_tf(msg.header.frame_id)
+        self._use_mount(mount.planar() if mount is not None else self._laser_parameters)
         ranges, angles = scan_arrays(msg)
         points, _ = scan_to_points(ranges, angles, msg.range_min, msg.range_max)
         if points.shape[0] < self._min_points:
@@ -197,6 +220,9 @@ class IcpMatcherNode(Node):
         self._publisher.publish(make_odometry(
             stamp, self._odom_frame, self._base_frame, step.pose, step.covariance,
             step.twist, step.twist_covariance))
+        if self._tf is not None:
+            self._tf.send(stamp, self._odom_frame, self._base_frame,
+                          Transform.from_planar(*step.pose))
         diag.count('published')
         diag.last_stamp_ns = max(diag.last_stamp_ns, stamp)
         diag.values['pose'] = '%.4f %.4f %.4f' % step.pose

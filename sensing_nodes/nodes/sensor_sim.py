@@ -30,6 +30,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState, LaserScan
 
 from sensing_nodes.core import sim as core
+from sensing_nodes.core.transform import Transform
 from sensing_nodes.core.world import World, load_world
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import float32_array
@@ -37,6 +38,7 @@ from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.params import ParameterError, declare
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+from sensing_nodes.ros.tf import StaticTransformBroadcaster, TransformBroadcaster
 
 NODE_NAME = 'sensor_sim'
 EXIT_BAD_PARAMETER = 2
@@ -72,6 +74,8 @@ class NodeSettings:
     wait_for_scan_subscribers: int = 0
     pace_topic: str = ''
     pace_timeout_s: float = 5.0
+    publish_tf: bool = True
+    truth_frame: str = 'base_link_truth'
 
 
 NODE_DOCS = {
@@ -96,6 +100,10 @@ NODE_DOCS = {
                   'arrived on this topic',
     'pace_timeout_s': 'with pace_topic: wall seconds to wait for an answer before going on '
                       '(with a warning)',
+    'publish_tf': 'publish the sensor mounts on /tf_static (base_frame -> laser_frame, '
+                  'imu_frame) and the ground truth on /tf (map_frame -> truth_frame)',
+    'truth_frame': 'child frame of the ground truth on /tf (not base_frame: the estimate owns '
+                   'odom -> base_frame)',
 }
 NODE_RANGES = {'real_time_factor': (1e-3, 1e6), 'duration_s': (0.0, None), 'seed': (0, 2**63 - 1),
                'pace_timeout_s': (1e-3, None), 'wait_for_subscribers': (0, 1000),
@@ -123,7 +131,7 @@ def settings_from_values(values: dict[str, Any]) -> tuple[core.SimParams, NodeSe
             upper = hi if hi is not None else 'inf'
             raise core.SimParameterError(name, f'must be in [{lo}, {upper}]',
                                          value)
-    for name in ('map_frame', 'base_frame', 'laser_frame', 'imu_frame',
+    for name in ('map_frame', 'base_frame', 'laser_frame', 'imu_frame', 'truth_frame',
                  'left_joint_name', 'right_joint_name'):
         if not getattr(settings, name).strip():
             raise core.SimParameterError(name, 'must not be empty')
@@ -349,6 +357,10 @@ class SensorSimNode(Node):
                                                               CLOCK_QOS)
         if self._commands is not None:
             self.create_subscription(Twist, '/cmd_vel', self._on_cmd_vel, 10)
+        self._truth_tf = None
+        if settings.publish_tf:
+            self._publish_mounts()
+            self._truth_tf = TransformBroadcaster(self)
         self.diagnostics = Diagnostics(self)
         self._end_ns = (params.start_ns + int(round(settings.duration_s * core.NS_PER_S))
                         if settings.duration_s > 0.0 else None)
@@ -371,6 +383,14 @@ class SensorSimNode(Node):
             f"'{world.name}' "
             + (f'paced by {settings.pace_topic}' if self._paced
                else f'at {settings.real_time_factor:g}x real time') + f', seed {settings.seed}')
+
+    def _publish_mounts(self) -> None:
+        """The sensors' mounts on /tf_static (transient local: late subscribers get them too)."""
+        p, s = self.params, self.settings
+        self._static_tf = StaticTransformBroadcaster(self)
+        self._static_tf.send(p.start_ns, s.base_frame, s.laser_frame,
+                             Transform.from_planar(p.laser_x_m, p.laser_y_m, p.laser_yaw_rad))
+        self._static_tf.send(p.start_ns, s.base_frame, s.imu_frame, Transform())
 
     def _on_cmd_vel(self, msg: Twist) -> None:
         speed, yaw_rate = float(msg.linear.x), float(msg.angular.z)
@@ -460,6 +480,9 @@ class SensorSimNode(Node):
             if publisher is not None:
                 publisher.publish(self._convert.message(block, kind, i, t))
                 self.diagnostics.count(TOPICS[kind][0])
+            if kind == core.TRUTH and self._truth_tf is not None:
+                self._truth_tf.send(t, self.settings.map_frame, self.settings.truth_frame,
+                                    Transform.from_planar(*block.truth_pose[i].tolist()))
             self._sim_now_ns = t
             self.diagnostics.last_stamp_ns = t
             self._upcoming = next(self._stream)

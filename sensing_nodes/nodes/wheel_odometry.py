@@ -12,6 +12,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from sensing_nodes.core.timing import StampStep
+from sensing_nodes.core.transform import Transform
 from sensing_nodes.core.wheel_odometry import METHODS, WheelOdometry, WheelOdometryConfig
 from sensing_nodes.ros.conversions import make_odometry, stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
@@ -19,6 +20,7 @@ from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+from sensing_nodes.ros.tf import TransformBroadcaster
 
 # Row-major indices of x, y, yaw rows/columns in a 6x6 ROS covariance.
 _PLANAR_36 = np.array([6 * r + c for r in (0, 1, 5) for c in (0, 1, 5)])
@@ -55,6 +57,9 @@ class WheelOdometryNode(Node):
                             'encoder readings, or rejected')
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the published pose')
         self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame (robot base)')
+        publish_tf = declare(self, 'publish_tf', False,
+                             'broadcast odom_frame -> base_frame on /tf (one owner per tree: '
+                             'the fusion broadcasts it by default)')
         mode = declare(self, 'covariance_mode', 'propagated',
                        "'propagated' (from the wheel error model) or 'static' (the lists below)")
         static_pose = declare(self, 'static_pose_variances', [1e-3, 1e-3, 1e-3],
@@ -92,6 +97,7 @@ class WheelOdometryNode(Node):
         self._warnings = ThrottledWarnings(self)
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self._publisher = self.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS)
+        self._tf = TransformBroadcaster(self) if publish_tf else None
         self.create_subscription(JointState, '/joint_states', self._on_joint_state, SENSOR_QOS)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.get_logger().info(
@@ -142,6 +148,9 @@ class WheelOdometryNode(Node):
             twist.linear.x, twist.linear.y, twist.angular.z = odo.twist
             msg.twist.covariance[_PLANAR_36] = np.ravel(twist_cov)
         self._publisher.publish(msg)
+        if self._tf is not None:
+            self._tf.send(stamp, self._odom_frame, self._base_frame,
+                          Transform.from_planar(*odo.pose))
         self.diagnostics.count('published')
         self.diagnostics.last_stamp_ns = stamp
 

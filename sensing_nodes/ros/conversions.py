@@ -11,12 +11,13 @@ import math
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Quaternion
+from geometry_msgs.msg import Quaternion, TransformStamped
 from nav_msgs.msg import Odometry
 from numpy.typing import ArrayLike, NDArray
 
 from sensing_nodes.core.scan import beam_angles
 from sensing_nodes.core.se2 import Pose2
+from sensing_nodes.core.transform import Transform
 
 # Indices of x, y and yaw in a row-major 6x6 ROS covariance (x, y, z, roll, pitch, yaw).
 _PLANAR = np.array([0, 1, 5])
@@ -126,3 +127,23 @@ def keyframe_stamp(frame_id: str) -> int | None:
         return None
     digits = frame_id[len(KEYFRAME_PREFIX):]
     return int(digits) if digits.isdigit() else None
+
+
+def make_transform_stamped(stamp_ns: int, parent: str, child: str,
+                           transform: Transform) -> TransformStamped:
+    """geometry_msgs/TransformStamped: the child frame's pose in the parent frame at stamp_ns."""
+    msg = TransformStamped()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = parent
+    msg.child_frame_id = child
+    t, q = msg.transform.translation, msg.transform.rotation
+    t.x, t.y, t.z = (float(v) for v in transform.translation)
+    q.x, q.y, q.z, q.w = (float(v) for v in transform.rotation)
+    return msg
+
+
+def transform_of(msg) -> Transform:
+    """geometry_msgs/Transform (or TransformStamped's .transform) -> Transform, unchecked."""
+    t, q = msg.translation, msg.rotation
+    return Transform((float(t.x), float(t.y), float(t.z)),
+                     (float(q.x), float(q.y), float(q.z), float(q.w)))

@@ -1,12 +1,12 @@
 """Throttled warnings keyed by what they are about, not by the line that logs them.
 
 rclpy throttles per call site, so one site warning about several inputs would hide all but the
-first; here each key (e.g. an input's name) has its own throttle.
+first; here each key (e.g. an input's name) has its own throttle. The period is measured on the
+node's clock, so with use_sim_time it follows /clock (a replay at 10x throttles per simulated
+second, as the messages' stamps do).
 """
 
 from __future__ import annotations
-
-import time
 
 from rclpy.node import Node
 
@@ -20,9 +20,10 @@ class ThrottledWarnings:
 
     def warn(self, key: str, message: str) -> None:
         """Log message unless `key` was logged within the period; say how many were held back."""
-        now = time.monotonic()
+        now = self._node.get_clock().now().nanoseconds * 1e-9
         last = self._last.get(key)
-        if last is not None and now - last < self._period_s:
+        # A clock that went back (a replayed bag looping) restarts the throttle.
+        if last is not None and 0.0 <= now - last < self._period_s:
             self.suppressed[key] = self.suppressed.get(key, 0) + 1
             return
         held = self.suppressed.pop(key, 0)

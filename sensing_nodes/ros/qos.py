@@ -27,3 +27,29 @@ CLOCK_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=10,
 )
+
+# /tf: as tf2_ros's TransformBroadcaster (reliable, volatile, 100 deep).
+TF_QOS = QoSProfile(
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+)
+
+# /tf_static: as tf2_ros's StaticTransformBroadcaster (reliable, transient local, 1 deep): a
+# subscriber that starts later still gets the last message, which holds every static transform.
+TF_STATIC_QOS = QoSProfile(
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+)
+
+# Reading /tf_static: deeper than 1, since several static broadcasters' latched messages can
+# arrive at once.
+TF_STATIC_READER_QOS = QoSProfile(
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+)
