@@ -1,4 +1,5 @@
-"""rosbag2 bags of rclpy messages, written (MCAP) and read (MCAP or sqlite3) with rosbags.
+"""rosbag2 bags of rclpy messages, written (MCAP) and read (MCAP or sqlite3, and ROS 1 .bag
+files) with rosbags.
 
 Every message is written in canonical CDR: the fields exactly as rclpy/DDS serialise them, but
 with every alignment padding byte zero and no bytes after the last field (`canonical_cdr`).
@@ -141,6 +142,11 @@ class BagReader:
         self.path = Path(path)
         if not self.path.exists():
             raise BagError(f'{self.path}: no such bag')
+        self._ros1: Ros1Bag | None = None
+        if self.path.is_file():
+            self._ros1 = Ros1Bag(self.path)
+            self.topics = self._ros1.topics
+            return
         if not (self.path / 'metadata.yaml').is_file():
             raise BagError(f'{self.path}: not a rosbag2 bag (no metadata.yaml)')
         try:
@@ -186,6 +192,10 @@ class BagReader:
     def raw(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
         """(topic, bag time ns, CDR bytes) of every message (of `topics`), in bag-time order."""
         wanted = None if topics is None else set(topics)
+        if self._ros1 is not None:
+            for topic, stamp, msg in self._ros1.messages(wanted):
+                yield topic, stamp, serialize_message(msg)
+            return
         streams = [self._file_messages(None, wanted)] if self._compressed else \
             [self._file_messages(f, wanted) for f in self._files]
         for stamp, topic, raw in heapq.merge(*streams, key=lambda row: row[0]):
@@ -194,10 +204,71 @@ class BagReader:
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
         """(topic, bag time ns, rclpy message) for every message (of `topics`)."""
         wanted = None if topics is None else set(topics)
+        if self._ros1 is not None:
+            yield from self._ros1.messages(wanted)
+            return
         classes = {t: message_class(i.msgtype) for t, i in self.topics.items()
                    if wanted is None or t in wanted}
         for topic, stamp, raw in self.raw(classes):
             yield topic, stamp, deserialize_message(raw, classes[topic])
+
+
+class Ros1Bag:
+    """A ROS 1 bag (v2.0 .bag file) read with rosbags, its messages as the ROS 2 Jazzy rclpy
+    messages of the same name, field by field (ROS 1's header.seq has no ROS 2 field: dropped)."""
+
+    def __init__(self, path: Path) -> None:
+        from rosbags.highlevel import AnyReader
+
+        self.path = path
+        try:
+            with AnyReader([path], default_typestore=TYPESTORE) as reader:
+                connections = list(reader.connections)
+        except Exception as exc:  # rosbags raises several types for damaged or foreign files
+            raise BagError(f'{path}: cannot read the bag ({type(exc).__name__}: {exc}); a '
+                           'rosbag2 folder or a ROS 1 .bag file expected') from None
+        self.topics: dict[str, TopicInfo] = {}
+        for c in connections:
+            count = self.topics[c.topic].count if c.topic in self.topics else 0
+            self.topics[c.topic] = TopicInfo(c.msgtype, count + c.msgcount, ())
+
+    def messages(self, topics: set[str] | None) -> Iterator[tuple[str, int, Any]]:
+        """(topic, bag time ns, rclpy message), in bag-time order."""
+        from rosbags.highlevel import AnyReader
+
+        with AnyReader([self.path], default_typestore=TYPESTORE) as reader:
+            wanted = [c for c in reader.connections if topics is None or c.topic in topics]
+            if not wanted:   # rosbags reads every connection when given none
+                return
+            classes = {c.msgtype: message_class(c.msgtype) for c in wanted}
+            for connection, stamp, raw in reader.messages(connections=wanted):
+                msg = reader.deserialize(raw, connection.msgtype)
+                yield connection.topic, stamp, to_rclpy(msg, classes[connection.msgtype])
+
+
+def to_rclpy(value: Any, cls: type) -> Any:
+    """A rosbags message object -> an instance of the rclpy message class cls, copying the
+    fields cls has (a field cls lacks, e.g. ROS 1's header.seq, is dropped)."""
+    out = cls()
+    for name, kind in cls.get_fields_and_field_types().items():
+        field = getattr(value, name)
+        element = _message_element(kind)
+        if element is not None and isinstance(field, list):
+            setattr(out, name, [to_rclpy(item, element) for item in field])
+        elif hasattr(field, '__msgtype__'):
+            setattr(out, name, to_rclpy(field, type(getattr(out, name))))
+        else:
+            setattr(out, name, field)      # numbers, strings, numpy arrays of numbers
+    return out
+
+
+def _message_element(kind: str) -> type | None:
+    """The rclpy class of a sequence or array field of messages ('sequence<pkg/Name>',
+    'pkg/Name[3]'), None for any other field."""
+    if not (kind.startswith('sequence<') or kind.endswith(']')) or '/' not in kind:
+        return None
+    package, name = kind.removeprefix('sequence<').split('[')[0].rstrip('>').split('/')
+    return message_class(f'{package}/msg/{name.split(",")[0]}')
 
 
 def read_messages(

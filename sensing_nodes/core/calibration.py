@@ -31,7 +31,7 @@ from scipy.optimize import least_squares
 from sensing_nodes.core import icp
 from sensing_nodes.core.scan_matching import mount_transform
 from sensing_nodes.core.se2 import Pose2, wrap_angle
-from sensing_nodes.core.wheel_odometry import body_increments, integrate_path, integrate_step
+from sensing_nodes.core.wheel_odometry import body_increments, integrate_path, step_columns
 
 PARAMETERS = ('left_radius_m', 'right_radius_m', 'wheel_separation_m', 'laser_x_m',
               'laser_y_m', 'laser_yaw_rad')
@@ -219,17 +219,17 @@ def integrate_intervals(steps: NDArray[np.float64], starts: NDArray[np.intp],
     out = np.zeros((k, 3))
     if steps.shape[0] == 0:
         return out
-    ds, dtheta = body_increments(steps[:, 0] * r_l, steps[:, 1] * r_r, b)
+    ds_left, ds_right = steps[:, 0] * r_l, steps[:, 1] * r_r
+    _, dtheta = body_increments(ds_left, ds_right, b)
     owner = np.repeat(np.arange(k), counts)
     turned = np.cumsum(dtheta)
     offset = np.zeros(k)
     nonempty = counts > 0
     offset[nonempty] = turned[starts[nonempty]] - dtheta[starts[nonempty]]
     yaw_before = turned - dtheta - offset[owner]
-    moved = integrate_step(np.column_stack((np.zeros_like(ds), np.zeros_like(ds), yaw_before)),
-                           ds, dtheta)
-    out[:, 0] = np.bincount(owner, moved[:, 0], minlength=k)
-    out[:, 1] = np.bincount(owner, moved[:, 1], minlength=k)
+    dx, dy = step_columns(yaw_before, ds_left, ds_right, b)[:2]
+    out[:, 0] = np.bincount(owner, dx, minlength=k)
+    out[:, 1] = np.bincount(owner, dy, minlength=k)
     out[:, 2] = np.bincount(owner, dtheta, minlength=k)
     return out
 

@@ -42,8 +42,8 @@ def load_trajectories(bag: Path, topics: list[str]) -> dict[str, tuple[np.ndarra
     from sensing_nodes.bag import read_messages, topic_counts
     from sensing_nodes.ros.conversions import odometry_pose, stamp_to_ns
 
-    if not (bag / 'metadata.yaml').is_file():
-        raise EvalError(f'{bag}: no such bag (no metadata.yaml)')
+    if not bag.exists():
+        raise EvalError(f'{bag}: no such bag')
     try:
         available = topic_counts(bag)
     except Exception as exc:
@@ -100,7 +100,10 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
         except ValueError as exc:
             raise EvalError(str(exc)) from None
         source = f'relations file {relations_file}'
-    has_reference = reference in topic_counts(bag) if (bag / 'metadata.yaml').is_file() else False
+    try:
+        has_reference = reference in topic_counts(bag)
+    except Exception:          # load_trajectories says what is wrong with the bag
+        has_reference = False
     wanted = list(topics) + ([reference] if has_reference else [])
     trajectories = load_trajectories(bag, wanted)
     if relations is None:
@@ -177,7 +180,8 @@ def plot(report: dict, path: Path, reference: str = REFERENCE) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='sensing_eval', description=__doc__.split('\n\n')[0])
-    parser.add_argument('bag', help='rosbag2 bag with the estimate topics (nav_msgs/Odometry)')
+    parser.add_argument('bag', help='bag with the estimate topics (nav_msgs/Odometry): a rosbag2 '
+                        'folder or a ROS 1 .bag file')
     parser.add_argument('--topic', action='append', default=None,
                         help='estimate topic (repeat; default: every Odometry topic but the reference)')
     parser.add_argument('--reference', default=REFERENCE, help=f'reference topic (default {REFERENCE})')

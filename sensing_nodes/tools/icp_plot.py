@@ -104,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='icp_plot', description=__doc__.split('\n')[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument('--carmen', help='CARMEN log (.log or .log.gz)')
-    source.add_argument('--bag', help='rosbag2 directory (MCAP) with LaserScan messages')
+    source.add_argument('--bag', help='bag with LaserScan messages: a rosbag2 folder or a '
+                        'ROS 1 .bag file')
     parser.add_argument('--topic', default='/scan', help='LaserScan topic in the bag')
     parser.add_argument('--index', type=int, default=0, help='target scan (0-based)')
     parser.add_argument('--step', type=int, default=1, help='source = scan index + step')

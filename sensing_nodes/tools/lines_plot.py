@@ -101,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='lines_plot', description=__doc__.split('\n')[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument('--carmen', help='CARMEN log (.log or .log.gz)')
-    source.add_argument('--bag', help='rosbag2 directory (MCAP) with LaserScan messages')
+    source.add_argument('--bag', help='bag with LaserScan messages: a rosbag2 folder or a '
+                        'ROS 1 .bag file')
     parser.add_argument('--topic', default='/scan', help='LaserScan topic in the bag')
     parser.add_argument('--index', type=int, default=0, help='which scan (0-based; negative from the end)')
     parser.add_argument('--out', required=True, help='PNG file to write')

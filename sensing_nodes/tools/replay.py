@@ -781,7 +781,8 @@ def make_bags(folder: str | Path, names: list[str] | None = None, progress: bool
 # -- command line ---------------------------------------------------------------------------
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog='sensing_replay', description=__doc__.split('\n\n')[0])
-    parser.add_argument('bag', nargs='?', help='input rosbag2 bag (folder with metadata.yaml)')
+    parser.add_argument('bag', nargs='?', help='input bag: a rosbag2 folder (MCAP or sqlite3) or a '
+                        'ROS 1 .bag file')
     parser.add_argument('out', nargs='?', help='output bag folder to create (inputs + outputs)')
     parser.add_argument('--mode', choices=('lockstep', 'timed'), default='lockstep')
     parser.add_argument('--rate', type=float, default=1.0,

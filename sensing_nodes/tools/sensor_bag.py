@@ -97,40 +97,15 @@ def _choose(topics: dict[str, tuple[str, int]], types: tuple[str, ...], wanted: 
 @contextmanager
 def _open(path: Path):
     """(topics: topic -> (type, count), messages(topics) -> iterator of (topic, bag ns, msg)):
-    a rosbag2 folder through the package's reader (rclpy's own deserialiser), anything else
-    (a ROS 1 .bag) through rosbags' AnyReader."""
-    if path.is_dir():
-        from sensing_nodes.bag import read_messages, topic_counts
-
-        try:
-            topics = topic_counts(path)
-        except Exception as exc:                  # rosbags raises several unrelated types
-            raise SensorBagError(f'{path}: cannot read the bag ({type(exc).__name__}: {exc})') \
-                from None
-        yield topics, lambda wanted: read_messages(path, wanted)
-        return
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
+    a rosbag2 folder or a ROS 1 .bag file, through the package's one bag reader."""
+    from sensing_nodes.bag import BagError, BagReader
 
     try:
-        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
-        reader.open()
-    except Exception as exc:
-        raise SensorBagError(f'{path}: cannot read the bag ({type(exc).__name__}: {exc})') from None
-    try:
-        topics: dict[str, tuple[str, int]] = {}
-        for c in reader.connections:
-            kind, count = topics.get(c.topic, (c.msgtype, 0))
-            topics[c.topic] = (kind, count + c.msgcount)
-
-        def messages(wanted):
-            connections = [c for c in reader.connections if c.topic in set(wanted)]
-            for connection, timestamp, raw in reader.messages(connections=connections):
-                yield connection.topic, timestamp, reader.deserialize(raw, connection.msgtype)
-
-        yield topics, messages
-    finally:
-        reader.close()
+        reader = BagReader(path)
+    except BagError as exc:
+        raise SensorBagError(str(exc)) from None
+    yield ({t: (i.msgtype, i.count) for t, i in reader.topics.items()},
+           lambda wanted: reader.messages(wanted))
 
 
 def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
