@@ -1,7 +1,8 @@
 """line_extractor: /scan (LaserScan) -> /scan/lines (MarkerArray) and /scan/lines/table (PointCloud2).
 
 The table is one PointCloud2 "point" per line with named fields (TABLE_FIELDS), so a consumer
-reads it with numpy alone; header = the scan's stamp and frame. Layout documented in README.md.
+reads it with numpy alone; header = the scan's stamp and frame. Layout documented in
+docs/nodes/line_extractor.md.
 """
 
 from __future__ import annotations
