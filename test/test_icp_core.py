@@ -141,8 +141,8 @@ def test_voxel_downsampling_of_the_source():
 
 
 # --- the 35-degree local-minimum trap ---------------------------------------------------------
-# Measured on the default room (documented in the README): from the scan pose (-3, 0, 0) with the
-# source turned 35 deg (and shifted 0.2, -0.1) and no initial guess,
+# Measured on the default room (documented in docs/nodes/icp_matcher.md): from the scan pose
+# (-3, 0, 0) with the source turned 35 deg (and shifted 0.2, -0.1) and no initial guess,
 #  * the textbook point-to-point ICP converges (converged=True) to a wrong minimum about 18 deg
 #    short of the truth; only its large mean error (~0.35 m against ~0.02 m) gives it away;
 #  * the default point-to-line match, whose gate starts at 1 m and shrinks with the residuals,

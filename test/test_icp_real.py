@@ -1,8 +1,8 @@
 """core.icp.match on real CARMEN scans against small_gicp, on every 10th consecutive pair.
 
 The full comparison (every pair) is the benchmark `python -m sensing_nodes.bench.icp_real`; its
-tables are in the README. On this 44 + 30 pair subsample one pair moves a failure rate by 2-3 %,
-so the test allows ours one pair more than the best small_gicp method, and medians within 10 %;
+tables are in docs/nodes/icp_matcher.md. On this 44 + 30 pair subsample one pair moves a failure
+rate by 2-3 %, so the test allows ours one pair more than the best small_gicp method, and medians within 10 %;
 from the identity guess, where ours is far ahead, it must be strictly better.
 """
 

@@ -38,7 +38,7 @@ REGIMES = ('identity', 'perturbed')
 # from the guess and from four yaw offsets (+-14, +-29 deg), the best-scoring one refined.
 # 'ours_local' is the plain local match (the node's setting, where odometry gives the guess).
 OURS_OPTIONS: dict = {'yaw_hypotheses': (-0.5, -0.25, 0.25, 0.5)}
-# small_gicp settings: the best of a grid tried on these logs (see README, icp_matcher section).
+# small_gicp settings: the best of a grid tried on these logs (see docs/nodes/icp_matcher.md).
 SMALL_GICP_OPTIONS = {
     'downsampling_resolution': 0.05,
     'max_correspondence_distance': 1.0,

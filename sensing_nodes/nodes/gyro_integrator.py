@@ -13,7 +13,7 @@ from std_srvs.srv import Trigger
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
 from sensing_nodes.core.imu_mount import mount_rotation, to_base
 from sensing_nodes.core.timing import StampStep
-from sensing_nodes.ros.conversions import stamp_to_ns
+from sensing_nodes.ros.conversions import stamp_to_ns, yaw_to_quaternion
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
@@ -145,8 +145,7 @@ class GyroIntegratorNode(Node):
         out.header.stamp = raw.header.stamp
         out.header.frame_id = self._frame_id or raw.header.frame_id
         # Planar: roll and pitch are taken as zero (level IMU), so only yaw carries variance.
-        half = 0.5 * gi.heading
-        out.orientation.z, out.orientation.w = math.sin(half), math.cos(half)
+        yaw_to_quaternion(gi.heading, out=out.orientation)
         out.orientation_covariance[8] = gi.heading_variance
         rate = gi.rate
         out.angular_velocity.x, out.angular_velocity.y, out.angular_velocity.z = (

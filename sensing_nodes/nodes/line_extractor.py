@@ -1,7 +1,8 @@
 """line_extractor: /scan (LaserScan) -> /scan/lines (MarkerArray) and /scan/lines/table (PointCloud2).
 
 The table is one PointCloud2 "point" per line with named fields (TABLE_FIELDS), so a consumer
-reads it with numpy alone; header = the scan's stamp and frame. Layout documented in README.md.
+reads it with numpy alone; header = the scan's stamp and frame. Layout documented in
+docs/nodes/line_extractor.md.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from sensing_nodes.core.lines import Line, extract_lines
+from sensing_nodes.core.scan import valid_ranges
 from sensing_nodes.core.timing import StampStep, classify_step
 from sensing_nodes.ros.conversions import scan_arrays, stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
@@ -194,8 +196,7 @@ class LineExtractorNode(Node):
             # NaN is an invalid measurement (REP 117), unlike +-inf (no return / too close).
             self._diagnostics.count('nan_ranges', nan_count)
             self._warnings.warn('nan', f'scan has {nan_count} NaN ranges; they are ignored')
-        with np.errstate(invalid='ignore'):
-            valid = int((np.isfinite(ranges) & (ranges >= min_range) & (ranges <= max_range)).sum())
+        valid = int(valid_ranges(ranges, min_range, max_range).sum())
         if valid == 0:
             return self._reject('no_valid_ranges', f'none of the {n} ranges is valid '
                                 f'(finite, within [{min_range}, {max_range}] m)')

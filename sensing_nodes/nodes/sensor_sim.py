@@ -20,12 +20,14 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
-import yaml
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.parameter import get_parameter_value, parameter_value_to_python
+from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState, LaserScan
 
@@ -33,7 +35,7 @@ from sensing_nodes.core import sim as core
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.core.world import World, load_world
 from sensing_nodes.paths import config_file
-from sensing_nodes.ros.conversions import float32_array
+from sensing_nodes.ros.conversions import float32_array, yaw_to_quaternion
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.params import ParameterError, declare
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
@@ -192,8 +194,7 @@ class SimMessages:
             msg = self._odom
             x, y, yaw = block.truth_pose[i].tolist()
             msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
-            q = msg.pose.pose.orientation
-            q.z, q.w = math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+            yaw_to_quaternion(yaw, out=msg.pose.pose.orientation)
             msg.twist.twist.linear.x, msg.twist.twist.angular.z = block.truth_twist[i].tolist()
         elif kind == core.IMU:
             msg = self._imu
@@ -254,27 +255,21 @@ def record(out_dir: str | Path, duration_s: float, params: core.SimParams, setti
 
 
 def ros_args_values(ros_args: list[str]) -> dict[str, Any]:
-    """Parameter values of `--ros-args` arguments (`--params-file F` sections for sensor_sim,
-    then `-p name:=value` with YAML-typed values, later ones winning), for --record."""
+    """Parameter values of `--ros-args` arguments for --record, read as the live node reads them:
+    rcl checks the arguments first (a malformed rule or an unreadable params file is an error),
+    then `--params-file F` gives F's sensor_sim section and `-p name:=value` a value typed by
+    rclpy's own rule; later ones win."""
+    try:
+        remove_ros_args([NODE_NAME, '--ros-args', *ros_args])
+    except (_rclpy.RCLInvalidROSArgsError, _rclpy.UnknownROSArgsError) as exc:
+        raise core.SimParameterError('ros_args', f'cannot be parsed: {exc}') from None
     values: dict[str, Any] = {}
-    i = 0
-    while i < len(ros_args):
-        arg = ros_args[i]
-        if arg in ('-p', '--param', '--params-file') and i + 1 < len(ros_args):
-            if arg == '--params-file':
-                values.update(core.load_params_file(ros_args[i + 1], NODE_NAME))
-            else:
-                name, sep, text = ros_args[i + 1].partition(':=')
-                if not sep or not name:
-                    raise core.SimParameterError(ros_args[i + 1], 'is not NAME:=VALUE')
-                try:
-                    values[name] = yaml.safe_load(text) if text else ''
-                except yaml.YAMLError:
-                    raise core.SimParameterError(name, 'has a value that is not YAML',
-                                                 text) from None
-            i += 2
-        else:
-            i += 1
+    for flag, argument in zip(ros_args, ros_args[1:]):
+        if flag == '--params-file':
+            values.update(core.load_params_file(argument, NODE_NAME))
+        elif flag in ('-p', '--param'):
+            name, _, text = argument.partition(':=')
+            values[name] = parameter_value_to_python(get_parameter_value(text))
     return values
 
 

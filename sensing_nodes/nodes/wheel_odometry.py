@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import sys
 
 import numpy as np
@@ -14,7 +13,7 @@ from std_srvs.srv import Trigger
 from sensing_nodes.core.timing import StampStep
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.core.wheel_odometry import METHODS, WheelOdometry, WheelOdometryConfig
-from sensing_nodes.ros.conversions import make_odometry, stamp_to_ns
+from sensing_nodes.ros.conversions import make_odometry, stamp_to_ns, yaw_to_quaternion
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
@@ -142,7 +141,7 @@ class WheelOdometryNode(Node):
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
             position, q = msg.pose.pose.position, msg.pose.pose.orientation
             position.x, position.y = odo.pose[0], odo.pose[1]
-            q.z, q.w = math.sin(0.5 * odo.pose[2]), math.cos(0.5 * odo.pose[2])
+            yaw_to_quaternion(odo.pose[2], out=q)
             msg.pose.covariance[_PLANAR_36] = np.ravel(pose_cov)
             twist = msg.twist.twist
             twist.linear.x, twist.linear.y, twist.angular.z = odo.twist

@@ -34,9 +34,13 @@ def ns_to_stamp(ns: int) -> Time:
     return Time(sec=sec, nanosec=nanosec)
 
 
-def yaw_to_quaternion(yaw: float) -> Quaternion:
-    """Rotation about z by yaw (rad) as a unit quaternion."""
-    return Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2.0), w=math.cos(yaw / 2.0))
+def yaw_to_quaternion(yaw: float, out: Quaternion | None = None) -> Quaternion:
+    """Rotation about z by yaw (rad) as a unit quaternion; filled into `out` when given (a
+    message refilled in place, where building a new one costs more than the numbers)."""
+    if out is None:
+        return Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2.0), w=math.cos(yaw / 2.0))
+    out.x, out.y, out.z, out.w = 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0)
+    return out
 
 
 def quaternion_to_yaw(q) -> float:
