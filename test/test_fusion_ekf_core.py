@@ -67,13 +67,24 @@ def test_matches_against_one_keyframe_do_not_shrink_its_own_error():
     assert ekf.updates == 100
 
 
-def test_a_match_against_an_unknown_keyframe_is_not_fused():
+def test_a_keyframe_whose_first_message_was_lost_is_adopted_from_its_first_match():
+    """The first match against an unknown keyframe (its own message dropped as late) is not
+    fused but places the keyframe (pose ⊕ match⁻¹, with the match's noise); the next matches
+    against it are fused: they measure the motion since that first match."""
     scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
                        keyframes=True, covariance='message')
-    ekf = EkfFusion((scan,), QUIET)
+    ekf = EkfFusion((scan,))   # velocities unknown (1 m/s, 1 rad/s std): the match decides
+    ekf.reset(pose=(2.0, 1.0, math.pi / 2))
     outcome = ekf.update('scan_match', Reading(T0, (1.0, 0.0, 0.0), np.eye(3) * 1e-4,
                                                keyframe_ns=T0 - 5))
-    assert not outcome.fused and 'keyframe' in outcome.note and ekf.pose == (0.0, 0.0, 0.0)
+    assert not outcome.fused and 'adopted' in outcome.note and ekf.pose == (2.0, 1.0, math.pi / 2)
+    outcome = ekf.update('scan_match', Reading(T0 + 10**9, (1.5, 0.0, 0.1), np.eye(3) * 1e-6,
+                                               keyframe_ns=T0 - 5))
+    # 0.5 m further along the keyframe's x, which points along the odom frame's y.
+    assert outcome.fused
+    assert ekf.pose == pytest.approx((2.0, 1.5, math.pi / 2 + 0.1), abs=2e-3)
+    # The first match's noise is in the keyframe: the pose is no better known than it.
+    assert ekf.state.covariance[1, 1] >= 1e-4
 
 
 def test_gate_refuses_an_outlier_and_counts_it():

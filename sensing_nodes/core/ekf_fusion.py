@@ -479,14 +479,41 @@ class EkfFusion:
         slot = self._slots[cfg.name]
         outcome = Outcome(note='no match in this reading')
         if reading.pose is not None and reading.keyframe_ns is not None:
+            noise = self._pose_noise(cfg, reading.pose_covariance, reading.pose, False)
             if slot.key == reading.keyframe_ns:
-                noise = self._pose_noise(cfg, reading.pose_covariance, reading.pose, False)
                 outcome = self._relative_update(cfg, slot, reading.pose, noise)
             else:
-                outcome = Outcome(note='keyframe not known (started after it): not fused')
+                # The message that started this keyframe was never fused (dropped as late,
+                # or before the filter started): adopt the keyframe from this match, so the
+                # later matches against it measure the motion since this one.
+                self._adopt_keyframe(slot, reading.keyframe_ns, reading.pose, noise)
+                outcome = Outcome(note='keyframe adopted from its first fused match')
         if reading.new_keyframe:
             self._clone(slot, key=reading.stamp_ns)
         return outcome
+
+    def _adopt_keyframe(self, slot: _Clone, key: int, match: Pose2, noise: NDArray) -> None:
+        """Fill the slot with the keyframe's pose implied by the current pose and a match
+        against it (pose ⊕ match⁻¹), its covariance and correlations carried from the pose
+        plus the match's noise: that match then tells nothing about the current pose, and
+        only the motion between later matches and it is fused."""
+        x, y, yaw = match
+        c, s = math.cos(yaw), math.sin(yaw)
+        inverse = se2.inverse(match)
+        j_inverse = np.array([[-c, -s, x * s - y * c], [s, -c, x * c + y * s],
+                              [0.0, 0.0, -1.0]])
+        j_pose, j_match = se2.compose_jacobians(self.pose, inverse)
+        j_match = j_match @ j_inverse
+        self._empty(slot)
+        at = slot.offset
+        self.x[at:at + 3] = se2.compose(self.pose, inverse)
+        self.x[at + 2] = _wrap(float(self.x[at + 2]))
+        row = j_pose @ self.p[:3, :]
+        self.p[at:at + 3, :] = row
+        self.p[:, at:at + 3] = row.T
+        self.p[at:at + 3, at:at + 3] = (j_pose @ self.p[:3, :3] @ j_pose.T
+                                        + j_match @ noise @ j_match.T)
+        slot.stamp_ns, slot.key, slot.reading = self.stamp_ns, key, None
 
     def _twist(self, cfg: InputConfig, reading: Reading) -> Outcome:
         cov = reading.twist_covariance
@@ -525,25 +552,32 @@ INPUT_DEFAULTS: dict[str, dict] = {
     'wheel_odom': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential', 'covariance': 'auto',
                    'covariance_scale': 1.0, 'variance_per_m': 1e-4, 'variance_per_rad': 1e-3,
                    'yaw_variance_per_m': 1e-4, 'yaw_variance_per_s': 0.0,
-                   'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 0.0},
+                   'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 0.0, 'max_gap_s': 0.0},
     'imu': {'mask': ['yaw'], 'pose_mode': 'differential', 'covariance': 'model',
             'covariance_scale': 1.0, 'variance_per_m': 0.0, 'variance_per_rad': 0.0,
             'yaw_variance_per_m': 0.0, 'yaw_variance_per_s': 1e-8,
-            'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 16.0},
+            'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 16.0,
+            # gyro_integrator's max_gap_s: across a longer silence of its input it holds the
+            # heading (the turn in the gap is not in its output), so no increment spans one.
+            'max_gap_s': 0.5},
     'scan_match': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential',
                    'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,
                    'variance_per_rad': 1e-3, 'yaw_variance_per_m': 1e-4,
                    'yaw_variance_per_s': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
-                   'gate_chi2': 25.0},
+                   'gate_chi2': 25.0, 'max_gap_s': 0.0},
 }
 
 
 def input_config(name: str, values: dict, **fixed) -> InputConfig:
     """InputConfig of input `name` from its parameter values (missing ones: INPUT_DEFAULTS);
-    `fixed` sets what the input's kind decides (keyframes, gyro_bias, max_gap_s).
-    ValueError for an unknown quantity in the mask."""
+    `fixed` sets what the input's kind decides (keyframes, gyro_bias, max_gap_s: the node-wide
+    gap, which the input's own max_gap_s, when > 0, shortens). ValueError for an unknown
+    quantity in the mask."""
     v = {**INPUT_DEFAULTS[name], **values}
     gate = float(v['gate_chi2'])
+    own_gap = float(v.get('max_gap_s', 0.0))
+    if own_gap > 0.0:
+        fixed = {**fixed, 'max_gap_s': min(own_gap, fixed.get('max_gap_s', own_gap))}
     return InputConfig(
         name=name, mask=mask_from_names(list(v['mask'])), pose_mode=v['pose_mode'],
         covariance=v['covariance'], covariance_scale=float(v['covariance_scale']),

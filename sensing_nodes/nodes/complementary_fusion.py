@@ -165,6 +165,8 @@ class ComplementaryFusionNode(Node):
         'twist_variance': 'vx, vy, vyaw variances when the message has none',
         'gate_chi2': 'refuse a measurement whose squared Mahalanobis distance exceeds this '
                      '(chi-square value); 0 = no gate',
+        'max_gap_s': 'differential: no increment across a longer silence of this input (s); '
+                     "0 = the node's max_gap_s, else the shorter of the two",
     }
 
     def _declare_input(self, name: str, enabled: bool, **fixed) -> InputConfig | None:
