@@ -239,8 +239,13 @@ def test_laser_mount_from_tf_static_and_odom_to_base_link_on_tf(probe, pubs):
     from sensing_nodes.ros.qos import TF_QOS
     from sensing_nodes.ros.tf import StaticTransformBroadcaster
 
+    from rclpy.node import Node
+
     mount = (0.10, 0.05, math.radians(30.0))
-    statics = StaticTransformBroadcaster(probe)
+    # Its own node, destroyed at the end: a latched /tf_static left on the session's probe would
+    # reach every later test's subscribers.
+    talker = Node('tf_static_talker', context=probe.context)
+    statics = StaticTransformBroadcaster(talker)
     statics.send(T0, 'base_link', 'laser', Transform.from_planar(*mount))
     tf = Collector(probe, TFMessage, '/tf', TF_QOS)
     count = 15
@@ -250,6 +255,7 @@ def test_laser_mount_from_tf_static_and_odom_to_base_link_on_tf(probe, pubs):
         spin_until(probe, lambda: len(tf.messages) >= count, 5)
         log = node.output()
     tf.close()
+    talker.destroy_node()
     assert 'laser mount from /tf_static' in log and 'disagrees with the mount parameters' in log
     pose, _ = odometry_pose(out[T0 + (count - 1) * SCAN_DT])
     trans, rot = pose_error(pose, reference(count - 1))

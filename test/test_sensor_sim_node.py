@@ -78,8 +78,10 @@ def test_each_topic_at_its_configured_rate_over_simulated_time(live_run):
         assert stamps.max() <= START + 6 * SECOND, topic           # stopped at duration_s
         window = stamps[(stamps >= START + 2 * SECOND) & (stamps < START + 5 * SECOND)]
         print(f'{topic}: {window.size} of {3 * rate} in the 3 s window')
-        # exactly rate x 3 s when nothing is lost; best-effort delivery may lose a few under load
-        assert 0.9 * 3 * rate <= window.size <= 3 * rate, (topic, window.size)
+        # exactly rate x 3 s when nothing is lost; best-effort delivery may lose a few under load,
+        # and /clock keeps the last sample only (CLOCK_QOS): a reader that falls behind skips some
+        least = 0.5 if topic == '/clock' else 0.9
+        assert least * 3 * rate <= window.size <= 3 * rate, (topic, window.size)
         assert len(np.unique(window)) == window.size, f'{topic}: duplicate stamps'
 
 

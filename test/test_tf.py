@@ -52,24 +52,25 @@ def test_dynamic_transform_round_trip(probe, talker):
 
 
 def test_late_subscriber_gets_every_static_transform_and_chains_them(probe, talker):
+    # Frame names of this test's own: other tests' latched /tf_static may share the domain.
     statics = StaticTransformBroadcaster(talker)
-    # base_link -> plate (raised 0.2 m) -> laser (0.1 m ahead, turned 90 deg left)
-    statics.send(0, 'base_link', 'plate', Transform((0.0, 0.0, 0.2)))
-    statics.send(0, 'plate', 'laser', Transform.from_planar(0.1, 0.0, math.pi / 2))
-    statics.send(0, 'base_link', 'imu_link', Transform((0.0, 0.0, 0.05),
-                                                       quat.from_rpy(math.pi, 0.0, 0.0)))
+    # chain_base -> chain_plate (raised 0.2 m) -> chain_laser (0.1 m ahead, turned 90 deg left)
+    statics.send(0, 'chain_base', 'chain_plate', Transform((0.0, 0.0, 0.2)))
+    statics.send(0, 'chain_plate', 'chain_laser', Transform.from_planar(0.1, 0.0, math.pi / 2))
+    statics.send(0, 'chain_base', 'chain_imu', Transform((0.0, 0.0, 0.05),
+                                                         quat.from_rpy(math.pi, 0.0, 0.0)))
     updates = []
     buffer = StaticTransformBuffer(probe, on_update=lambda: updates.append(1))
-    assert spin_until(probe, lambda: buffer.lookup('base_link', 'laser') is not None, 10.0)
-    laser = buffer.lookup('base_link', 'laser')
+    assert spin_until(probe, lambda: buffer.lookup('chain_base', 'chain_laser') is not None, 10.0)
+    laser = buffer.lookup('chain_base', 'chain_laser')
     assert laser.translation == pytest.approx((0.1, 0.0, 0.2))
     assert laser.planar() == pytest.approx((0.1, 0.0, math.pi / 2))
-    # laser -> imu_link goes up to base_link and down again.
-    imu_in_laser = buffer.lookup('laser', 'imu_link')
-    assert buffer.lookup('base_link', 'laser').compose(imu_in_laser).translation == \
+    # chain_laser -> chain_imu goes up to chain_base and down again.
+    imu_in_laser = buffer.lookup('chain_laser', 'chain_imu')
+    assert buffer.lookup('chain_base', 'chain_laser').compose(imu_in_laser).translation == \
         pytest.approx((0.0, 0.0, 0.05))
-    assert buffer.lookup('base_link', 'wheel') is None
-    assert buffer.lookup('/base_link', '/laser') is not None      # ROS 1 style names
+    assert buffer.lookup('chain_base', 'chain_wheel') is None
+    assert buffer.lookup('/chain_base', '/chain_laser') is not None      # ROS 1 style names
     assert updates
 
 

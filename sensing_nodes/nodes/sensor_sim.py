@@ -46,6 +46,8 @@ NODE_NAME = 'sensor_sim'
 EXIT_BAD_PARAMETER = 2
 _WALL_PERIOD_S = 0.005          # how often the node checks which samples have come due
 _PACED_PERIOD_S = 0.001         # ... and how often it checks for the pace topic's answer
+_LINGER_S = 0.5                 # wall seconds between the last sample and shutdown
+_SETTLE_S = 0.5                 # wall seconds between the graph's matching and simulated time
 
 TOPICS = {
     core.CLOCK: ('/clock', 'rosgraph_msgs/msg/Clock'),
@@ -364,6 +366,7 @@ class SensorSimNode(Node):
         self._sim_now_ns = params.start_ns
         self._wall_start = time.monotonic()
         self._finished = False
+        self._connected_since: float | None = None
         self._paced = bool(settings.pace_topic)
         self._awaited_ns: int | None = None      # stamp of the scan whose answer is awaited
         self._awaited_since = 0.0
@@ -432,6 +435,15 @@ class SensorSimNode(Node):
         if missing:
             self.get_logger().info(f'waiting for subscribers of {", ".join(sorted(set(missing)))}',
                                    throttle_duration_sec=10.0)
+            self._connected_since = None
+            return False
+        # A subscription counted here is matched on our side; the subscriber's side of the match
+        # can come later on a loaded machine (its first scans were then lost): settle first.
+        now = time.monotonic()
+        if self._connected_since is None:
+            self._connected_since = now
+        if (wanted or self.settings.wait_for_scan_subscribers or self._paced) \
+                and now - self._connected_since < _SETTLE_S:
             return False
         self._started = True
         self._wall_start = time.monotonic()
@@ -488,7 +500,10 @@ class SensorSimNode(Node):
         self._finished = True
         self.get_logger().info(
             f'simulated {self.settings.duration_s:g} s: done, shutting down')
-        self.context.try_shutdown()
+        # Linger a moment before the publishers go: subscribers that lag (a loaded machine) still
+        # take the last samples from them; shutting down at once lost the last second of scans.
+        self.create_timer(_LINGER_S, self.context.try_shutdown,
+                          clock=RosClock(clock_type=ClockType.STEADY_TIME))
 
 
 def main(args: list[str] | None = None) -> None:
