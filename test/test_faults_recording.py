@@ -58,9 +58,13 @@ def test_sigint_during_sensor_sim_record_leaves_a_readable_bag(tmp_path):
 
 def test_sigint_during_sensing_demo_leaves_a_readable_bag(tmp_path):
     out_dir = tmp_path / 'run'
-    sim_started = out_dir / 'logs' / 'sensor_sim.log'   # the demo starts the sim last
+    sim_log = out_dir / 'logs' / 'sensor_sim.log'
+
+    def simulation_started() -> bool:                # the graph is up (slow on a loaded machine)
+        return sim_log.exists() and 'the graph is connected: starting' in sim_log.read_text()
+
     code, out = interrupt([str(BIN / 'sensing_demo'), '--out', str(out_dir), '--duration', '600',
-                           '--quiet'], sim_started.exists, 6.0)
+                           '--quiet'], simulation_started, 6.0)
     assert code != 0, out
     counts, read = check_bag(out_dir / 'bag', [])
     assert counts['/scan'][1] > 0 and counts['/odometry/filtered'][1] > 0, (counts, out)

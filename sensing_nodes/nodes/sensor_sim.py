@@ -85,7 +85,8 @@ class NodeSettings:
 NODE_DOCS = {
     'seed': 'random seed; same seed and parameters give the same messages',
     'world_file': "world YAML (walls/polygons); '' = the shipped config/default_world.yaml",
-    'real_time_factor': 'simulated seconds per wall second (1.0 live, > 1 faster)',
+    'real_time_factor': 'simulated seconds per wall second (1.0 live, > 1 faster; with '
+                        'pace_topic the most)',
     'duration_s': 'stop publishing and exit after this much simulated time; 0 = run on',
     'use_cmd_vel': 'follow /cmd_vel (geometry_msgs/Twist) instead of the scripted route',
     'publish_clock': 'publish simulated time on /clock',
@@ -99,9 +100,9 @@ NODE_DOCS = {
                             '/ground_truth/odom have at least this many subscribers each',
     'wait_for_scan_subscribers': 'and /scan at least this many (every scan consumer matched, '
                                  'so none misses the first scans)',
-    'pace_topic': "'' = paced by real_time_factor; else as fast as the graph keeps up: a scan "
-                  'is published only once an Odometry stamped at or after the previous scan '
-                  'arrived on this topic',
+    'pace_topic': "'' = paced by real_time_factor; else also paced by the graph (at most "
+                  'real_time_factor): a scan is published only once an Odometry stamped at or '
+                  'after the previous scan arrived on this topic',
     'pace_timeout_s': 'with pace_topic: wall seconds to wait for an answer before going on '
                       '(with a warning)',
     'publish_tf': 'publish the sensor mounts on /tf_static (base_frame -> laser_frame, '
@@ -364,7 +365,10 @@ class SensorSimNode(Node):
         self._stream = self._events()
         self._upcoming = next(self._stream)
         self._sim_now_ns = params.start_ns
-        self._wall_start = time.monotonic()
+        # Simulated time runs at real_time_factor from this anchor (wall s, stamp ns); paced, a
+        # scan held for the graph's answer moves the anchor, so no burst follows the wait.
+        self._anchor = (time.monotonic(), params.start_ns)
+        self._held = False
         self._finished = False
         self._connected_since: float | None = None
         self._paced = bool(settings.pace_topic)
@@ -446,7 +450,7 @@ class SensorSimNode(Node):
                 and now - self._connected_since < _SETTLE_S:
             return False
         self._started = True
-        self._wall_start = time.monotonic()
+        self._anchor = (time.monotonic(), self.params.start_ns)
         if wanted or self.settings.wait_for_scan_subscribers or self._paced:
             self.get_logger().info('the graph is connected: starting')
         return True
@@ -468,20 +472,21 @@ class SensorSimNode(Node):
             return
         if not self._graph_ready():
             return
-        if self._paced:
-            due_ns = None
-        else:
-            elapsed_s = time.monotonic() - self._wall_start
-            due_ns = self.params.start_ns + int(
-                elapsed_s * self.settings.real_time_factor * core.NS_PER_S)
-        while due_ns is None or self._upcoming[0] <= due_ns:
+        anchor_wall, anchor_ns = self._anchor
+        due_ns = anchor_ns + int((time.monotonic() - anchor_wall)
+                                 * self.settings.real_time_factor * core.NS_PER_S)
+        while self._upcoming[0] <= due_ns:
             t, kind, block, i = self._upcoming
             if self._end_ns is not None and t > self._end_ns:
                 self._finish()
                 return
             if self._paced and kind == core.SCAN:
                 if not self._scan_may_go():
+                    self._held = True
                     return
+                if self._held:
+                    self._held = False
+                    self._anchor = (time.monotonic(), t)
                 self._awaited_ns, self._awaited_since = t, time.monotonic()
             publisher = self._outputs.get(kind)
             if publisher is not None:

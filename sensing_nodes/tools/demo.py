@@ -66,6 +66,7 @@ SCAN_SUBSCRIBERS = 3  # line_extractor, icp_matcher and the recorder
 SIM_CONSUMERS = {'/scan': 2, '/imu/data_raw': 1, '/joint_states': 1}
 # Published on a wall-clock timer whatever the data: not an output the drain waits for.
 WALL_PERIODIC_TOPICS = {'/diagnostics'}
+PACE_TOPIC = '/odometry/filtered'   # a scan goes out once the fused output reached the last one
 DRAIN_QUIET_S = 1.0   # the end: this long without an output (fusion flushes after 0.5 s idle)
 
 
@@ -88,11 +89,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--duration', type=float, default=130.0,
                         help='simulated seconds to drive (default 130: one lap of the default route)')
     parser.add_argument('--seed', type=int, default=0, help='simulation seed (default 0)')
-    # 2x: the graph (EKF fusion, /tf) and the recorder take ~0.8 of a core per 1x of simulated
-    # time; at 5x a 2-core machine fell behind and the fusion dropped late scan matches.
-    parser.add_argument('--rate', type=float, default=2.0,
-                        help='simulated seconds per wall second (default 2; faster than the '
-                             'machine keeps up with drops messages)')
+    parser.add_argument('--rate', type=float, default=5.0,
+                        help='the most simulated seconds per wall second (default 5); the '
+                             'simulator also waits for the fused answer to each scan, so a '
+                             'machine that cannot keep up slows the run instead of dropping data')
     parser.add_argument('--domain-id', type=int, default=None,
                         help='ROS_DOMAIN_ID for the graph (default: one of this run\'s own, so the '
                              'demo never talks to a robot on your network)')
@@ -212,9 +212,13 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
             # recorder is the only subscriber of the ground truth and subscribes only once every
             # edge between the processing nodes is matched: simulated time starts then, so
             # neither the bag nor any node misses the first messages.
+            # Paced by the fusion's answer (at most --rate): the graph and the recorder take
+            # ~0.8 of a core per 1x of simulated time (EKF fusion, /tf), so unpaced at 5x a
+            # 2-core machine fell seconds behind and the fusion dropped late scan matches.
             sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
                         '-p', f'real_time_factor:={args.rate}', '-p', 'wait_for_subscribers:=1',
-                        '-p', f'wait_for_scan_subscribers:={SCAN_SUBSCRIBERS}']
+                        '-p', f'wait_for_scan_subscribers:={SCAN_SUBSCRIBERS}',
+                        '-p', f'pace_topic:={PACE_TOPIC}', '-p', 'pace_timeout_s:=5.0']
             launched = time.monotonic()
             for name in PROCESSING_NODES:
                 graph.start(name, [])

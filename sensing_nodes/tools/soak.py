@@ -137,7 +137,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                                  f'{graph.failed()}); see {out / "logs"}')
         sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}']
         if args.rate == 'paced':
-            sim_args += ['-p', 'pace_topic:=/odometry/filtered', '-p', 'pace_timeout_s:=5.0']
+            sim_args += ['-p', 'pace_topic:=/odometry/filtered', '-p', 'pace_timeout_s:=5.0',
+                         '-p', 'real_time_factor:=1000.0']    # no cap: as fast as the graph
         else:
             sim_args += ['-p', f'real_time_factor:={args.rate}']
         wall_start = time.monotonic()
