@@ -9,10 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
 import signal
-import subprocess
 import sys
 import time
 from collections import defaultdict
@@ -24,10 +21,8 @@ import numpy as np
 from sensing_nodes.core import se2
 from sensing_nodes.core.evaluation import path_length, sigma_consistency, trajectory_errors
 from sensing_nodes.paths import config_file
+from sensing_nodes.ros.graph import PROCESSING_NODES, Graph, isolated_environment
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
-
-PROCESSING_NODES = ['wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
-                    'complementary_fusion']
 
 # Estimate name -> (topic, what it estimates)
 ESTIMATES = {
@@ -70,17 +65,6 @@ PACE_TOPIC = '/odometry/filtered'   # a scan goes out once the fused output reac
 DRAIN_QUIET_S = 1.0   # the end: this long without an output (fusion flushes after 0.5 s idle)
 
 
-def executable(name: str) -> str:
-    """Path of a sibling executable: venv bin/ or a colcon install's lib/sensing_nodes/."""
-    here = Path(sys.argv[0]).resolve().parent / name
-    if here.is_file():
-        return str(here)
-    found = shutil.which(name)
-    if found is None:
-        raise SystemExit(f'sensing_demo: executable {name!r} not found next to {sys.argv[0]} or on PATH')
-    return found
-
-
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog='sensing_demo', description=__doc__.split('\n\n')[0])
@@ -101,41 +85,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.duration <= 0 or args.rate <= 0:
         parser.error('--duration and --rate must be > 0')
     return args
-
-
-class Graph:
-    """The node processes, started with their parameter files, stopped with SIGINT."""
-
-    def __init__(self, out: Path, env: dict[str, str]) -> None:
-        self.out, self.env = out, env
-        self.processes: dict[str, subprocess.Popen] = {}
-        self._logs = {}
-
-    def start(self, name: str, extra: list[str]) -> None:
-        log = open(self.out / 'logs' / f'{name}.log', 'w')
-        self._logs[name] = log
-        cmd = [executable(name), '--ros-args', '--params-file', str(config_file(f'{name}.yaml')),
-               *extra]
-        self.processes[name] = subprocess.Popen(
-            cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
-
-    def failed(self) -> list[str]:
-        return [n for n, p in self.processes.items() if p.poll() not in (None, 0)]
-
-    def stop(self, timeout: float = 10.0) -> dict[str, int]:
-        for proc in self.processes.values():
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        codes = {}
-        for name, proc in self.processes.items():
-            try:
-                codes[name] = proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                codes[name] = proc.wait()
-        for log in self._logs.values():
-            log.close()
-        return codes
 
 
 class Collected:
@@ -193,11 +142,7 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
     from sensing_nodes.recorder import TopicRecorder
     from sensing_nodes.ros.run import make_executor
 
-    env = dict(os.environ)
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    env['ROS_DOMAIN_ID'] = str(args.domain_id if args.domain_id is not None
-                               else 100 + os.getpid() % 100)
-    os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    env = isolated_environment(args.domain_id)
     (out / 'logs').mkdir(parents=True, exist_ok=True)
     collected = Collected()
     graph = Graph(out, env)

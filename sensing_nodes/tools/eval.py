@@ -25,7 +25,7 @@ from sensing_nodes.core.evaluation import (
     relations_from_trajectory,
     relative_pose_errors,
 )
-from sensing_nodes.tools.sensor_bag import atomic_write
+from sensing_nodes.sensor_bag import atomic_write
 
 EXIT_BAD_INPUT = 2
 ODOMETRY = 'nav_msgs/msg/Odometry'

@@ -24,6 +24,8 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from sensing_nodes.ros.graph import PROCESSING_NODES, Graph, executable
+
 # Input topic -> output topics that carry its stamp (one message each), for this package's graph.
 DEFAULT_EXPECTATIONS: dict[str, tuple[str, ...]] = {
     '/joint_states': ('/wheel/odom',),
@@ -65,8 +67,6 @@ NODE_INPUT_TYPES = {
 SENSOR_TOPICS = {'/joint_states', '/imu/data_raw', '/scan'}
 # Published on a wall-clock timer whatever the input: never waited for, not part of "quiet".
 WALL_PERIODIC_TOPICS = {'/diagnostics'}
-PROCESSING_NODES = ('wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
-                    'complementary_fusion')
 # What each processing node publishes (so a launched graph is only used once each requested
 # output has a publisher).
 NODE_OUTPUTS = {
@@ -500,8 +500,6 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
         replayer = Replayer({t: remaps.get(t, t) for t in expectations},
                             {t: bag.types[t] for t in expectations}, outputs, expectations)
         if launch:
-            from sensing_nodes.tools.demo import Graph
-
             (log_dir / 'logs').mkdir(parents=True, exist_ok=True)
             env = dict(os.environ)
             if mode == 'lockstep':
@@ -745,7 +743,7 @@ def compare_outputs(expected: dict[str, list[tuple[int, bytes]]],
 
 def _find_executables_next_to_python() -> None:
     """`python -m sensing_nodes.tools.replay` from a venv: its bin/ holds the node executables
-    (demo.executable looks next to sys.argv[0], then on PATH)."""
+    (ros.graph.executable looks next to sys.argv[0], then on PATH)."""
     bin_dir = Path(sys.executable).parent
     if (bin_dir / 'wheel_odometry').is_file() and str(bin_dir) not in os.environ['PATH'].split(os.pathsep):
         os.environ['PATH'] = str(bin_dir) + os.pathsep + os.environ.get('PATH', '')
@@ -756,7 +754,6 @@ def make_bags(folder: str | Path, names: list[str] | None = None, progress: bool
     """Regenerate bags/<name>: inputs recorded with `sensor_sim --record`, outputs by a lockstep
     replay through the real node processes."""
     from sensing_nodes.paths import config_file
-    from sensing_nodes.tools.demo import executable
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -14,15 +14,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from datetime import datetime
 from pathlib import Path
 
+from sensing_nodes.ros.graph import PROCESSING_NODES, Graph, isolated_environment
+
 NS = 1_000_000_000
-PROCESSING_NODES = ['wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
-                    'complementary_fusion']
 COUNTED = {'/scan': 'sensor_msgs/msg/LaserScan',
            '/scan_match/odom': 'nav_msgs/msg/Odometry',
            '/scan/lines/table': 'sensor_msgs/msg/PointCloud2',
@@ -70,11 +69,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def run(args: argparse.Namespace, out: Path) -> dict:
     """Run the graph for the simulated duration; return the soak report."""
-    env = dict(os.environ)
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    env['ROS_DOMAIN_ID'] = str(args.domain_id if args.domain_id is not None
-                               else 100 + (os.getpid() + 37) % 100)
-    os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    env = isolated_environment(args.domain_id, offset=37)
 
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -84,7 +79,6 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     from sensing_nodes.recorder import leading_stamp_ns
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
     from sensing_nodes.ros.run import make_executor
-    from sensing_nodes.tools.demo import Graph
 
     (out / 'logs').mkdir(parents=True, exist_ok=True)
     graph = Graph(out, env)
