@@ -341,3 +341,35 @@ def test_batch_still_mask_with_wheel_motion_matches_the_veto():
         per_sample.append(gi.still)
     assert np.array_equal(batch, np.array(per_sample))
     assert batch[299] and not batch[300] and not batch[400] and batch[500]
+
+
+def _still_with_lost_imu_stream():
+    """Standing still from the start (bias not yet known) while whole stretches of IMU messages
+    are lost (0.3, 0.25, 0.26 s, each below max_gap_s): the run that drove p_yaw negative."""
+    rng = np.random.default_rng(19)
+    ms = [5, 10, 15, *range(310, 466, 5), *range(715, 731, 5), *range(990, 1500, 5)]
+    stamps = np.array(ms, dtype=np.int64) * 1_000_000
+    noise = rng.normal(0.0, [0.002, 0.02], (len(ms), 2))        # gyro z, accel z per sample
+    gyro = np.column_stack([np.zeros(len(ms)), np.zeros(len(ms)), 0.0087 + noise[:, 0]])
+    accel = np.column_stack([np.zeros(len(ms)), np.zeros(len(ms)), 9.81 + noise[:, 1]])
+    return stamps, gyro, accel
+
+
+def test_heading_variance_stays_non_negative_when_stillness_returns_to_an_old_sample():
+    stamps, gyro, accel = _still_with_lost_imu_stream()
+    gi = GyroIntegrator(GyroConfig())
+    lowest = math.inf
+    for t, g, a in zip(stamps.tolist(), gyro.tolist(), accel.tolist()):
+        gi.observe_wheels(t, 0.0, 0.0)
+        gi.update(t, g, a)
+        lowest = min(lowest, gi.p_yaw, gi.heading_variance)
+    assert lowest >= 0.0
+    assert gi.bias_updates > 0 and gi.bias[2] == pytest.approx(0.0087, abs=0.002)
+
+
+def test_heading_variance_stays_non_negative_in_the_batch_path_too():
+    stamps, gyro, accel = _still_with_lost_imu_stream()
+    gi = GyroIntegrator(GyroConfig())
+    gi.observe_wheels(int(stamps[-1]), 0.0, 0.0)
+    out = gi.update_batch(stamps, gyro, accel)
+    assert np.all(out.heading_variance >= 0.0)

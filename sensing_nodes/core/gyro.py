@@ -103,6 +103,17 @@ def _quiet_windows(mean: NDArray[np.float64], std: NDArray[np.float64], full: ND
             & (np.abs(mean[:, :3]) <= config.max_gyro_bias_rad_s).all(axis=1))
 
 
+def _returned_covariance(p_yaw: float, p_cross: float, p_bias: float) -> tuple[float, float]:
+    """(p_yaw, p_cross) of a heading held since the stillness window's start, against today's
+    bias variance: the cross term is capped so the [yaw, bias] covariance stays PSD.
+
+    The window's first sample carries the cross-covariance of its own time; bias updates since
+    (a still run before a short motion) can have shrunk p_bias below what it needs, and the next
+    zero-velocity update then made p_yaw negative (seen: -0.004 rad^2 after a 0.25 s IMU gap)."""
+    limit = math.sqrt(max(p_yaw, 0.0) * max(p_bias, 0.0))
+    return p_yaw, min(max(p_cross, -limit), limit)
+
+
 def _zero_velocity_update(yaw: float, p_yaw: float, p_cross: float, p_bias: float, bx: float,
                           by: float, bz: float, zx: float, zy: float, zz: float, r: float):
     """One Kalman update of the [yaw, bias_z] filter while the robot stands still: raw rates
@@ -346,7 +357,9 @@ class GyroIntegrator:
                     # Stillness is decided over the whole window, so the robot was already still
                     # at its start: return to the heading held then.
                     first = self._window.samples[0]
-                    self.yaw, self.p_yaw, self.p_cross = first.yaw, first.p_yaw, first.p_cross
+                    self.yaw = first.yaw
+                    self.p_yaw, self.p_cross = _returned_covariance(first.p_yaw, first.p_cross,
+                                                                    self.p_bias)
                 self._measure_bias(stamp_ns, dt)
             else:
                 self.yaw += (0.5 * (self._prev_gyro[2] + g[2]) - self.bias[2]) * dt
@@ -571,7 +584,8 @@ class _BatchRun:
             # As update(): return to the heading held at the window's start, and let every raw
             # sample of the window not used before measure the bias.
             j = self.first[npre + lo]
-            yaw, py, pc = float(self.yaw_all[j]), float(self.py_all[j]), float(self.pc_all[j])
+            yaw = float(self.yaw_all[j])
+            py, pc = _returned_covariance(float(self.py_all[j]), float(self.pc_all[j]), pb)
             begin = max(j, int(np.searchsorted(self.t_all, self.used_until, side='right')))
             zs = self.g_all[begin:npre + lo + 1].mean(axis=0)
             ms = [npre + lo + 1 - begin]
