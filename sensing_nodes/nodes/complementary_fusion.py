@@ -45,8 +45,9 @@ RANK = {WHEEL: 0, IMU: 1, SCAN: 2}
 
 
 class ComplementaryFusionNode(Node):
-    def __init__(self) -> None:
-        super().__init__('complementary_fusion')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('complementary_fusion', **node_options)
         method = declare(self, 'method', 'ekf',
                          "'ekf' (docs/fusion.md) or 'complementary' (the seed's filter)")
         use_wheel = declare(self, 'use_wheel_odom', True, 'fuse /wheel/odom')

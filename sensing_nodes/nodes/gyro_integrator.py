@@ -25,8 +25,9 @@ _DIAGONAL = [0, 4, 8]
 
 
 class GyroIntegratorNode(Node):
-    def __init__(self) -> None:
-        super().__init__('gyro_integrator')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('gyro_integrator', **node_options)
         d = GyroConfig()
         config = GyroConfig(
             bias_estimation=declare(self, 'bias_estimation', d.bias_estimation,

@@ -46,8 +46,9 @@ def keyframe_odometry(step: ScanStep, base_frame: str) -> Odometry:
 
 
 class IcpMatcherNode(Node):
-    def __init__(self) -> None:
-        super().__init__('icp_matcher')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('icp_matcher', **node_options)
         odom_topic = declare(self, 'odom_topic', '',
                              "odometry for the initial guess (e.g. /wheel/odom); '' = constant "
                              'velocity model')

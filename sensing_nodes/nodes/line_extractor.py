@@ -78,8 +78,9 @@ def lines_markers(lines: list[Line], header: Header, width_m: float) -> MarkerAr
 
 
 class LineExtractorNode(Node):
-    def __init__(self) -> None:
-        super().__init__('line_extractor')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('line_extractor', **node_options)
         self._options = dict(
             split_distance=declare(
                 self, 'split_distance', 0.05,

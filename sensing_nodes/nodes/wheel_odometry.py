@@ -28,8 +28,9 @@ _PLANAR_36 = np.array([6 * r + c for r in (0, 1, 5) for c in (0, 1, 5)])
 
 
 class WheelOdometryNode(Node):
-    def __init__(self) -> None:
-        super().__init__('wheel_odometry')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('wheel_odometry', **node_options)
         left = declare(self, 'left_wheel_joint', 'left_wheel_joint', 'name of the left wheel joint')
         right = declare(self, 'right_wheel_joint', 'right_wheel_joint',
                         'name of the right wheel joint')

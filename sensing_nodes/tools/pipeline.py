@@ -14,7 +14,6 @@ import argparse
 import os
 import shutil
 import sys
-import tempfile
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -41,31 +40,13 @@ class PipelineError(Exception):
     """Bad input or parameters: the message names the file, topic or parameter."""
 
 
-def overrides_file(node_params: dict[str, list[tuple[str, str]]], folder: Path) -> Path | None:
-    """--param overrides as a ROS parameter file (NAME.SUB:=VALUE nests; VALUE is YAML, as
-    with `-p NAME:=VALUE`), or None when there are none."""
-    import yaml
-
-    if not node_params:
-        return None
-    content: dict[str, Any] = {}
-    for node, assignments in node_params.items():
-        table = content.setdefault(node, {}).setdefault('ros__parameters', {})
-        for name, value in assignments:
-            *parents, leaf = name.split('.')
-            level = table
-            for key in parents:
-                level = level.setdefault(key, {})
-            level[leaf] = yaml.safe_load(value) if value != '' else ''
-    path = folder / 'overrides.yaml'
-    path.write_text(yaml.safe_dump(content))
-    return path
-
-
 def build_nodes(names: tuple[str, ...], params_files: list[Path],
-                node_params: dict[str, list[tuple[str, str]]]) -> dict[str, Any]:
-    """The named nodes, constructed in one rclpy context with their parameter files (never
-    spun, discovery off: nothing goes over DDS). PipelineError on a bad parameter."""
+                node_params: dict[str, list[str]]) -> dict[str, Any]:
+    """The named nodes, each constructed with the arguments its executable gets from a launch
+    (--params-file config/<node>.yaml, then `params_files`, then its `-p NAME:=VALUE`
+    overrides, as its own cli_args: the same precedence and parsing as a separate process),
+    in one rclpy context that is never spun, with discovery off: nothing goes over DDS.
+    PipelineError on a bad parameter."""
     import importlib
 
     import rclpy
@@ -76,19 +57,16 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
     # The nodes exist only to hold their parameters, logger and diagnostics: no peer should
     # ever see them (a robot's graph on the same domain has nodes of the same names).
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'
-    with tempfile.TemporaryDirectory(prefix='sensing_pipeline-') as tmp:
-        files = [config_file(f'{n}.yaml') for n in names] + list(params_files)
-        extra = overrides_file(node_params, Path(tmp))
-        files += [extra] if extra is not None else []
-        args = ['sensing_pipeline', '--ros-args']
-        for f in files:
-            args += ['--params-file', str(f)]
-        rclpy.init(args=args)   # parameter files are read here
+    rclpy.init(args=['sensing_pipeline'])   # never the tool's own argv (its ':=' are not ROS's)
     nodes = {}
     for name in names:
         module, cls = NODE_CLASSES[name]
+        args = ['--ros-args']
+        for f in [config_file(f'{name}.yaml'), *params_files]:
+            args += ['--params-file', str(f)]
         try:
-            nodes[name] = getattr(importlib.import_module(module), cls)()
+            nodes[name] = getattr(importlib.import_module(module), cls)(
+                cli_args=args + list(node_params.get(name, [])), use_global_arguments=False)
         except _PARAMETER_ERRORS as exc:
             close(nodes)
             raise PipelineError(f'{name}: invalid parameter: {exc}') from None
@@ -156,7 +134,7 @@ class Progress:
 
 def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
         params_files: list[Path] | None = None,
-        node_params: dict[str, list[tuple[str, str]]] | None = None,
+        node_params: dict[str, list[str]] | None = None,
         remaps: dict[str, str] | None = None, progress: bool = True,
         compress: bool = False) -> dict[str, int]:
     """Run the nodes over the bag and write OUT (the bag's topics, with the nodes' outputs in
@@ -286,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
             extra = parse_node_params(args.param)
         except ReplayError as exc:
             raise PipelineError(str(exc)) from None
-        node_params = {n: [tuple(a.split(':=', 1)) for a in v[1::2]] for n, v in extra.items()}
+        node_params = dict(extra)   # node -> ['-p', 'NAME:=VALUE', ...]
         for f in args.params_file:
             if not f.is_file():
                 raise PipelineError(f'--params-file {f}: no such file')
