@@ -256,7 +256,8 @@ class ComplementaryFusionProcessor:
 
     def inputs(self) -> list[Input]:
         imu_qos = SENSOR_QOS if self._imu_source != 'integrated' else ESTIMATE_QOS
-        kinds = {WHEEL: (Odometry, ESTIMATE_QOS), IMU: (Imu, imu_qos), SCAN: (Odometry, ESTIMATE_QOS)}
+        kinds = {WHEEL: (Odometry, ESTIMATE_QOS), IMU: (Imu, imu_qos),
+                 SCAN: (Odometry, ESTIMATE_QOS)}
         return [Input(self._topics[name], kinds[name][0], kinds[name][1],
                       lambda m, name=name: self.on_message(name, m))
                 for name in (WHEEL, IMU, SCAN) if self._records[name].enabled]

@@ -69,7 +69,8 @@ class IcpMatcherNode(Node):
         self.get_logger().info(
             f"initial guess from {odom_topic or 'a constant-velocity model'}; laser at "
             f'({laser[0]}, {laser[1]}, {laser[2]}) in {self._base_frame}; keyframes every '
-            f'{settings.keyframe_distance_m} m / {math.degrees(settings.keyframe_angle_rad):.1f} deg; '
+            f'{settings.keyframe_distance_m} m / '
+            f'{math.degrees(settings.keyframe_angle_rad):.1f} deg; '
             f'{options.method}, robust {options.correspondences.robust}')
 
     def _declare_settings(self) -> ScanMatcherSettings:

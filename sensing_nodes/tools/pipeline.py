@@ -252,28 +252,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     args = parse_args(argv)
-    from sensing_nodes.tools.replay import PROCESSING_NODES, ReplayError, parse_node_params
+    from sensing_nodes.tools.replay import (
+        ReplayError, parse_node_params, parse_nodes, parse_remaps,
+    )
 
     try:
-        nodes = tuple(n for n in args.nodes.split(',') if n)
-        unknown = [n for n in nodes if n not in PROCESSING_NODES]
-        if unknown or not nodes:
-            raise PipelineError(f'--nodes: unknown node(s) {unknown}; known: '
-                                f'{", ".join(PROCESSING_NODES)}')
         try:
-            extra = parse_node_params(args.param)
+            nodes = parse_nodes(args.nodes)
+            node_params = parse_node_params(args.param)   # node -> ['-p', 'NAME:=VALUE', ...]
+            remaps = parse_remaps(args.remap)
         except ReplayError as exc:
             raise PipelineError(str(exc)) from None
-        node_params = dict(extra)   # node -> ['-p', 'NAME:=VALUE', ...]
         for f in args.params_file:
             if not f.is_file():
                 raise PipelineError(f'--params-file {f}: no such file')
-        remaps = {}
-        for spec in args.remap:
-            src, sep, dst = spec.partition(':=')
-            if not sep or not src.startswith('/') or not dst.startswith('/'):
-                raise PipelineError(f'--remap {spec!r}: write /BAG_TOPIC:=/TOPIC')
-            remaps[src] = dst
         counts = run(args.bag, args.out, nodes, params_files=args.params_file,
                      node_params=node_params, remaps=remaps, progress=not args.no_progress,
                      compress=args.compress)
