@@ -130,6 +130,11 @@ def test_bad_input_exits_2_naming_the_file(tmp_path):
     result = _pipeline([str(wrong), str(tmp_path / 'out2'), '--nodes', 'line_extractor'])
     assert result.returncode == 2 and '/scan holds nav_msgs/msg/Odometry' in result.stderr
     assert not (tmp_path / 'out2').exists()
+    # Nothing in the bag for the chosen nodes.
+    result = _pipeline([str(wrong), str(tmp_path / 'out3'), '--nodes', 'gyro_integrator'])
+    assert result.returncode == 2 and 'no topic the nodes take (/imu/data_raw, /wheel/odom)' \
+        in result.stderr, result.stderr
+    assert not (tmp_path / 'out3').exists()
 
 
 @pytest.mark.skipif(not CARMEN.is_dir(), reason=f'CARMEN logs not found in {CARMEN}')

@@ -171,6 +171,10 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
         # Bag topics fed to the nodes: those a node takes (after --remap) and no node produces.
         feeds = {t: remaps.get(t, t) for t in bag.types
                  if remaps.get(t, t) in handlers and remaps.get(t, t) not in outputs}
+        if not feeds:
+            raise PipelineError(f'{bag.path}: no topic the nodes take (' + ', '.join(sorted(
+                t for t in handlers if t not in outputs)) + '); it has: '
+                + ', '.join(sorted(bag.types)) + ' (--remap BAG_TOPIC:=TOPIC)')
         for topic, fed in feeds.items():
             wanted = type_name(input_types[fed])
             if bag.types[topic] != wanted:
