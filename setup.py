@@ -19,6 +19,7 @@ EXECUTABLES = {
     'lines_plot': 'sensing_nodes.tools.lines_plot:main',
     'icp_plot': 'sensing_nodes.tools.icp_plot:main',
     'sensing_replay': 'sensing_nodes.tools.replay:main',
+    'sensing_pipeline': 'sensing_nodes.tools.pipeline:main',
     'carmen_to_bag': 'sensing_nodes.tools.carmen_to_bag:main',
     'sensing_eval': 'sensing_nodes.tools.eval:main',
     'sensing_soak': 'sensing_nodes.tools.soak:main',

@@ -7,9 +7,11 @@ the seed's complementary filter (core.fusion.ComplementaryFusion) on /scan_match
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
+from typing import Any, Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -33,6 +35,7 @@ from sensing_nodes.ros.fusion_readings import (
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
+from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 
@@ -42,8 +45,9 @@ RANK = {WHEEL: 0, IMU: 1, SCAN: 2}
 
 
 class ComplementaryFusionNode(Node):
-    def __init__(self) -> None:
-        super().__init__('complementary_fusion')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('complementary_fusion', **node_options)
         method = declare(self, 'method', 'ekf',
                          "'ekf' (docs/fusion.md) or 'complementary' (the seed's filter)")
         use_wheel = declare(self, 'use_wheel_odom', True, 'fuse /wheel/odom')
@@ -90,9 +94,8 @@ class ComplementaryFusionNode(Node):
         require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
                 'must not be empty')
 
-        self._method = method
-        self._records = {WHEEL: InputRecord(WHEEL, use_wheel), IMU: InputRecord(IMU, use_imu),
-                         SCAN: InputRecord(SCAN, use_scan_pos or use_scan_heading)}
+        records = {WHEEL: InputRecord(WHEEL, use_wheel), IMU: InputRecord(IMU, use_imu),
+                   SCAN: InputRecord(SCAN, use_scan_pos or use_scan_heading)}
         topics = {WHEEL: declare(self, 'wheel_odom.topic', '/wheel/odom', 'wheel odometry topic'),
                   IMU: declare(self, 'imu.topic', '/imu/data', 'IMU topic (sensor_msgs/Imu)')}
         self._imu_source = 'integrated'
@@ -114,42 +117,42 @@ class ComplementaryFusionNode(Node):
                 initial_bias_std=declare(self, 'ekf.initial_bias_std',
                                          EkfSettings.initial_bias_std,
                                          'gyro bias std before any input (rad/s)', minimum=0.0))
-            self._fusion = EkfFusion(configs, settings)
+            fusion = EkfFusion(configs, settings)
             topics[SCAN] = declare(self, 'scan_match.topic', '/scan_match/keyframe_odom',
                                    'keyframe-relative scan matches (icp_matcher)')
         else:
-            self._fusion = ComplementaryMethod(FusionSettings(
+            fusion = ComplementaryMethod(FusionSettings(
                 use_wheel=use_wheel, use_gyro=use_imu, use_scan_position=use_scan_pos,
                 use_scan_heading=use_scan_heading, alpha=alpha_value, max_gap_s=max_gap_s))
             topics[SCAN] = declare(self, 'scan_match.topic', '/scan_match/odom',
                                    'scan matching poses (icp_matcher)')
-        self._buffer = StampOrderedBuffer(int(window_s * 1e9))
-        self._start_ns: int | None = None
         level = declare(self, 'level_with_imu_tilt', False,
                         "ekf, imu.source 'orientation': count only the horizontal part of body "
                         "velocities (the IMU's roll and pitch), for a robot on slopes")
-        self._converter = ReadingConverter(
-            method, getattr(self._fusion, 'inputs', {}), self._imu_source, self._mount, level)
-        self._last_arrival = time.monotonic()
-
-        self._warnings = ThrottledWarnings(self)
-        self._publisher = self.create_publisher(Odometry, '/odometry/filtered', ESTIMATE_QOS)
+        converter = ReadingConverter(
+            method, getattr(fusion, 'inputs', {}), self._imu_source, self._mount, level)
         self.diagnostics = Diagnostics(self, update=self._update_diagnostics)
-        if use_wheel:
-            self.create_subscription(Odometry, topics[WHEEL],
-                                     lambda m: self._on_message(WHEEL, m), ESTIMATE_QOS)
-        if use_imu:
-            qos = SENSOR_QOS if self._imu_source != 'integrated' else ESTIMATE_QOS
-            self.create_subscription(Imu, topics[IMU], lambda m: self._on_message(IMU, m), qos)
-        if use_scan_pos or use_scan_heading:
-            self.create_subscription(Odometry, topics[SCAN],
-                                     lambda m: self._on_message(SCAN, m), ESTIMATE_QOS)
+        self.processor = ComplementaryFusionProcessor(
+            method, fusion, records, topics, converter, StampOrderedBuffer(int(window_s * 1e9)),
+            self._imu_source, self._reset_jump_s, self._input_timeout_s, self._odom_frame,
+            self._base_frame, self.diagnostics, ThrottledWarnings(self), self.get_logger())
+        self._last_arrival = time.monotonic()
+        self._output_publishers = wire(
+            self, [dataclasses.replace(i, handler=self._arrival(i.handler))
+                   for i in self.processor.inputs()], self.processor.outputs())
         # robot_localization's set_pose as a topic: a service would need an interface package
         # of our own, which the PyPI-wheel setup cannot build.
         self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose, 10)
         self.create_timer(self._flush_after_s / 2.0, self._flush_if_idle)
         self.get_logger().info(f'method {method}; inputs: ' + ', '.join(
-            f'{name} ({topics[name]})' for name, r in self._records.items() if r.enabled))
+            f'{name} ({topics[name]})' for name, r in records.items() if r.enabled))
+
+    def _arrival(self, handler: Callable[[Any], Outputs]) -> Callable[[Any], Outputs]:
+        """The handler, noting the wall time of each input (the idle flush's clock)."""
+        def on_message(msg: Any) -> Outputs:
+            self._last_arrival = time.monotonic()
+            return handler(msg)
+        return on_message
 
     _DESCRIPTIONS = {
         'mask': 'quantities fused, of x, y, yaw, vx, vy, vyaw (robot_localization order)',
@@ -211,28 +214,88 @@ class ComplementaryFusionNode(Node):
                                    **({} if use_scan_heading else {'yaw': False}))
         return tuple(cfg for cfg in configs if cfg is not None)
 
+    def _on_set_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        for topic, out in self.processor.set_pose(msg):
+            self._output_publishers[topic].publish(out)
+
+    def _flush_if_idle(self) -> None:
+        if self.processor.held() and time.monotonic() - self._last_arrival > self._flush_after_s:
+            for topic, out in self.processor.flush():
+                self._output_publishers[topic].publish(out)
+
+    def _update_diagnostics(self, diag: Diagnostics) -> None:
+        self.processor.update_diagnostics(diag)
+
+
+class ComplementaryFusionProcessor:
+    """complementary_fusion's per-message logic (ros/processor.py): /wheel/odom, /imu/data and
+    scan matches (topics from the parameters) -> /odometry/filtered (odom_frame -> base_frame,
+    m and rad), inputs fused in stamp order through the reorder buffer. Nothing here reads a
+    clock: `flush` processes what is held (the node calls it after flush_after_s of wall time
+    without input, sensing_pipeline at the end of the bag)."""
+
+    def __init__(self, method: str, fusion, records: dict[str, InputRecord],
+                 topics: dict[str, str], converter: ReadingConverter,
+                 buffer: StampOrderedBuffer, imu_source: str, reset_jump_s: float,
+                 input_timeout_s: float, odom_frame: str, base_frame: str,
+                 diagnostics: Diagnostics, warnings: ThrottledWarnings, logger) -> None:
+        self._method = method
+        self._fusion = fusion
+        self._records = records
+        self._topics = topics
+        self._converter = converter
+        self._buffer = buffer
+        self._imu_source = imu_source
+        self._reset_jump_s = reset_jump_s
+        self._input_timeout_s = input_timeout_s
+        self._odom_frame, self._base_frame = odom_frame, base_frame
+        self._start_ns: int | None = None
+        self.diagnostics = diagnostics   # counted here, published by the node
+        self._warnings = warnings
+        self._logger = logger
+
+    def inputs(self) -> list[Input]:
+        imu_qos = SENSOR_QOS if self._imu_source != 'integrated' else ESTIMATE_QOS
+        kinds = {WHEEL: (Odometry, ESTIMATE_QOS), IMU: (Imu, imu_qos),
+                 SCAN: (Odometry, ESTIMATE_QOS)}
+        return [Input(self._topics[name], kinds[name][0], kinds[name][1],
+                      lambda m, name=name: self.on_message(name, m))
+                for name in (WHEEL, IMU, SCAN) if self._records[name].enabled]
+
+    def outputs(self) -> list[Output]:
+        return [Output('/odometry/filtered', Odometry, ESTIMATE_QOS)]
+
+    def held(self) -> int:
+        """How many inputs the reorder buffer holds."""
+        return len(self._buffer)
+
+    def flush(self) -> Outputs:
+        """Process everything held (end of a stream, or no input for a while)."""
+        return self._process(self._buffer.flush())
+
     # -- input -------------------------------------------------------------------------------
-    def _on_message(self, source: str, msg) -> None:
-        self._last_arrival = time.monotonic()
+    def on_message(self, source: str, msg) -> Outputs:
         stamp = stamp_to_ns(msg.header.stamp)
         record = self._records[source]
         record.received += 1
         # Before the message is read: reading it uses per-timeline state (a source's starting
         # pose), which must already be the new timeline's.
         if record.arrived_ns is not None and record.arrived_ns - stamp > self._reset_jump_s * 1e9:
-            self.get_logger().warn(
+            self._logger.warn(
                 f'{source} stamp {stamp * 1e-9:.3f} s is {(record.arrived_ns - stamp) * 1e-9:.3f} '
                 's before its previous one: time went backwards (looping bag or restarted '
                 'clock); resetting')
             self.diagnostics.count('resets')
-            self._process(self._buffer.flush())  # what was held belongs to the old timeline
+            out = self._process(self._buffer.flush())  # what was held: the old timeline
             self._reset()
+        else:
+            out = []
         reading, problem = self._converter.reading(source, msg, stamp, record)
         if reading is None:
             self.diagnostics.count(f'{source}_rejected')
             self._warnings.warn(f'{source}_rejected: {problem}',
                                 f'{source}: rejected a message ({problem})')
-            return
+            return out
         if not self._buffer.push(stamp, RANK[source], (source, reading)):
             self.diagnostics.count(f'{source}_dropped_late')
             self._warnings.warn(
@@ -240,15 +303,16 @@ class ComplementaryFusionNode(Node):
                 f'{source} message at {stamp * 1e-9:.3f} s arrived after inputs up to '
                 f'{self._buffer.released_ns * 1e-9:.3f} s were fused: dropped '
                 f'({self._buffer.late} so far)')
-            return
+            return out
         if self._start_ns is None:
             self._start_ns = stamp
         record.arrived_ns = stamp if record.arrived_ns is None else max(record.arrived_ns, stamp)
-        self._process(self._buffer.pop_ready(watermark(
+        return out + self._process(self._buffer.pop_ready(watermark(
             list(self._records.values()), self._buffer.newest_ns, self._start_ns,
             self._input_timeout_s)))
 
-    def _on_set_pose(self, msg: PoseWithCovarianceStamped) -> None:
+    def set_pose(self, msg: PoseWithCovarianceStamped) -> Outputs:
+        """robot_localization's set_pose: what is held is fused first, then the pose is set."""
         p = msg.pose.pose
         pose = (float(p.position.x), float(p.position.y), quaternion_to_yaw(p.orientation))
         cov = ros_covariance_to_planar(msg.pose.covariance)
@@ -256,12 +320,13 @@ class ComplementaryFusionNode(Node):
         problem = problem or pose_problem(pose, cov, None, True)
         if problem:
             self.diagnostics.count('set_pose_rejected')
-            self.get_logger().warn(f'set_pose rejected: {problem}')
-            return
-        self._process(self._buffer.flush())
+            self._logger.warn(f'set_pose rejected: {problem}')
+            return []
+        out = self._process(self._buffer.flush())
         self._fusion.set_pose(pose, cov)
         self.diagnostics.count('set_pose')
-        self.get_logger().info('pose set to x=%.3f m, y=%.3f m, yaw=%.3f rad' % pose)
+        self._logger.info('pose set to x=%.3f m, y=%.3f m, yaw=%.3f rad' % pose)
+        return out
 
     def _reset(self) -> None:
         self._fusion.reset()
@@ -271,32 +336,30 @@ class ComplementaryFusionNode(Node):
         self._start_ns = None
         self._converter.reset()
 
-    def _flush_if_idle(self) -> None:
-        if len(self._buffer) and time.monotonic() - self._last_arrival > self._flush_after_s:
-            self._process(self._buffer.flush())
-
     # -- fusion and output ---------------------------------------------------------------------
-    def _process(self, ready) -> None:
+    def _process(self, ready) -> Outputs:
+        out: Outputs = []
         for stamp, (source, reading) in ready:
             self._records[source].processed_at(stamp)
             self._fusion.update(source, reading)
             if source == IMU and (self._records[WHEEL].enabled or self._records[SCAN].enabled):
                 continue  # heading only: published with the next position update
-            self._publish(stamp)
+            out += self._publish(stamp)
+        return out
 
-    def _publish(self, stamp: int) -> None:
+    def _publish(self, stamp: int) -> Outputs:
         state = self._fusion.state
         if state is None:
-            return
+            return []
         twist, twist_cov = getattr(state, 'twist', (0.0, 0.0, 0.0)), \
             getattr(state, 'twist_covariance', None)
-        self._publisher.publish(make_odometry(
-            stamp, self._odom_frame, self._base_frame, state.pose, state.covariance,
-            twist, twist_cov))
         self.diagnostics.count('published')
         self.diagnostics.last_stamp_ns = max(self.diagnostics.last_stamp_ns, stamp)
+        return [('/odometry/filtered', make_odometry(
+            stamp, self._odom_frame, self._base_frame, state.pose, state.covariance,
+            twist, twist_cov))]
 
-    def _update_diagnostics(self, diag: Diagnostics) -> None:
+    def update_diagnostics(self, diag: Diagnostics) -> None:
         newest = self._buffer.newest_ns
         missing = []
         for name, record in self._records.items():

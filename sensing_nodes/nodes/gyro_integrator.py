@@ -17,6 +17,7 @@ from sensing_nodes.ros.conversions import stamp_to_ns, yaw_to_quaternion
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
+from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 
@@ -24,8 +25,9 @@ _DIAGONAL = [0, 4, 8]
 
 
 class GyroIntegratorNode(Node):
-    def __init__(self) -> None:
-        super().__init__('gyro_integrator')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('gyro_integrator', **node_options)
         d = GyroConfig()
         config = GyroConfig(
             bias_estimation=declare(self, 'bias_estimation', d.bias_estimation,
@@ -83,40 +85,84 @@ class GyroIntegratorNode(Node):
         for name, problem, value in config.problems():
             require(False, {'noise_density': 'gyro_noise_density'}.get(name, name), problem, value)
 
-        self._config = config
-        self._integrator = GyroIntegrator(config)
-        self._warnings = ThrottledWarnings(self)
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
-        self._was_still = False
-        self._message = Imu()
-        self._publisher = self.create_publisher(Imu, '/imu/data', ESTIMATE_QOS)
-        self.create_subscription(Imu, '/imu/data_raw', self._on_imu, SENSOR_QOS)
-        if use_wheels:
-            self.create_subscription(Odometry, '/wheel/odom', self._on_wheel_odom, ESTIMATE_QOS)
+        self.processor = GyroIntegratorProcessor(
+            config, self._mount, self._frame_id, self._restart_on_backwards, use_wheels,
+            self.diagnostics, ThrottledWarnings(self), self.get_logger())
+        wire(self, self.processor.inputs(), self.processor.outputs())
         self.create_service(Trigger, '~/calibrate', self._on_calibrate)
         self.get_logger().info(
             f'bias estimation {"on" if config.bias_estimation else "off"}, stillness window '
             f'{config.stillness_window_s} s, wheel odometry veto {"on" if use_wheels else "off"}')
 
-    def _on_wheel_odom(self, msg: Odometry) -> None:
-        twist = msg.twist.twist
-        self._integrator.observe_wheels(
-            stamp_to_ns(msg.header.stamp), twist.linear.x, twist.angular.z)
+    def _refresh_diagnostics(self, diag: Diagnostics) -> None:
+        gi = self.processor.integrator
+        diag.values['bias_z_rad_s'] = f'{gi.bias[2]:.6f}'
+        diag.values['bias_z_std_rad_s'] = f'{math.sqrt(gi.p_bias):.2e}'
+        diag.values['still'] = str(gi.still)
+        diag.values['heading_std_rad'] = f'{math.sqrt(max(gi.heading_variance, 0.0)):.2e}'
 
-    def _on_imu(self, msg: Imu) -> None:
+    def _on_calibrate(self, request: Trigger.Request,
+                      response: Trigger.Response) -> Trigger.Response:
+        gi = self.processor.integrator
+        before = gi.bias[2]
+        gi.request_calibration()
+        self.diagnostics.count('calibrations_requested')
+        response.success = True
+        response.message = (f'calibration armed: the bias (now z = {before:.6f} rad/s) is '
+                            're-estimated over the next still window; keep the robot still for '
+                            f'{gi.config.stillness_window_s} s')
+        self.get_logger().info(response.message)
+        return response
+
+
+class GyroIntegratorProcessor:
+    """gyro_integrator's per-message logic (ros/processor.py): /imu/data_raw -> /imu/data
+    (heading about base_link's z, bias-corrected rates in rad/s); /wheel/odom vetoes stillness."""
+
+    def __init__(self, config: GyroConfig, mount, frame_id: str, restart_on_backwards: bool,
+                 use_wheels: bool, diagnostics: Diagnostics, warnings: ThrottledWarnings,
+                 logger) -> None:
+        self._config = config
+        self._mount = mount   # 3x3 rotation into base_link, or None
+        self._frame_id = frame_id
+        self._restart_on_backwards = restart_on_backwards
+        self._use_wheels = use_wheels
+        self.integrator = GyroIntegrator(config)
+        self.diagnostics = diagnostics   # counted here, published by the node
+        self._warnings = warnings
+        self._logger = logger
+        self._was_still = False
+        self._message = Imu()
+
+    def inputs(self) -> list[Input]:
+        return [Input('/imu/data_raw', Imu, SENSOR_QOS, self.on_imu)] + \
+            ([Input('/wheel/odom', Odometry, ESTIMATE_QOS, self.on_wheel_odom)]
+             if self._use_wheels else [])
+
+    def outputs(self) -> list[Output]:
+        return [Output('/imu/data', Imu, ESTIMATE_QOS)]
+
+    def on_wheel_odom(self, msg: Odometry) -> Outputs:
+        twist = msg.twist.twist
+        self.integrator.observe_wheels(
+            stamp_to_ns(msg.header.stamp), twist.linear.x, twist.angular.z)
+        return []
+
+    def on_imu(self, msg: Imu) -> Outputs:
         stamp = stamp_to_ns(msg.header.stamp)
         w, a = msg.angular_velocity, msg.linear_acceleration
         rate, accel = (w.x, w.y, w.z), (a.x, a.y, a.z)
         if self._mount is not None:
             rate, accel = to_base(rate, self._mount), to_base(accel, self._mount)
-        gi = self._integrator
+        gi = self.integrator
         if self._restart_on_backwards and gi.stamp_ns is not None and stamp < gi.stamp_ns:
             self.diagnostics.count(StampStep.BACKWARDS.value)
             self._warnings.warn(StampStep.BACKWARDS.value, (
                 f'Imu at {stamp * 1e-9:.3f} s: time went backwards by '
                 f'{(gi.stamp_ns - stamp) * 1e-9:.3f} s (looping bag?): integrator restarted '
                 '(heading 0, bias estimate from scratch)'))
-            gi = self._integrator = GyroIntegrator(self._config)
+            gi = self.integrator = GyroIntegrator(self._config)
             self._was_still = False
         result = gi.update(stamp, rate, accel)
         diag = self.diagnostics
@@ -125,22 +171,22 @@ class GyroIntegratorNode(Node):
             diag.count(key)
             self._warnings.warn(key, f'Imu at {stamp * 1e-9:.3f} s not integrated ({key}): '
                                      f'{result.note}')
-            return
+            return []
         if result.step in (StampStep.BACKWARDS, StampStep.GAP):
             diag.count(result.step.value)
             self._warnings.warn(result.step.value, f'Imu at {stamp * 1e-9:.3f} s: {result.note}')
         if result.still != self._was_still:
             self._was_still = result.still
             if not result.still:
-                self.get_logger().info(
+                self._logger.info(
                     f'moving at {stamp * 1e-9:.3f} s; gyro bias z = {gi.bias[2]:.6f} rad/s '
                     f'(std {math.sqrt(gi.p_bias):.2e})')
-        self._publish(msg, stamp, accel)
+        return self._publish(msg, stamp, accel)
 
-    def _publish(self, raw: Imu, stamp: int, accel) -> None:
-        gi = self._integrator
-        # One Imu refilled in place: publish serialises it at once, and building a message per
-        # sample costs more than the integration.
+    def _publish(self, raw: Imu, stamp: int, accel) -> Outputs:
+        gi = self.integrator
+        # One Imu refilled in place: whoever takes it serialises or reads it before the next
+        # sample, and building a message per sample costs more than the integration.
         out = self._message
         out.header.stamp = raw.header.stamp
         out.header.frame_id = self._frame_id or raw.header.frame_id
@@ -154,30 +200,10 @@ class GyroIntegratorNode(Node):
         out.linear_acceleration.x, out.linear_acceleration.y, out.linear_acceleration.z = (
             float(accel[0]), float(accel[1]), float(accel[2]))
         out.linear_acceleration_covariance = raw.linear_acceleration_covariance
-        self._publisher.publish(out)
         diag = self.diagnostics
         diag.count('published')
         diag.last_stamp_ns = stamp
-
-    def _refresh_diagnostics(self, diag: Diagnostics) -> None:
-        gi = self._integrator
-        diag.values['bias_z_rad_s'] = f'{gi.bias[2]:.6f}'
-        diag.values['bias_z_std_rad_s'] = f'{math.sqrt(gi.p_bias):.2e}'
-        diag.values['still'] = str(gi.still)
-        diag.values['heading_std_rad'] = f'{math.sqrt(max(gi.heading_variance, 0.0)):.2e}'
-
-    def _on_calibrate(self, request: Trigger.Request,
-                      response: Trigger.Response) -> Trigger.Response:
-        gi = self._integrator
-        before = gi.bias[2]
-        gi.request_calibration()
-        self.diagnostics.count('calibrations_requested')
-        response.success = True
-        response.message = (f'calibration armed: the bias (now z = {before:.6f} rad/s) is '
-                            're-estimated over the next still window; keep the robot still for '
-                            f'{gi.config.stillness_window_s} s')
-        self.get_logger().info(response.message)
-        return response
+        return [('/imu/data', out)]
 
 
 def main(args: list[str] | None = None) -> None:

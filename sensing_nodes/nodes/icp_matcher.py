@@ -13,6 +13,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import LaserScan
+from tf2_msgs.msg import TFMessage
 
 from sensing_nodes.core.icp import Convergence, Correspondences, IcpOptions
 from sensing_nodes.core.scan import scan_to_points
@@ -26,9 +27,10 @@ from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
-from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.ros.processor import Input, Output, Outputs, wire
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
-from sensing_nodes.ros.tf import SensorMount, StaticTransformBuffer, TransformBroadcaster
+from sensing_nodes.ros.tf import TF_TOPIC, SensorMount, StaticTransformBuffer, transform_message
 
 
 def keyframe_odometry(step: ScanStep, base_frame: str) -> Odometry:
@@ -44,43 +46,31 @@ def keyframe_odometry(step: ScanStep, base_frame: str) -> Odometry:
 
 
 class IcpMatcherNode(Node):
-    def __init__(self) -> None:
-        super().__init__('icp_matcher')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('icp_matcher', **node_options)
         odom_topic = declare(self, 'odom_topic', '',
                              "odometry for the initial guess (e.g. /wheel/odom); '' = constant "
                              'velocity model')
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the published pose')
         self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame (robot base)')
-        s = self._settings = self._declare_settings()
-        self._matcher = KeyframeScanMatcher(s)
-        # Odometry history must reach back to the previous scan, however far apart scans may be
-        # (max_gap_s): a real log's keyframes can be tens of seconds apart.
-        self._odometry = OdometryBuffer(max_age_s=max(10.0, 2.0 * s.max_gap_s),
-                                        max_extrapolation_s=self._odom_extrapolation_s) \
-            if odom_topic else None
-        self._last_scan_ns: int | None = None
-        self._warnings = ThrottledWarnings(self)
+        settings = self._declare_settings()
         # The laser mount: /tf_static's base_frame -> <scan frame> where it is published, else
         # the laser_* parameters.
-        self._laser_parameters = s.laser_pose
-        self._mount = SensorMount(self, StaticTransformBuffer(self), self._base_frame,
-                                  Transform.from_planar(*s.laser_pose), 'laser')
-        self._tf = TransformBroadcaster(self) if self._publish_tf else None
+        mount = SensorMount(self, StaticTransformBuffer(self), self._base_frame,
+                            Transform.from_planar(*settings.laser_pose), 'laser')
         self.diagnostics = Diagnostics(self)
-        self._publisher = self.create_publisher(Odometry, '/scan_match/odom', ESTIMATE_QOS)
-        # Each match relative to its keyframe, the keyframe named by its stamp, for a fusion
-        # that keeps its state at keyframe stamps (docs/fusion.md, "Keyframe-relative matches").
-        self._keyframe_publisher = self.create_publisher(
-            Odometry, '/scan_match/keyframe_odom', ESTIMATE_QOS)
-        self.create_subscription(LaserScan, '/scan', self._on_scan, SENSOR_QOS)
-        if odom_topic:
-            self.create_subscription(Odometry, odom_topic, self._on_odometry, ESTIMATE_QOS)
+        self.processor = IcpMatcherProcessor(
+            settings, odom_topic, self._odom_extrapolation_s, self._min_points, self._odom_frame,
+            self._base_frame, self._publish_tf, mount, self.diagnostics, ThrottledWarnings(self))
+        wire(self, self.processor.inputs(), self.processor.outputs())
         self.diagnostics.values['prediction'] = odom_topic or 'constant_velocity'
-        laser, options = s.laser_pose, s.icp_options
+        laser, options = settings.laser_pose, settings.icp_options
         self.get_logger().info(
             f"initial guess from {odom_topic or 'a constant-velocity model'}; laser at "
             f'({laser[0]}, {laser[1]}, {laser[2]}) in {self._base_frame}; keyframes every '
-            f'{s.keyframe_distance_m} m / {math.degrees(s.keyframe_angle_rad):.1f} deg; '
+            f'{settings.keyframe_distance_m} m / '
+            f'{math.degrees(settings.keyframe_angle_rad):.1f} deg; '
             f'{options.method}, robust {options.correspondences.robust}')
 
     def _declare_settings(self) -> ScanMatcherSettings:
@@ -154,17 +144,57 @@ class IcpMatcherNode(Node):
                     max_correspondence_distance=max_corr, robust=robust,
                     min_inlier_fraction=min_inliers, min_points=max(3, self._min_points))))
 
-    def _on_odometry(self, msg: Odometry) -> None:
+
+class IcpMatcherProcessor:
+    """icp_matcher's per-message logic (ros/processor.py): /scan (and an odometry topic for the
+    initial guess) -> /scan_match/keyframe_odom, then /scan_match/odom (odom_frame ->
+    base_frame, m and rad) and, with publish_tf, the same pose on /tf."""
+
+    def __init__(self, settings: ScanMatcherSettings, odom_topic: str,
+                 odom_extrapolation_s: float, min_points: int, odom_frame: str, base_frame: str,
+                 publish_tf: bool, mount: SensorMount, diagnostics: Diagnostics,
+                 warnings: ThrottledWarnings) -> None:
+        self._settings = settings
+        self._matcher = KeyframeScanMatcher(settings)
+        self._odom_topic = odom_topic
+        # Odometry history must reach back to the previous scan, however far apart scans may be
+        # (max_gap_s): a real log's keyframes can be tens of seconds apart.
+        self._odometry = OdometryBuffer(max_age_s=max(10.0, 2.0 * settings.max_gap_s),
+                                        max_extrapolation_s=odom_extrapolation_s) \
+            if odom_topic else None
+        self._min_points = min_points
+        self._odom_frame, self._base_frame = odom_frame, base_frame
+        self._publish_tf = publish_tf
+        self._last_scan_ns: int | None = None
+        self._laser_parameters = settings.laser_pose
+        self._mount = mount
+        self.diagnostics = diagnostics   # counted here, published by the node
+        self._warnings = warnings
+
+    def inputs(self) -> list[Input]:
+        return [Input('/scan', LaserScan, SENSOR_QOS, self.on_scan)] + \
+            ([Input(self._odom_topic, Odometry, ESTIMATE_QOS, self.on_odometry)]
+             if self._odom_topic else [])
+
+    def outputs(self) -> list[Output]:
+        # Each match relative to its keyframe, the keyframe named by its stamp, for a fusion
+        # that keeps its state at keyframe stamps (docs/fusion.md, "Keyframe-relative matches").
+        return [Output('/scan_match/keyframe_odom', Odometry, ESTIMATE_QOS),
+                Output('/scan_match/odom', Odometry, ESTIMATE_QOS)] + \
+            ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
+
+    def on_odometry(self, msg: Odometry) -> Outputs:
         stamp = stamp_to_ns(msg.header.stamp)
         pose, _ = odometry_pose(msg)
         if not all(math.isfinite(v) for v in pose):
             self.diagnostics.count('odom_not_finite')
             self._warnings.warn('odom_nan', f'odometry at {stamp * 1e-9:.3f} s is not finite: ignored')
-            return
+            return []
         if not self._odometry.add(stamp, pose):
             self.diagnostics.count('odom_backwards')
             self._warnings.warn('odom_backwards', f'odometry stamp {stamp * 1e-9:.3f} s went '
                                 'backwards: odometry buffer cleared')
+        return []
 
     def _use_mount(self, laser_pose: tuple[float, float, float]) -> None:
         """Match with this laser mount; a new mount (a late /tf_static) restarts the keyframe."""
@@ -175,7 +205,7 @@ class IcpMatcherNode(Node):
         self.diagnostics.count('mount_changes')
         self.diagnostics.values['laser_mount'] = '%.4f %.4f %.4f' % laser_pose
 
-    def _on_scan(self, msg: LaserScan) -> None:
+    def on_scan(self, msg: LaserScan) -> Outputs:
         stamp = stamp_to_ns(msg.header.stamp)
         diag = self.diagnostics
         diag.count('scans')
@@ -213,16 +243,17 @@ class IcpMatcherNode(Node):
             diag.values['last_error_m'] = f'{step.result.error:.4f}'
             diag.values['last_iterations'] = str(step.result.iterations)
         if not step.publish:
-            return
+            return []
         # The keyframe-relative message first: a consumer waiting for /scan_match/odom (a lockstep
         # replay) then knows the fusion's input for this scan is already on its way.
-        self._keyframe_publisher.publish(keyframe_odometry(step, self._base_frame))
-        self._publisher.publish(make_odometry(
-            stamp, self._odom_frame, self._base_frame, step.pose, step.covariance,
-            step.twist, step.twist_covariance))
-        if self._tf is not None:
-            self._tf.send(stamp, self._odom_frame, self._base_frame,
-                          Transform.from_planar(*step.pose))
+        out: Outputs = [
+            ('/scan_match/keyframe_odom', keyframe_odometry(step, self._base_frame)),
+            ('/scan_match/odom', make_odometry(
+                stamp, self._odom_frame, self._base_frame, step.pose, step.covariance,
+                step.twist, step.twist_covariance))]
+        if self._publish_tf:
+            out.append((TF_TOPIC, transform_message(stamp, self._odom_frame, self._base_frame,
+                                                    Transform.from_planar(*step.pose))))
         diag.count('published')
         diag.last_stamp_ns = max(diag.last_stamp_ns, stamp)
         diag.values['pose'] = '%.4f %.4f %.4f' % step.pose
@@ -230,6 +261,7 @@ class IcpMatcherNode(Node):
         diag.level = DiagnosticStatus.WARN if step.status == 'fallback' else DiagnosticStatus.OK
         diag.message = (f'last match failed ({failures} in all): {step.reason}'
                         if step.status == 'fallback' else f'ok ({failures} failed matches)')
+        return out
 
 
 def main(args: list[str] | None = None) -> None:

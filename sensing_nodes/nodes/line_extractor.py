@@ -25,6 +25,7 @@ from sensing_nodes.ros.conversions import scan_arrays, stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
+from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 
@@ -77,8 +78,9 @@ def lines_markers(lines: list[Line], header: Header, width_m: float) -> MarkerAr
 
 
 class LineExtractorNode(Node):
-    def __init__(self) -> None:
-        super().__init__('line_extractor')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('line_extractor', **node_options)
         self._options = dict(
             split_distance=declare(
                 self, 'split_distance', 0.05,
@@ -123,16 +125,35 @@ class LineExtractorNode(Node):
             extract_lines(np.zeros(0), np.zeros(0), **self._options)
         except ValueError as exc:
             raise ParameterError('line extraction options', str(exc)) from exc
-        self._warnings = ThrottledWarnings(self, period_s=5.0)
-        self._diagnostics = Diagnostics(self)
-        self._last_stamp_ns: int | None = None
-        self._markers = self.create_publisher(MarkerArray, '/scan/lines', ESTIMATE_QOS)
-        self._table = self.create_publisher(PointCloud2, '/scan/lines/table', ESTIMATE_QOS)
-        self.create_subscription(LaserScan, '/scan', self._on_scan, SENSOR_QOS)
+        self.processor = LineExtractorProcessor(
+            self._options, self._marker_width_m, self._max_gap_s, Diagnostics(self),
+            ThrottledWarnings(self, period_s=5.0))
+        wire(self, self.processor.inputs(), self.processor.outputs())
         self.get_logger().info(
             'extracting lines from /scan with ' + ', '.join(f'{k}={v}' for k, v in self._options.items()))
 
-    def _on_scan(self, msg: LaserScan) -> None:
+
+class LineExtractorProcessor:
+    """line_extractor's per-message logic (ros/processor.py): /scan -> /scan/lines (markers)
+    and /scan/lines/table (one PointCloud2 point per line), in the scan's frame and stamp."""
+
+    def __init__(self, options: dict, marker_width_m: float, max_gap_s: float,
+                 diagnostics: Diagnostics, warnings: ThrottledWarnings) -> None:
+        self._options = options
+        self._marker_width_m = marker_width_m
+        self._max_gap_s = max_gap_s
+        self._diagnostics = diagnostics   # counted here, published by the node
+        self._warnings = warnings
+        self._last_stamp_ns: int | None = None
+
+    def inputs(self) -> list[Input]:
+        return [Input('/scan', LaserScan, SENSOR_QOS, self.on_scan)]
+
+    def outputs(self) -> list[Output]:
+        return [Output('/scan/lines', MarkerArray, ESTIMATE_QOS),
+                Output('/scan/lines/table', PointCloud2, ESTIMATE_QOS)]
+
+    def on_scan(self, msg: LaserScan) -> Outputs:
         stamp_ns = stamp_to_ns(msg.header.stamp)
         self._diagnostics.count('scans')
         self._diagnostics.last_stamp_ns = stamp_ns
@@ -142,8 +163,8 @@ class LineExtractorNode(Node):
         if not lines:
             self._diagnostics.count('empty_results')
         header = Header(stamp=msg.header.stamp, frame_id=msg.header.frame_id)
-        self._markers.publish(lines_markers(lines, header, self._marker_width_m))
-        self._table.publish(lines_table(lines, header))
+        return [('/scan/lines', lines_markers(lines, header, self._marker_width_m)),
+                ('/scan/lines/table', lines_table(lines, header))]
 
     def _check_stamp(self, stamp_ns: int) -> None:
         # Extraction keeps no state, so an odd step is only reported, nothing is reset.

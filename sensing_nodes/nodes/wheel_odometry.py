@@ -9,6 +9,7 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
 
 from sensing_nodes.core.timing import StampStep
 from sensing_nodes.core.transform import Transform
@@ -17,17 +18,19 @@ from sensing_nodes.ros.conversions import make_odometry, stamp_to_ns, yaw_to_qua
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
-from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.ros.processor import Input, Output, Outputs, wire
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
-from sensing_nodes.ros.tf import TransformBroadcaster
+from sensing_nodes.ros.tf import TF_TOPIC, transform_message
 
 # Row-major indices of x, y, yaw rows/columns in a 6x6 ROS covariance.
 _PLANAR_36 = np.array([6 * r + c for r in (0, 1, 5) for c in (0, 1, 5)])
 
 
 class WheelOdometryNode(Node):
-    def __init__(self) -> None:
-        super().__init__('wheel_odometry')
+    def __init__(self, **node_options) -> None:
+        # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        super().__init__('wheel_odometry', **node_options)
         left = declare(self, 'left_wheel_joint', 'left_wheel_joint', 'name of the left wheel joint')
         right = declare(self, 'right_wheel_joint', 'right_wheel_joint',
                         'name of the right wheel joint')
@@ -88,24 +91,64 @@ class WheelOdometryNode(Node):
         for field_name, problem, value in config.problems():
             require(False, names.get(field_name, field_name), problem, value)
 
-        self._joints = (left, right)
-        self._static = (None if mode == 'propagated'
-                        else (np.diag(static_pose), np.diag(static_twist)))
-        self._odometry = WheelOdometry(config)
-        self._message: Odometry | None = None
-        self._warnings = ThrottledWarnings(self)
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
-        self._publisher = self.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS)
-        self._tf = TransformBroadcaster(self) if publish_tf else None
-        self.create_subscription(JointState, '/joint_states', self._on_joint_state, SENSOR_QOS)
+        self.processor = WheelOdometryProcessor(
+            WheelOdometry(config), (left, right),
+            None if mode == 'propagated' else (np.diag(static_pose), np.diag(static_twist)),
+            self._odom_frame, self._base_frame, publish_tf, self.diagnostics,
+            ThrottledWarnings(self), self.get_logger())
+        wire(self, self.processor.inputs(), self.processor.outputs())
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.get_logger().info(
             f'wheels {left!r} / {right!r}: radius {radius} m (x {left_mult}, x {right_mult}), '
             f'separation {separation} m, {method}, covariance {mode}')
 
-    def _on_joint_state(self, msg: JointState) -> None:
+    def _refresh_diagnostics(self, diag: Diagnostics) -> None:
+        odo = self.processor.odometry
+        diag.values['pose'] = '%.4f %.4f %.4f' % odo.pose
+        std = np.sqrt(np.maximum(np.diag(odo.covariance), 0.0))
+        diag.values['pose_std'] = '%.2e %.2e %.2e' % tuple(std)
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        odometry = self.processor.odometry
+        before = odometry.pose
+        self.diagnostics.values['pose_before_reset'] = '%.4f %.4f %.4f' % before
+        odometry.reset()
+        self.diagnostics.count('resets')
+        response.success = True
+        response.message = (f'pose reset to the origin (was x={before[0]:.4f} m, '
+                            f'y={before[1]:.4f} m, yaw={before[2]:.4f} rad)')
+        self.get_logger().info(response.message)
+        return response
+
+
+class WheelOdometryProcessor:
+    """wheel_odometry's per-message logic (ros/processor.py): /joint_states -> /wheel/odom
+    (odom_frame -> base_frame, m and rad) and, with publish_tf, the same pose on /tf."""
+
+    def __init__(self, odometry: WheelOdometry, joints: tuple[str, str],
+                 static: tuple | None, odom_frame: str, base_frame: str, publish_tf: bool,
+                 diagnostics: Diagnostics, warnings: ThrottledWarnings, logger) -> None:
+        self.odometry = odometry
+        self._joints = joints
+        self._static = static   # (pose, twist) covariances, or None: propagated
+        self._odom_frame, self._base_frame = odom_frame, base_frame
+        self._publish_tf = publish_tf
+        self._warnings = warnings
+        self._logger = logger
+        self._message: Odometry | None = None
+        self.diagnostics = diagnostics   # counted here, published by the node
+
+    def inputs(self) -> list[Input]:
+        return [Input('/joint_states', JointState, SENSOR_QOS, self.on_joint_state)]
+
+    def outputs(self) -> list[Output]:
+        return [Output('/wheel/odom', Odometry, ESTIMATE_QOS)] + \
+            ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
+
+    def on_joint_state(self, msg: JointState) -> Outputs:
         stamp = stamp_to_ns(msg.header.stamp)
-        result = self._odometry.update(
+        result = self.odometry.update(
             stamp, list(msg.name), msg.position, msg.velocity, self._joints)
         diag = self.diagnostics
         if result.rejection is not None:
@@ -121,12 +164,11 @@ class WheelOdometryNode(Node):
             diag.count('encoder_wraps')
             self._warnings.warn('wrap', f'JointState at {stamp * 1e-9:.3f} s: {result.note}')
         elif result.note:
-            self.get_logger().info(result.note)
-        if result.publish:
-            self._publish(stamp)
+            self._logger.info(result.note)
+        return self._publish(stamp) if result.publish else []
 
-    def _publish(self, stamp: int) -> None:
-        odo = self._odometry
+    def _publish(self, stamp: int) -> Outputs:
+        odo = self.odometry
         if self._static is None:
             pose_cov, twist_cov = odo.covariance, odo.twist_covariance
         else:
@@ -137,7 +179,7 @@ class WheelOdometryNode(Node):
                 stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov)
         else:
             # Building an Odometry costs more than the odometry itself: refill one in place
-            # (publish serialises it at once, so reuse is safe).
+            # (whoever takes it serialises or reads it before the next message).
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
             position, q = msg.pose.pose.position, msg.pose.pose.orientation
             position.x, position.y = odo.pose[0], odo.pose[1]
@@ -146,29 +188,13 @@ class WheelOdometryNode(Node):
             twist = msg.twist.twist
             twist.linear.x, twist.linear.y, twist.angular.z = odo.twist
             msg.twist.covariance[_PLANAR_36] = np.ravel(twist_cov)
-        self._publisher.publish(msg)
-        if self._tf is not None:
-            self._tf.send(stamp, self._odom_frame, self._base_frame,
-                          Transform.from_planar(*odo.pose))
+        out: Outputs = [('/wheel/odom', msg)]
+        if self._publish_tf:
+            out.append((TF_TOPIC, transform_message(stamp, self._odom_frame, self._base_frame,
+                                                    Transform.from_planar(*odo.pose))))
         self.diagnostics.count('published')
         self.diagnostics.last_stamp_ns = stamp
-
-    def _refresh_diagnostics(self, diag: Diagnostics) -> None:
-        odo = self._odometry
-        diag.values['pose'] = '%.4f %.4f %.4f' % odo.pose
-        std = np.sqrt(np.maximum(np.diag(odo.covariance), 0.0))
-        diag.values['pose_std'] = '%.2e %.2e %.2e' % tuple(std)
-
-    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        before = self._odometry.pose
-        self.diagnostics.values['pose_before_reset'] = '%.4f %.4f %.4f' % before
-        self._odometry.reset()
-        self.diagnostics.count('resets')
-        response.success = True
-        response.message = (f'pose reset to the origin (was x={before[0]:.4f} m, '
-                            f'y={before[1]:.4f} m, yaw={before[2]:.4f} rad)')
-        self.get_logger().info(response.message)
-        return response
+        return out
 
 
 def main(args: list[str] | None = None) -> None:

@@ -31,6 +31,11 @@ def frame_name(frame_id: str) -> str:
     return frame_id.lstrip('/')
 
 
+def transform_message(stamp_ns: int, parent: str, child: str, transform: Transform) -> TFMessage:
+    """The /tf message of one transform: the child frame's pose in the parent frame at stamp_ns."""
+    return TFMessage(transforms=[make_transform_stamped(stamp_ns, parent, child, transform)])
+
+
 class TransformBroadcaster:
     """Publishes transforms on /tf, as tf2_ros.TransformBroadcaster."""
 
@@ -39,8 +44,7 @@ class TransformBroadcaster:
 
     def send(self, stamp_ns: int, parent: str, child: str, transform: Transform) -> None:
         """Broadcast the child frame's pose in the parent frame at stamp_ns."""
-        self._publisher.publish(TFMessage(transforms=[
-            make_transform_stamped(stamp_ns, parent, child, transform)]))
+        self._publisher.publish(transform_message(stamp_ns, parent, child, transform))
 
 
 class StaticTransformBroadcaster:

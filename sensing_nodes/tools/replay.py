@@ -178,6 +178,26 @@ def parse_node_params(specs: list[str]) -> dict[str, list[str]]:
     return extra
 
 
+def parse_remaps(specs: list[str]) -> dict[str, str]:
+    """['/odom:=/wheel/odom'] -> {'/odom': '/wheel/odom'}."""
+    remaps = {}
+    for spec in specs:
+        src, sep, dst = spec.partition(':=')
+        if not sep or not src.startswith('/') or not dst.startswith('/'):
+            raise ReplayError(f'--remap {spec!r}: write /BAG_TOPIC:=/TOPIC')
+        remaps[src] = dst
+    return remaps
+
+
+def parse_nodes(spec: str) -> tuple[str, ...]:
+    """'a,b' -> ('a', 'b'), each one of PROCESSING_NODES."""
+    nodes = tuple(n for n in spec.split(',') if n)
+    unknown = [n for n in nodes if n not in PROCESSING_NODES]
+    if unknown or not nodes:
+        raise ReplayError(f'--nodes: unknown node(s) {unknown}; known: {PROCESSING_NODES}')
+    return nodes
+
+
 def shifted_stamp(raw: bytes, offset_ns: int) -> bytes:
     """A CDR message whose first field is a Header, with its stamp moved by offset_ns."""
     order = '<' if raw[1] == 1 else '>'
@@ -863,16 +883,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.make_bags is not None:
             make_bags(args.make_bags, progress=not args.no_progress)
             return 0
-        remaps = {}
-        for spec in args.remap:
-            src, sep, dst = spec.partition(':=')
-            if not sep or not src.startswith('/') or not dst.startswith('/'):
-                raise ReplayError(f'--remap {spec!r}: write /BAG_TOPIC:=/TOPIC')
-            remaps[src] = dst
-        nodes = tuple(n for n in args.nodes.split(',') if n)
-        unknown = [n for n in nodes if n not in PROCESSING_NODES]
-        if unknown:
-            raise ReplayError(f'--nodes: unknown node(s) {unknown}; known: {PROCESSING_NODES}')
+        remaps = parse_remaps(args.remap)
+        nodes = parse_nodes(args.nodes)
         results = replay(
             args.bag, args.out, mode=args.mode, rate=args.rate,
             expectations=parse_expectations(args.expect) if args.expect else None,

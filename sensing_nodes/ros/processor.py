@@ -1,0 +1,51 @@
+"""A node's per-message logic as a plain object (no rclpy node, no publishers): messages in,
+(topic, message) pairs out, in the order the node publishes them.
+
+The node wraps it (`wire`: one subscription per input, one publisher per output) and
+`sensing_pipeline` drives it over a bag without DDS, so both run the same code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+
+Outputs = list[tuple[str, Any]]   # (topic, rclpy message), in publication order
+
+
+@dataclass(frozen=True)
+class Input:
+    """One input of a processor: its topic, message class, QoS and handler."""
+
+    topic: str
+    msg_type: type
+    qos: QoSProfile
+    handler: Callable[[Any], Outputs]
+
+
+@dataclass(frozen=True)
+class Output:
+    """One output of a processor: its topic, message class and QoS."""
+
+    topic: str
+    msg_type: type
+    qos: QoSProfile
+
+
+def wire(node: Node, inputs: list[Input], outputs: list[Output]) -> dict[str, Any]:
+    """Subscribe `node` to each input and publish what its handler returns, in order; returns
+    the publishers (topic -> publisher), for outputs of the node's own timers and services."""
+    publishers = {o.topic: node.create_publisher(o.msg_type, o.topic, o.qos) for o in outputs}
+
+    def callback(handler: Callable[[Any], Outputs]) -> Callable[[Any], None]:
+        def on_message(msg: Any) -> None:
+            for topic, out in handler(msg):
+                publishers[topic].publish(out)
+        return on_message
+
+    for i in inputs:
+        node.create_subscription(i.msg_type, i.topic, callback(i.handler), i.qos)
+    return publishers
