@@ -26,10 +26,11 @@ from sensing_nodes.core.fusion import (
     ComplementaryMethod, FusionSettings, InputRecord, StampOrderedBuffer, pose_problem, watermark,
 )
 from sensing_nodes.core.imu_mount import mount_rotation
-from sensing_nodes.ros.conversions import make_odometry, quaternion_to_yaw, ros_covariance_to_planar, stamp_to_ns
+from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_planar, stamp_to_ns
 from sensing_nodes.ros.fusion_readings import (
     IMU, IMU_SOURCES, SCAN, WHEEL, ReadingConverter, unit_quaternion,
 )
+from sensing_nodes.ros.cdr import create_decoded_subscription, odometry_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
@@ -136,14 +137,15 @@ class ComplementaryFusionNode(Node):
         self._publisher = self.create_publisher(Odometry, '/odometry/filtered', ESTIMATE_QOS)
         self.diagnostics = Diagnostics(self, update=self._update_diagnostics)
         if use_wheel:
-            self.create_subscription(Odometry, topics[WHEEL],
-                                     lambda m: self._on_message(WHEEL, m), ESTIMATE_QOS)
+            create_decoded_subscription(self, Odometry, topics[WHEEL],
+                                        lambda m: self._on_message(WHEEL, m), ESTIMATE_QOS)
         if use_imu:
             qos = SENSOR_QOS if self._imu_source != 'integrated' else ESTIMATE_QOS
-            self.create_subscription(Imu, topics[IMU], lambda m: self._on_message(IMU, m), qos)
+            create_decoded_subscription(self, Imu, topics[IMU],
+                                        lambda m: self._on_message(IMU, m), qos)
         if use_scan_pos or use_scan_heading:
-            self.create_subscription(Odometry, topics[SCAN],
-                                     lambda m: self._on_message(SCAN, m), ESTIMATE_QOS)
+            create_decoded_subscription(self, Odometry, topics[SCAN],
+                                        lambda m: self._on_message(SCAN, m), ESTIMATE_QOS)
         # robot_localization's set_pose as a topic: a service would need an interface package
         # of our own, which the PyPI-wheel setup cannot build.
         self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose, 10)
@@ -290,7 +292,7 @@ class ComplementaryFusionNode(Node):
             return
         twist, twist_cov = getattr(state, 'twist', (0.0, 0.0, 0.0)), \
             getattr(state, 'twist_covariance', None)
-        self._publisher.publish(make_odometry(
+        self._publisher.publish(odometry_cdr(   # CDR bytes: see ros/cdr.py
             stamp, self._odom_frame, self._base_frame, state.pose, state.covariance,
             twist, twist_cov))
         self.diagnostics.count('published')

@@ -10,17 +10,19 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger
 
+from sensing_nodes.core import quaternion
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
 from sensing_nodes.core.imu_mount import mount_rotation, to_base
 from sensing_nodes.core.timing import StampStep
-from sensing_nodes.ros.conversions import stamp_to_ns, yaw_to_quaternion
+from sensing_nodes.ros.conversions import stamp_to_ns
+from sensing_nodes.ros.cdr import create_decoded_subscription, imu_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 
-_DIAGONAL = [0, 4, 8]
+_HEADING_ONLY = (0.0,) * 8   # orientation covariance: only yaw's variance (last) is known
 
 
 class GyroIntegratorNode(Node):
@@ -88,11 +90,11 @@ class GyroIntegratorNode(Node):
         self._warnings = ThrottledWarnings(self)
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self._was_still = False
-        self._message = Imu()
         self._publisher = self.create_publisher(Imu, '/imu/data', ESTIMATE_QOS)
-        self.create_subscription(Imu, '/imu/data_raw', self._on_imu, SENSOR_QOS)
+        create_decoded_subscription(self, Imu, '/imu/data_raw', self._on_imu, SENSOR_QOS)
         if use_wheels:
-            self.create_subscription(Odometry, '/wheel/odom', self._on_wheel_odom, ESTIMATE_QOS)
+            create_decoded_subscription(self, Odometry, '/wheel/odom', self._on_wheel_odom,
+                                        ESTIMATE_QOS)
         self.create_service(Trigger, '~/calibrate', self._on_calibrate)
         self.get_logger().info(
             f'bias estimation {"on" if config.bias_estimation else "off"}, stillness window '
@@ -139,22 +141,16 @@ class GyroIntegratorNode(Node):
 
     def _publish(self, raw: Imu, stamp: int, accel) -> None:
         gi = self._integrator
-        # One Imu refilled in place: publish serialises it at once, and building a message per
-        # sample costs more than the integration.
-        out = self._message
-        out.header.stamp = raw.header.stamp
-        out.header.frame_id = self._frame_id or raw.header.frame_id
+        # Packed straight into CDR bytes (ros/cdr.py): filling an rclpy Imu and having rclpy
+        # convert and serialise it cost more than the integration.
         # Planar: roll and pitch are taken as zero (level IMU), so only yaw carries variance.
-        yaw_to_quaternion(gi.heading, out=out.orientation)
-        out.orientation_covariance[8] = gi.heading_variance
-        rate = gi.rate
-        out.angular_velocity.x, out.angular_velocity.y, out.angular_velocity.z = (
-            float(rate[0]), float(rate[1]), float(rate[2]))
-        out.angular_velocity_covariance[_DIAGONAL] = gi.rate_variance()
-        out.linear_acceleration.x, out.linear_acceleration.y, out.linear_acceleration.z = (
-            float(accel[0]), float(accel[1]), float(accel[2]))
-        out.linear_acceleration_covariance = raw.linear_acceleration_covariance
-        self._publisher.publish(out)
+        rate_var = gi.rate_variance()
+        self._publisher.publish(imu_cdr(
+            stamp, self._frame_id or raw.header.frame_id, quaternion.from_yaw(gi.heading),
+            _HEADING_ONLY + (gi.heading_variance,), gi.rate.tolist(),
+            (rate_var, 0.0, 0.0, 0.0, rate_var, 0.0, 0.0, 0.0, rate_var),
+            (float(accel[0]), float(accel[1]), float(accel[2])),
+            raw.linear_acceleration_covariance.tolist()))
         diag = self.diagnostics
         diag.count('published')
         diag.last_stamp_ns = stamp

@@ -13,17 +13,14 @@ from std_srvs.srv import Trigger
 from sensing_nodes.core.timing import StampStep
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.core.wheel_odometry import METHODS, WheelOdometry, WheelOdometryConfig
-from sensing_nodes.ros.conversions import make_odometry, stamp_to_ns, yaw_to_quaternion
+from sensing_nodes.ros.conversions import stamp_to_ns
+from sensing_nodes.ros.cdr import create_decoded_subscription, odometry_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TransformBroadcaster
-
-# Row-major indices of x, y, yaw rows/columns in a 6x6 ROS covariance.
-_PLANAR_36 = np.array([6 * r + c for r in (0, 1, 5) for c in (0, 1, 5)])
-
 
 class WheelOdometryNode(Node):
     def __init__(self) -> None:
@@ -92,12 +89,12 @@ class WheelOdometryNode(Node):
         self._static = (None if mode == 'propagated'
                         else (np.diag(static_pose), np.diag(static_twist)))
         self._odometry = WheelOdometry(config)
-        self._message: Odometry | None = None
         self._warnings = ThrottledWarnings(self)
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self._publisher = self.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS)
         self._tf = TransformBroadcaster(self) if publish_tf else None
-        self.create_subscription(JointState, '/joint_states', self._on_joint_state, SENSOR_QOS)
+        create_decoded_subscription(self, JointState, '/joint_states', self._on_joint_state,
+                                    SENSOR_QOS)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.get_logger().info(
             f'wheels {left!r} / {right!r}: radius {radius} m (x {left_mult}, x {right_mult}), '
@@ -131,22 +128,10 @@ class WheelOdometryNode(Node):
             pose_cov, twist_cov = odo.covariance, odo.twist_covariance
         else:
             pose_cov, twist_cov = self._static
-        msg = self._message
-        if msg is None:
-            msg = self._message = make_odometry(
-                stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov)
-        else:
-            # Building an Odometry costs more than the odometry itself: refill one in place
-            # (publish serialises it at once, so reuse is safe).
-            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
-            position, q = msg.pose.pose.position, msg.pose.pose.orientation
-            position.x, position.y = odo.pose[0], odo.pose[1]
-            yaw_to_quaternion(odo.pose[2], out=q)
-            msg.pose.covariance[_PLANAR_36] = np.ravel(pose_cov)
-            twist = msg.twist.twist
-            twist.linear.x, twist.linear.y, twist.angular.z = odo.twist
-            msg.twist.covariance[_PLANAR_36] = np.ravel(twist_cov)
-        self._publisher.publish(msg)
+        # Packed straight into CDR bytes (ros/cdr.py): building or refilling an rclpy Odometry
+        # and having rclpy convert and serialise it cost more than the odometry itself.
+        self._publisher.publish(odometry_cdr(
+            stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov))
         if self._tf is not None:
             self._tf.send(stamp, self._odom_frame, self._base_frame,
                           Transform.from_planar(*odo.pose))
