@@ -23,6 +23,7 @@ from sensing_nodes.ros.conversions import (
     keyframe_frame_id, make_odometry, odometry_pose, scan_arrays, stamp_to_ns,
 )
 from sensing_nodes.core.transform import Transform
+from sensing_nodes.ros.cdr import create_decoded_subscription
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
@@ -74,7 +75,8 @@ class IcpMatcherNode(Node):
             Odometry, '/scan_match/keyframe_odom', ESTIMATE_QOS)
         self.create_subscription(LaserScan, '/scan', self._on_scan, SENSOR_QOS)
         if odom_topic:
-            self.create_subscription(Odometry, odom_topic, self._on_odometry, ESTIMATE_QOS)
+            create_decoded_subscription(self, Odometry, odom_topic, self._on_odometry,
+                                        ESTIMATE_QOS)
         self.diagnostics.values['prediction'] = odom_topic or 'constant_velocity'
         laser, options = s.laser_pose, s.icp_options
         self.get_logger().info(
