@@ -58,6 +58,20 @@ def _cpu_seconds(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
+def stop_processes(processes) -> None:
+    """SIGINT to every live process (the nodes shut down cleanly), then wait; kill what hangs."""
+    processes = list(processes)
+    for proc in processes:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    for proc in processes:
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
 def _load_average() -> float:
     return float(Path('/proc/loadavg').read_text().split()[0])
 
@@ -112,15 +126,7 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
             wall = time.monotonic() - t0
             load_after = _load_average()
         finally:
-            for p in procs.values():
-                if p.poll() is None:
-                    p.send_signal(signal.SIGINT)
-            for p in procs.values():
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+            stop_processes(procs.values())
     rates = input_rates(sim_overrides)
     out: dict = {'window_s': round(wall, 1), 'rate': rate,
                  'load_average_1min': [load_before, load_after], 'processes': {}}
@@ -211,12 +217,7 @@ def relay_floor(rate_hz: float, window_s: float) -> dict:
             publisher.publish(raw)
             sent += 1
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_processes([proc])
         node.destroy_node()
         rclpy.try_shutdown(context=context)
     cpu = after - before
