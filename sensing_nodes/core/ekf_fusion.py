@@ -447,7 +447,9 @@ class EkfFusion:
         increment = se2.between(previous.pose, reading.pose)
         static = False
         cov = None
-        if reading.pose_covariance is not None and previous.pose_covariance is not None:
+        # 'model' never reads the message's covariance (an eigendecomposition per message).
+        if cfg.covariance != 'model' and reading.pose_covariance is not None \
+                and previous.pose_covariance is not None:
             static = bool(np.array_equal(reading.pose_covariance, previous.pose_covariance))
             if not static:
                 cov = increment_covariance(previous.pose, previous.pose_covariance,

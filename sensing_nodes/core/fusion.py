@@ -6,6 +6,7 @@ The fused pose lives in its own `odom` frame, which starts where the first input
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -315,7 +316,8 @@ class StampOrderedBuffer:
             self.late += 1
             return False
         self._arrivals += 1
-        self._items.append((stamp_ns, rank, self._arrivals, item))
+        # Kept sorted (arrival numbers are unique, so items themselves are never compared).
+        bisect.insort(self._items, (stamp_ns, rank, self._arrivals, item))
         self.newest_ns = stamp_ns if self.newest_ns is None else max(self.newest_ns, stamp_ns)
         return True
 
@@ -337,13 +339,16 @@ class StampOrderedBuffer:
         return len(self._items)
 
     def _release(self, up_to_ns: int | None) -> list[tuple[int, object]]:
-        self._items.sort(key=lambda entry: entry[:3])
         count = len(self._items) if up_to_ns is None else \
-            sum(1 for entry in self._items if entry[0] <= up_to_ns)
+            bisect.bisect_right(self._items, up_to_ns, key=_stamp_of)
         ready, self._items = self._items[:count], self._items[count:]
         if ready:
             self.released_ns = ready[-1][0]
         return [(stamp, item) for stamp, _, _, item in ready]
+
+
+def _stamp_of(entry: tuple) -> int:
+    return entry[0]
 
 
 # -- what the fusion node keeps per input, and the acceptance rules of its messages ----------

@@ -61,6 +61,11 @@ def rotate(q: Quat, v: Vec3) -> Vec3:
             v[2] + w * tz + (x * ty - y * tx))
 
 
+def from_yaw(yaw: float) -> Quat:
+    """Rotation about z by yaw (rad)."""
+    return (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
+
+
 def from_rpy(roll: float, pitch: float, yaw: float) -> Quat:
     """Fixed-axis roll (x), pitch (y), yaw (z) in rad -> q = qz(yaw) qy(pitch) qx(roll) (REP 103)."""
     cr, sr = math.cos(roll / 2.0), math.sin(roll / 2.0)

@@ -10,8 +10,16 @@ from numpy.typing import ArrayLike, NDArray
 Pose2 = tuple[float, float, float]
 
 
+_TWO_PI = 2.0 * math.pi
+
+
 def wrap_angle(angle: ArrayLike) -> NDArray[np.float64] | float:
     """Wrap angles (rad) into (-pi, pi]; scalars stay Python floats."""
+    if isinstance(angle, (float, int)) and math.isfinite(angle):
+        # One float: math.remainder (exact) instead of numpy's per-call overhead, which cost
+        # more than the rest of a per-message update.
+        wrapped = math.remainder(angle, _TWO_PI)
+        return float(wrapped) if wrapped > -math.pi else wrapped + _TWO_PI
     wrapped = np.pi - np.mod(np.pi - np.asarray(angle, dtype=float), 2.0 * np.pi)
     return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
 

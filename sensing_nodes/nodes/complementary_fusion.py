@@ -28,10 +28,11 @@ from sensing_nodes.core.fusion import (
     ComplementaryMethod, FusionSettings, InputRecord, StampOrderedBuffer, pose_problem, watermark,
 )
 from sensing_nodes.core.imu_mount import mount_rotation
-from sensing_nodes.ros.conversions import make_odometry, quaternion_to_yaw, ros_covariance_to_planar, stamp_to_ns
+from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_planar, stamp_to_ns
 from sensing_nodes.ros.fusion_readings import (
     IMU, IMU_SOURCES, SCAN, WHEEL, ReadingConverter, unit_quaternion,
 )
+from sensing_nodes.ros.cdr import odometry_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
@@ -259,7 +260,7 @@ class ComplementaryFusionProcessor:
         kinds = {WHEEL: (Odometry, ESTIMATE_QOS), IMU: (Imu, imu_qos),
                  SCAN: (Odometry, ESTIMATE_QOS)}
         return [Input(self._topics[name], kinds[name][0], kinds[name][1],
-                      lambda m, name=name: self.on_message(name, m))
+                      lambda m, name=name: self.on_message(name, m), decoded=True)
                 for name in (WHEEL, IMU, SCAN) if self._records[name].enabled]
 
     def outputs(self) -> list[Output]:
@@ -355,7 +356,7 @@ class ComplementaryFusionProcessor:
             getattr(state, 'twist_covariance', None)
         self.diagnostics.count('published')
         self.diagnostics.last_stamp_ns = max(self.diagnostics.last_stamp_ns, stamp)
-        return [('/odometry/filtered', make_odometry(
+        return [('/odometry/filtered', odometry_cdr(   # CDR bytes: see ros/cdr.py
             stamp, self._odom_frame, self._base_frame, state.pose, state.covariance,
             twist, twist_cov))]
 

@@ -10,10 +10,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger
 
+from sensing_nodes.core import quaternion
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
 from sensing_nodes.core.imu_mount import mount_rotation, to_base
 from sensing_nodes.core.timing import StampStep
-from sensing_nodes.ros.conversions import stamp_to_ns, yaw_to_quaternion
+from sensing_nodes.ros.conversions import stamp_to_ns
+from sensing_nodes.ros.cdr import imu_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
@@ -21,7 +23,7 @@ from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 
-_DIAGONAL = [0, 4, 8]
+_HEADING_ONLY = (0.0,) * 8   # orientation covariance: only yaw's variance (last) is known
 
 
 class GyroIntegratorNode(Node):
@@ -133,11 +135,10 @@ class GyroIntegratorProcessor:
         self._warnings = warnings
         self._logger = logger
         self._was_still = False
-        self._message = Imu()
 
     def inputs(self) -> list[Input]:
-        return [Input('/imu/data_raw', Imu, SENSOR_QOS, self.on_imu)] + \
-            ([Input('/wheel/odom', Odometry, ESTIMATE_QOS, self.on_wheel_odom)]
+        return [Input('/imu/data_raw', Imu, SENSOR_QOS, self.on_imu, decoded=True)] + \
+            ([Input('/wheel/odom', Odometry, ESTIMATE_QOS, self.on_wheel_odom, decoded=True)]
              if self._use_wheels else [])
 
     def outputs(self) -> list[Output]:
@@ -185,21 +186,16 @@ class GyroIntegratorProcessor:
 
     def _publish(self, raw: Imu, stamp: int, accel) -> Outputs:
         gi = self.integrator
-        # One Imu refilled in place: whoever takes it serialises or reads it before the next
-        # sample, and building a message per sample costs more than the integration.
-        out = self._message
-        out.header.stamp = raw.header.stamp
-        out.header.frame_id = self._frame_id or raw.header.frame_id
+        # Packed straight into CDR bytes (ros/cdr.py): filling an rclpy Imu and having rclpy
+        # convert and serialise it cost more than the integration.
         # Planar: roll and pitch are taken as zero (level IMU), so only yaw carries variance.
-        yaw_to_quaternion(gi.heading, out=out.orientation)
-        out.orientation_covariance[8] = gi.heading_variance
-        rate = gi.rate
-        out.angular_velocity.x, out.angular_velocity.y, out.angular_velocity.z = (
-            float(rate[0]), float(rate[1]), float(rate[2]))
-        out.angular_velocity_covariance[_DIAGONAL] = gi.rate_variance()
-        out.linear_acceleration.x, out.linear_acceleration.y, out.linear_acceleration.z = (
-            float(accel[0]), float(accel[1]), float(accel[2]))
-        out.linear_acceleration_covariance = raw.linear_acceleration_covariance
+        rate_var = gi.rate_variance()
+        out = imu_cdr(
+            stamp, self._frame_id or raw.header.frame_id, quaternion.from_yaw(gi.heading),
+            _HEADING_ONLY + (gi.heading_variance,), gi.rate.tolist(),
+            (rate_var, 0.0, 0.0, 0.0, rate_var, 0.0, 0.0, 0.0, rate_var),
+            (float(accel[0]), float(accel[1]), float(accel[2])),
+            raw.linear_acceleration_covariance.tolist())
         diag = self.diagnostics
         diag.count('published')
         diag.last_stamp_ns = stamp

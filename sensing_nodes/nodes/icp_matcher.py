@@ -173,7 +173,7 @@ class IcpMatcherProcessor:
 
     def inputs(self) -> list[Input]:
         return [Input('/scan', LaserScan, SENSOR_QOS, self.on_scan)] + \
-            ([Input(self._odom_topic, Odometry, ESTIMATE_QOS, self.on_odometry)]
+            ([Input(self._odom_topic, Odometry, ESTIMATE_QOS, self.on_odometry, decoded=True)]
              if self._odom_topic else [])
 
     def outputs(self) -> list[Output]:

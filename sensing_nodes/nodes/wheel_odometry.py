@@ -14,7 +14,8 @@ from tf2_msgs.msg import TFMessage
 from sensing_nodes.core.timing import StampStep
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.core.wheel_odometry import METHODS, WheelOdometry, WheelOdometryConfig
-from sensing_nodes.ros.conversions import make_odometry, stamp_to_ns, yaw_to_quaternion
+from sensing_nodes.ros.conversions import stamp_to_ns
+from sensing_nodes.ros.cdr import odometry_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
@@ -22,10 +23,6 @@ from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TF_TOPIC, transform_message
-
-# Row-major indices of x, y, yaw rows/columns in a 6x6 ROS covariance.
-_PLANAR_36 = np.array([6 * r + c for r in (0, 1, 5) for c in (0, 1, 5)])
-
 
 class WheelOdometryNode(Node):
     def __init__(self, **node_options) -> None:
@@ -136,11 +133,10 @@ class WheelOdometryProcessor:
         self._publish_tf = publish_tf
         self._warnings = warnings
         self._logger = logger
-        self._message: Odometry | None = None
         self.diagnostics = diagnostics   # counted here, published by the node
 
     def inputs(self) -> list[Input]:
-        return [Input('/joint_states', JointState, SENSOR_QOS, self.on_joint_state)]
+        return [Input('/joint_states', JointState, SENSOR_QOS, self.on_joint_state, decoded=True)]
 
     def outputs(self) -> list[Output]:
         return [Output('/wheel/odom', Odometry, ESTIMATE_QOS)] + \
@@ -173,22 +169,10 @@ class WheelOdometryProcessor:
             pose_cov, twist_cov = odo.covariance, odo.twist_covariance
         else:
             pose_cov, twist_cov = self._static
-        msg = self._message
-        if msg is None:
-            msg = self._message = make_odometry(
-                stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov)
-        else:
-            # Building an Odometry costs more than the odometry itself: refill one in place
-            # (whoever takes it serialises or reads it before the next message).
-            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
-            position, q = msg.pose.pose.position, msg.pose.pose.orientation
-            position.x, position.y = odo.pose[0], odo.pose[1]
-            yaw_to_quaternion(odo.pose[2], out=q)
-            msg.pose.covariance[_PLANAR_36] = np.ravel(pose_cov)
-            twist = msg.twist.twist
-            twist.linear.x, twist.linear.y, twist.angular.z = odo.twist
-            msg.twist.covariance[_PLANAR_36] = np.ravel(twist_cov)
-        out: Outputs = [('/wheel/odom', msg)]
+        # Packed straight into CDR bytes (ros/cdr.py): building or refilling an rclpy Odometry
+        # and having rclpy convert and serialise it cost more than the odometry itself.
+        out: Outputs = [('/wheel/odom', odometry_cdr(
+            stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov))]
         if self._publish_tf:
             out.append((TF_TOPIC, transform_message(stamp, self._odom_frame, self._base_frame,
                                                     Transform.from_planar(*odo.pose))))

@@ -15,6 +15,7 @@ from geometry_msgs.msg import Quaternion, TransformStamped
 from nav_msgs.msg import Odometry
 from numpy.typing import ArrayLike, NDArray
 
+from sensing_nodes.core import quaternion
 from sensing_nodes.core.scan import beam_angles
 from sensing_nodes.core.se2 import Pose2
 from sensing_nodes.core.transform import Transform
@@ -37,9 +38,10 @@ def ns_to_stamp(ns: int) -> Time:
 def yaw_to_quaternion(yaw: float, out: Quaternion | None = None) -> Quaternion:
     """Rotation about z by yaw (rad) as a unit quaternion; filled into `out` when given (a
     message refilled in place, where building a new one costs more than the numbers)."""
+    x, y, z, w = quaternion.from_yaw(yaw)
     if out is None:
-        return Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2.0), w=math.cos(yaw / 2.0))
-    out.x, out.y, out.z, out.w = 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0)
+        return Quaternion(x=x, y=y, z=z, w=w)
+    out.x, out.y, out.z, out.w = x, y, z, w
     return out
 
 

@@ -47,6 +47,7 @@ class ReadingConverter:
     level_with_imu_tilt: bool = False
     previous_scan_ns: int | None = None
     tilt: NDArray[np.float64] = field(default_factory=lambda: np.eye(3))
+    _identity_mount: bool | None = field(default=None, init=False, repr=False)
 
     def reset(self) -> None:
         self.previous_scan_ns = None
@@ -89,9 +90,17 @@ class ReadingConverter:
                 twist_cov, stamp)), ''
         return Reading(stamp, pose, cov, self._level(*twist), twist_cov), ''
 
+    def _yaw_rate(self, w) -> float:
+        """Rate (rad/s) about base_link's z of a rate measured about the IMU's axes."""
+        if self._identity_mount is None:
+            self._identity_mount = bool(np.array_equal(self.mount, np.eye(3)))
+        if self._identity_mount and math.isfinite(w.x) and math.isfinite(w.y):
+            return float(w.z)   # what the product gives, without a matrix product per message
+        return float(to_base((w.x, w.y, w.z), self.mount)[2])
+
     def _imu(self, msg, stamp: int, record: InputRecord) -> tuple[Reading | None, str]:
         w = msg.angular_velocity
-        rate = float(to_base((w.x, w.y, w.z), self.mount)[2])
+        rate = self._yaw_rate(w)
         rate_var = float(msg.angular_velocity_covariance[8])
         if self.imu_source == 'rate':
             if not math.isfinite(rate):

@@ -13,7 +13,9 @@ from typing import Any, Callable
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
-Outputs = list[tuple[str, Any]]   # (topic, rclpy message), in publication order
+from sensing_nodes.ros.cdr import create_decoded_subscription
+
+Outputs = list[tuple[str, Any]]   # (topic, rclpy message or its CDR bytes), in publication order
 
 
 @dataclass(frozen=True)
@@ -24,6 +26,7 @@ class Input:
     msg_type: type
     qos: QoSProfile
     handler: Callable[[Any], Outputs]
+    decoded: bool = False   # high-rate input: rosbags decodes it (ros/cdr.py; read-only message)
 
 
 @dataclass(frozen=True)
@@ -47,5 +50,8 @@ def wire(node: Node, inputs: list[Input], outputs: list[Output]) -> dict[str, An
         return on_message
 
     for i in inputs:
-        node.create_subscription(i.msg_type, i.topic, callback(i.handler), i.qos)
+        if i.decoded:
+            create_decoded_subscription(node, i.msg_type, i.topic, callback(i.handler), i.qos)
+        else:
+            node.create_subscription(i.msg_type, i.topic, callback(i.handler), i.qos)
     return publishers

@@ -194,7 +194,12 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
             # Depth first: an output reaches its consumers before the next output, as a
             # lockstep replay waits for one input's outputs (and lets them land) first.
             for topic, msg in produced:
-                raw = serialize_message(msg)   # now: a node may refill its message in place
+                if isinstance(msg, bytes):     # packed by the node itself (ros/cdr.py)
+                    raw = msg
+                    if topic in handlers:
+                        msg = deserialize_message(raw, outputs[topic].msg_type)
+                else:
+                    raw = serialize_message(msg)   # now: a node may refill its message in place
                 recorded[topic].append((stamp_of[topic](raw, stamp_ns), raw))
                 for handler in handlers.get(topic, ()):
                     deliver(handler(msg), stamp_ns)

@@ -1,0 +1,271 @@
+"""CPU cost of the node processes: % of one core per 1x real time and CPU microseconds per
+input message, for the processing graph at the default sensor rates and for gyro_integrator
+with a 1 kHz IMU.
+
+Each case starts sensor_sim (timer-paced at real_time_factor) and the nodes as separate
+processes over DDS on a private domain, exactly as the demo does but without the recorder, lets
+them warm up, and reads every process's CPU time (user + system, /proc/<pid>/stat) at the start
+and end of a measuring window. % of a core per 1x = CPU seconds / wall seconds / real-time
+factor. Messages per simulated second come from config/sensor_sim.yaml (what each node takes
+in); per-message figures are CPU time over those messages (whatever else the process does,
+timers and /diagnostics included). The load average is reported with the figures: on a shared
+machine, compare figures from one run only.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+from sensing_nodes.paths import config_file
+
+PROCESSING_NODES = ('wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
+                    'complementary_fusion')
+
+
+def input_rates(sim_overrides: dict[str, float] | None = None) -> dict[str, float]:
+    """Messages per simulated second each node takes in, from sensor_sim's parameter file."""
+    params = yaml.safe_load(config_file('sensor_sim.yaml').read_text())['sensor_sim'][
+        'ros__parameters']
+    params.update(sim_overrides or {})
+    joints, imu, scan = (float(params[k]) for k in ('joint_rate_hz', 'imu_rate_hz',
+                                                     'scan_rate_hz'))
+    return {
+        'wheel_odometry': joints,                     # /joint_states
+        'gyro_integrator': imu + joints,              # /imu/data_raw, /wheel/odom
+        'line_extractor': scan,                       # /scan
+        'icp_matcher': scan,                          # /scan
+        'complementary_fusion': joints + imu + scan,  # /wheel/odom, /imu/data, keyframe matches
+        'sensor_sim': joints + imu + scan + float(params['truth_rate_hz'])
+        + float(params['clock_rate_hz']),             # what it publishes
+    }
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time (s) of a live process; None once it is gone."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
+def stop_processes(processes) -> None:
+    """SIGINT to every live process (the nodes shut down cleanly), then wait; kill what hangs."""
+    processes = list(processes)
+    for proc in processes:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    for proc in processes:
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _load_average() -> float:
+    return float(Path('/proc/loadavg').read_text().split()[0])
+
+
+def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: float,
+            rate: float = 1.0, start_timeout_s: float = 60.0) -> dict:
+    """Run sensor_sim and `nodes` as processes; CPU per process over window_s wall seconds.
+
+    Returns {'processes': {name: {'core_percent_per_1x', 'cpu_us_per_message'}}, 'total...'}.
+    """
+    bin_dir = Path(sys.executable).parent
+    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+           'ROS_DOMAIN_ID': str(150 + os.getpid() % 80)}
+    scan_consumers = sum(n in nodes for n in ('line_extractor', 'icp_matcher'))
+    sim_args = ['-p', f'real_time_factor:={rate}', '-p', 'duration_s:=3600.0',
+                '-p', f'wait_for_scan_subscribers:={scan_consumers}']
+    for name, value in sim_overrides.items():
+        sim_args += ['-p', f'{name}:={value}']
+    procs: dict[str, subprocess.Popen] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        logs = {}
+        try:
+            for name in (*nodes, 'sensor_sim'):
+                logs[name] = Path(tmp) / f'{name}.log'
+                extra = sim_args if name == 'sensor_sim' else []
+                procs[name] = subprocess.Popen(
+                    [str(bin_dir / name), '--ros-args', '--params-file',
+                     str(config_file(f'{name}.yaml')), *extra],
+                    stdout=logs[name].open('w'), stderr=subprocess.STDOUT, env=env,
+                    start_new_session=True)
+            # Started: the simulator says so (it waits for the scan consumers), or, with none to
+            # wait for, every node has logged its start-up line.
+            deadline = time.monotonic() + start_timeout_s
+            while time.monotonic() < deadline:
+                failed = [n for n, p in procs.items() if p.poll() is not None]
+                if failed:
+                    raise RuntimeError(f'{failed} exited: ' + logs[failed[0]].read_text()[-400:])
+                text = {n: log.read_text() for n, log in logs.items()}
+                if (scan_consumers and 'starting' in text['sensor_sim']) or (
+                        not scan_consumers and all(text.values())):
+                    break
+                time.sleep(0.2)
+            else:
+                raise RuntimeError('the graph did not start within '
+                                   f'{start_timeout_s:.0f} s')
+            time.sleep(3.0)   # discovery settled, caches warm
+            load_before = _load_average()
+            before = {n: _cpu_seconds(p.pid) for n, p in procs.items()}
+            t0 = time.monotonic()
+            time.sleep(window_s)
+            after = {n: _cpu_seconds(p.pid) for n, p in procs.items()}
+            wall = time.monotonic() - t0
+            load_after = _load_average()
+        finally:
+            stop_processes(procs.values())
+    rates = input_rates(sim_overrides)
+    out: dict = {'window_s': round(wall, 1), 'rate': rate,
+                 'load_average_1min': [load_before, load_after], 'processes': {}}
+    total = 0.0
+    for name in (*nodes, 'sensor_sim'):
+        if before[name] is None or after[name] is None:
+            out['processes'][name] = {'error': 'process ended inside the window'}
+            continue
+        cpu = after[name] - before[name]
+        percent = 100.0 * cpu / wall / rate
+        if name in PROCESSING_NODES:
+            total += percent
+        out['processes'][name] = {
+            'core_percent_per_1x': round(percent, 2),
+            'cpu_us_per_message': round(1e6 * cpu / (wall * rate * rates[name]), 1),
+            'messages_per_s_at_1x': rates[name]}
+    out['processing_graph_core_percent_per_1x'] = round(total, 2)
+    return out
+
+
+class _RelayNode:
+    """A node that takes each Imu on /bench/relay_in (raw) and publishes the same bytes on
+    /bench/relay_out: one message in, one out, no work, through run_node's executor."""
+
+    def __new__(cls):
+        from rclpy.node import Node
+        from sensor_msgs.msg import Imu
+
+        from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+
+        node = Node('bench_relay')
+        publisher = node.create_publisher(Imu, '/bench/relay_out', ESTIMATE_QOS)
+        node.create_subscription(Imu, '/bench/relay_in', publisher.publish, SENSOR_QOS, raw=True)
+        return node
+
+
+def relay_floor(rate_hz: float, window_s: float) -> dict:
+    """CPU per message of a relay process (_RelayNode): what DDS, rclpy and the executor cost
+    for one message in and one out, the floor under any node that answers every input."""
+    import rclpy
+    from rclpy.node import Node
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Imu
+
+    from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+
+    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+           'ROS_DOMAIN_ID': str(150 + (os.getpid() + 1) % 80)}
+    os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    proc = subprocess.Popen([sys.executable, '-m', 'sensing_nodes.bench.graph_cpu', '--relay'],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = Node('bench_relay_driver', context=context)
+    try:
+        publisher = node.create_publisher(Imu, '/bench/relay_in', SENSOR_QOS)
+        received = [0]
+        node.create_subscription(Imu, '/bench/relay_out',
+                                 lambda raw: received.__setitem__(0, received[0] + 1),
+                                 ESTIMATE_QOS, raw=True)
+        from rclpy.executors import SingleThreadedExecutor
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        msg = Imu()
+        msg.header.frame_id = 'imu_link'
+        raw = serialize_message(msg)
+        deadline = time.monotonic() + 60.0
+        while not received[0] and time.monotonic() < deadline:
+            publisher.publish(raw)
+            executor.spin_once(timeout_sec=0.05)
+        if not received[0]:
+            raise RuntimeError('the relay never answered')
+        sent, start = 0, time.monotonic()
+        before = load_before = None
+        while True:
+            now = time.monotonic()
+            if before is None and now - start >= 2.0:       # warmed up: start measuring
+                before, t0, sent0 = _cpu_seconds(proc.pid), now, sent
+                load_before = _load_average()
+            if before is not None and now - t0 >= window_s:
+                after, wall, count = _cpu_seconds(proc.pid), now - t0, sent - sent0
+                break
+            due = start + sent / rate_hz
+            if now < due:
+                executor.spin_once(timeout_sec=min(due - now, 0.01))
+                continue
+            publisher.publish(raw)
+            sent += 1
+    finally:
+        stop_processes([proc])
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    cpu = after - before
+    return {'rate_hz': round(count / wall, 1), 'core_percent': round(100.0 * cpu / wall, 2),
+            'cpu_us_per_message': round(1e6 * cpu / count, 1), 'load_average_1min': load_before}
+
+
+def run(quick: bool = False) -> dict:
+    """Figures for `make bench`: the graph at the default rates, gyro_integrator at 1 kHz."""
+    window = 10.0 if quick else 30.0
+    graph = measure(PROCESSING_NODES, {}, window)
+    gyro = measure(('wheel_odometry', 'gyro_integrator'), {'imu_rate_hz': 1000.0}, window)
+    figures: dict = {'load_average_1min_start': graph['load_average_1min'][0]}
+    for name, values in graph['processes'].items():
+        for key, value in values.items():
+            if key != 'messages_per_s_at_1x':
+                figures[f'{name}_{key}'] = value
+    figures['processing_graph_core_percent_per_1x'] = graph['processing_graph_core_percent_per_1x']
+    g = gyro['processes']['gyro_integrator']
+    figures['gyro_integrator_1khz_imu_core_percent'] = g.get('core_percent_per_1x')
+    figures['gyro_integrator_1khz_imu_cpu_us_per_message'] = g.get('cpu_us_per_message')
+    floor = relay_floor(1000.0, window)
+    figures['relay_floor_1khz_core_percent'] = floor['core_percent']
+    figures['relay_floor_cpu_us_per_message'] = floor['cpu_us_per_message']
+    figures['load_average_1min_end'] = _load_average()
+    return figures
+
+
+if __name__ == '__main__':
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--window', type=float, default=30.0, help='measuring window (wall s)')
+    parser.add_argument('--rate', type=float, default=1.0, help='simulated s per wall s')
+    parser.add_argument('--imu-rate', type=float, default=None,
+                        help='IMU rate (Hz); given: measure wheel_odometry + gyro_integrator')
+    parser.add_argument('--floor', type=float, default=None, metavar='HZ',
+                        help='measure the relay floor (one Imu in, one out) at this rate')
+    parser.add_argument('--relay', action='store_true', help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.relay:
+        from sensing_nodes.ros.run import run_node
+        sys.exit(run_node(_RelayNode, []))
+    if args.floor is not None:
+        result = relay_floor(args.floor, args.window)
+    elif args.imu_rate is None:
+        result = measure(PROCESSING_NODES, {}, args.window, args.rate)
+    else:
+        result = measure(('wheel_odometry', 'gyro_integrator'), {'imu_rate_hz': args.imu_rate},
+                         args.window, args.rate)
+    print(json.dumps(result, indent=2))
