@@ -26,6 +26,7 @@ from sensing_nodes.core.fusion import (
     ComplementaryMethod, FusionSettings, InputRecord, StampOrderedBuffer, pose_problem, watermark,
 )
 from sensing_nodes.core.imu_mount import mount_rotation
+from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.conversions import make_odometry, quaternion_to_yaw, ros_covariance_to_planar, stamp_to_ns
 from sensing_nodes.ros.fusion_readings import (
     IMU, IMU_SOURCES, SCAN, WHEEL, ReadingConverter, unit_quaternion,
@@ -35,6 +36,7 @@ from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+from sensing_nodes.ros.tf import TransformBroadcaster
 
 # Processing rank at equal stamps: dead reckoning up to a stamp is in before the scan match
 # at that stamp is fused.
@@ -76,6 +78,10 @@ class ComplementaryFusionNode(Node):
                                         minimum=0.01)
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the fused pose')
         self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame of the fused pose')
+        publish_tf = declare(self, 'publish_tf', True,
+                             'broadcast odom_frame -> base_frame on /tf with each output, stamped '
+                             'as the output (one owner per tree: turn it off where another node '
+                             'owns it)')
 
         require(method in ('ekf', 'complementary'), 'method', "must be 'ekf' or 'complementary'",
                 method)
@@ -134,6 +140,7 @@ class ComplementaryFusionNode(Node):
 
         self._warnings = ThrottledWarnings(self)
         self._publisher = self.create_publisher(Odometry, '/odometry/filtered', ESTIMATE_QOS)
+        self._tf = TransformBroadcaster(self) if publish_tf else None
         self.diagnostics = Diagnostics(self, update=self._update_diagnostics)
         if use_wheel:
             self.create_subscription(Odometry, topics[WHEEL],
@@ -293,6 +300,10 @@ class ComplementaryFusionNode(Node):
         self._publisher.publish(make_odometry(
             stamp, self._odom_frame, self._base_frame, state.pose, state.covariance,
             twist, twist_cov))
+        if self._tf is not None:
+            # The output's stamp is that of the input just fused: never later than the inputs.
+            self._tf.send(stamp, self._odom_frame, self._base_frame,
+                          Transform.from_planar(*state.pose))
         self.diagnostics.count('published')
         self.diagnostics.last_stamp_ns = max(self.diagnostics.last_stamp_ns, stamp)
 
