@@ -141,6 +141,7 @@ class ComplementaryFusionNode(Node):
         self._warnings = ThrottledWarnings(self)
         self._publisher = self.create_publisher(Odometry, '/odometry/filtered', ESTIMATE_QOS)
         self._tf = TransformBroadcaster(self) if publish_tf else None
+        self._tf_stamp: int | None = None   # stamp of the last transform sent
         self.diagnostics = Diagnostics(self, update=self._update_diagnostics)
         if use_wheel:
             self.create_subscription(Odometry, topics[WHEEL],
@@ -276,6 +277,7 @@ class ComplementaryFusionNode(Node):
         for record in self._records.values():
             record.clear()
         self._start_ns = None
+        self._tf_stamp = None
         self._converter.reset()
 
     def _flush_if_idle(self) -> None:
@@ -284,28 +286,42 @@ class ComplementaryFusionNode(Node):
 
     # -- fusion and output ---------------------------------------------------------------------
     def _process(self, ready) -> None:
+        held = None   # (stamp, pose) of the newest output not yet on /tf
         for stamp, (source, reading) in ready:
             self._records[source].processed_at(stamp)
             self._fusion.update(source, reading)
             if source == IMU and (self._records[WHEEL].enabled or self._records[SCAN].enabled):
                 continue  # heading only: published with the next position update
-            self._publish(stamp)
+            pose = self._publish(stamp)
+            if pose is not None and self._tf is not None:
+                if held is not None and held[0] != stamp:
+                    self._send_tf(*held)
+                held = (stamp, pose)
+        if held is not None:
+            self._send_tf(*held)
 
-    def _publish(self, stamp: int) -> None:
+    def _send_tf(self, stamp: int, pose) -> None:
+        """odom -> base_link at the output's stamp (the input just fused: never ahead of the
+        inputs). tf2 keeps one sample per stamp and drops a repeat with a TF_REPEATED_DATA
+        warning, so of the outputs at one stamp (a wheel and a scan-match update) the last of a
+        batch goes out, once."""
+        if stamp != self._tf_stamp:
+            self._tf.send(stamp, self._odom_frame, self._base_frame, Transform.from_planar(*pose))
+            self._tf_stamp = stamp
+
+    def _publish(self, stamp: int):
+        """Publish the fused state stamped stamp; its pose, or None before the first estimate."""
         state = self._fusion.state
         if state is None:
-            return
+            return None
         twist, twist_cov = getattr(state, 'twist', (0.0, 0.0, 0.0)), \
             getattr(state, 'twist_covariance', None)
         self._publisher.publish(make_odometry(
             stamp, self._odom_frame, self._base_frame, state.pose, state.covariance,
             twist, twist_cov))
-        if self._tf is not None:
-            # The output's stamp is that of the input just fused: never later than the inputs.
-            self._tf.send(stamp, self._odom_frame, self._base_frame,
-                          Transform.from_planar(*state.pose))
         self.diagnostics.count('published')
         self.diagnostics.last_stamp_ns = max(self.diagnostics.last_stamp_ns, stamp)
+        return state.pose
 
     def _update_diagnostics(self, diag: Diagnostics) -> None:
         newest = self._buffer.newest_ns
