@@ -117,10 +117,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 class Graph:
-    """The node processes, started with their parameter files, stopped with SIGINT."""
+    """The node processes, started with their parameter files (then params_file, a robot preset
+    overriding them), stopped with SIGINT."""
 
-    def __init__(self, out: Path, env: dict[str, str]) -> None:
-        self.out, self.env = out, env
+    def __init__(self, out: Path, env: dict[str, str],
+                 params_file: Path | None = None) -> None:
+        self.out, self.env, self.params_file = out, env, params_file
         self.processes: dict[str, subprocess.Popen] = {}
         self._logs = {}
 
@@ -128,7 +130,7 @@ class Graph:
         log = open(self.out / 'logs' / f'{name}.log', 'w')
         self._logs[name] = log
         cmd = [executable(name), '--ros-args', '--params-file', str(config_file(f'{name}.yaml')),
-               *extra]
+               *(['--params-file', str(self.params_file)] if self.params_file else []), *extra]
         self.processes[name] = subprocess.Popen(
             cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
 
