@@ -271,6 +271,11 @@ class Replayer:
         self.input_stamp_ns = 0
         self.subscribed: set[str] = set()
         self.deferred: set[str] = set(ANSWERS_LATER)   # expected outputs that come later
+        # Timed mode: while the graph comes up, /clock runs at wall speed from this stamp (so far
+        # before the bag's first that it never reaches it), so nodes with use_sim_time have a
+        # time that advances (their timers, diagnostics included, run on it) and never see it
+        # go backwards when the pass starts.
+        self.lead_in_clock_ns: int | None = None
 
     def _on_output(self, topic: str, raw: bytes, stamp: int) -> None:
         if topic in self.marker_topics:
@@ -309,9 +314,12 @@ class Replayer:
         graph has been stable (no new subscriptions or publishers) for a second and each of
         `nodes` has published diagnostics since (so its executor runs and has had time to match
         its own subscriptions; a message sent before two nodes match is lost)."""
-        deadline = time.monotonic() + timeout_s
+        started = time.monotonic()
+        deadline = started + timeout_s
         stable_since, last = time.monotonic(), None
         while time.monotonic() < deadline:
+            if self.lead_in_clock_ns is not None:
+                self.publish_clock(self.lead_in_clock_ns + int((time.monotonic() - started) * 1e9))
             self.spin(0.1)
             if failed():
                 raise ReplayError(f'node(s) exited at start-up: {", ".join(failed())}')
@@ -548,6 +556,9 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                     extra = ['-p', f'flush_after_s:={LOCKSTEP_FUSION_FLUSH_S}', *extra]
                     quiet_s = max(quiet_s, 1.5 * LOCKSTEP_FUSION_FLUSH_S + 1.0)
                 graph.start(name, extra)
+        if mode == 'timed':
+            replayer.lead_in_clock_ns = next(s for t, s, _ in bag.messages if t in expectations) \
+                - int((startup_timeout_s + 1.0) * 1e9)
         try:
             replayer.wait_for_graph(
                 required, startup_timeout_s,
