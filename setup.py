@@ -44,6 +44,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+        ('share/' + PACKAGE + '/config/robots', glob('config/robots/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.py')),
         *bag_files(),
     ],

@@ -73,20 +73,24 @@ def publishers(probe):
         probe.destroy_publisher(pub)
 
 
-def _send(probe, publishers, events):
+def _send(probe, publishers, events, sent=None):
+    """Publish events in the given order; sent (a list) gets each stamp once published."""
     assert spin_until(probe, lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), 20)
     # Our writers see the node's readers; give the node's readers a moment to see our writers
     # too (discovery is not symmetric in time), or the first samples can be missed.
     spin_until(probe, lambda: False, 1.0)
     for kind, t, value, cov in events:
         publishers[kind].publish(_message(kind, t, value, cov))
+        if sent is not None:
+            sent.append(t)
         # Paced like a live source: a burst of hundreds of reliable samples makes DDS
         # retransmit some of them late, and late inputs are (correctly) dropped.
         time.sleep(0.002)
         rclpy.spin_once(probe, timeout_sec=0)
 
 
-def _run(probe, publishers, events, params=None, before_stop=None, expected_count=None):
+def _run(probe, publishers, events, params=None, before_stop=None, expected_count=None,
+         sent=None):
     out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
     # A long idle flush: on a loaded machine the test's own publishing may stall for a moment,
     # and an idle flush mid-stream would (correctly) drop what arrives after it as late.
@@ -94,7 +98,7 @@ def _run(probe, publishers, events, params=None, before_stop=None, expected_coun
               **(params or {})}
     with NodeProcess('complementary_fusion', params=params) as node:
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 20)
-        _send(probe, publishers, events)
+        _send(probe, publishers, events, sent)
         if expected_count is None:
             expected_count = sum(1 for e in events if e[0] != 'imu')
         out.wait_for(expected_count, timeout=20)
@@ -171,6 +175,45 @@ def test_missing_input_is_reported_in_diagnostics(probe, publishers):
     assert 'missing: scan_match' in statuses[-1].message
     values = {kv.key: kv.value for kv in statuses[-1].values}
     assert float(values['wheel_odom_rate_hz']) == pytest.approx(50.0, rel=1e-6)
+
+
+@pytest.mark.parametrize('publish_tf', [True, False])
+def test_odom_to_base_link_on_tf_with_each_output_never_ahead_of_the_inputs(probe, publishers,
+                                                                            publish_tf):
+    """One /tf transform per /odometry/filtered stamp, with the stamp, frames and pose of the
+    last message at that stamp (a scan match after the wheel update at its stamp: tf2 keeps one
+    sample per stamp), each stamped no later than the newest input sent before it arrived;
+    none with publish_tf false."""
+    from tf2_msgs.msg import TFMessage
+
+    from sensing_nodes.ros.conversions import stamp_to_ns, transform_of
+    from sensing_nodes.ros.qos import TF_QOS
+
+    events = _inputs(40)
+    sent = []
+    received = []                                 # (transform, newest input stamp sent by then)
+    sub = probe.create_subscription(
+        TFMessage, '/tf', lambda m: received.extend((t, max(sent, default=None))
+                                                    for t in m.transforms), TF_QOS)
+    stamps = sorted({e[1] for e in events if e[0] != 'imu'})
+    messages, _ = _run(probe, publishers, events, params={'publish_tf': publish_tf}, sent=sent,
+                       before_stop=lambda: spin_until(
+                           probe, lambda: len(received) >= len(stamps), 5))
+    probe.destroy_subscription(sub)
+    assert len(messages) == len(_expected(events)) > len(stamps)   # repeated stamps: scans
+    if not publish_tf:
+        assert received == []
+        return
+    last_at = {stamp_to_ns(m.header.stamp): m for m in messages}
+    assert [stamp_to_ns(t.header.stamp) for t, _ in received] == stamps
+    for transform, newest_sent in received:
+        stamp = stamp_to_ns(transform.header.stamp)
+        assert newest_sent is not None and stamp <= newest_sent
+        assert (transform.header.frame_id, transform.child_frame_id) == ('odom', 'base_link')
+        x, y, yaw = transform_of(transform.transform).planar()
+        pose, _ = odometry_pose(last_at[stamp])
+        assert (x, y) == pytest.approx(pose[:2], abs=1e-12)
+        assert math.remainder(yaw - pose[2], 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
 
 
 @pytest.mark.parametrize('param, value', [('alpha', '1.5'), ('alpha', 'fast'),

@@ -20,6 +20,7 @@ from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
+from tf2_msgs.msg import TFMessage
 
 from sensing_nodes.core.ekf_fusion import (
     INPUT_DEFAULTS, EkfFusion, EkfSettings, InputConfig, input_config, with_mask,
@@ -28,6 +29,7 @@ from sensing_nodes.core.fusion import (
     ComplementaryMethod, FusionSettings, InputRecord, StampOrderedBuffer, pose_problem, watermark,
 )
 from sensing_nodes.core.imu_mount import mount_rotation
+from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_planar, stamp_to_ns
 from sensing_nodes.ros.fusion_readings import (
     IMU, IMU_SOURCES, SCAN, WHEEL, ReadingConverter, unit_quaternion,
@@ -37,8 +39,9 @@ from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
-from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
+from sensing_nodes.ros.tf import TF_TOPIC, transform_message
 
 # Processing rank at equal stamps: dead reckoning up to a stamp is in before the scan match
 # at that stamp is fused.
@@ -81,6 +84,10 @@ class ComplementaryFusionNode(Node):
                                         minimum=0.01)
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the fused pose')
         self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame of the fused pose')
+        publish_tf = declare(self, 'publish_tf', True,
+                             'broadcast odom_frame -> base_frame on /tf with each output, stamped '
+                             'as the output (one owner per tree: turn it off where another node '
+                             'owns it)')
 
         require(method in ('ekf', 'complementary'), 'method', "must be 'ekf' or 'complementary'",
                 method)
@@ -136,7 +143,8 @@ class ComplementaryFusionNode(Node):
         self.processor = ComplementaryFusionProcessor(
             method, fusion, records, topics, converter, StampOrderedBuffer(int(window_s * 1e9)),
             self._imu_source, self._reset_jump_s, self._input_timeout_s, self._odom_frame,
-            self._base_frame, self.diagnostics, ThrottledWarnings(self), self.get_logger())
+            self._base_frame, publish_tf, self.diagnostics, ThrottledWarnings(self),
+            self.get_logger())
         self._last_arrival = time.monotonic()
         self._output_publishers = wire(
             self, [dataclasses.replace(i, handler=self._arrival(i.handler))
@@ -238,7 +246,7 @@ class ComplementaryFusionProcessor:
     def __init__(self, method: str, fusion, records: dict[str, InputRecord],
                  topics: dict[str, str], converter: ReadingConverter,
                  buffer: StampOrderedBuffer, imu_source: str, reset_jump_s: float,
-                 input_timeout_s: float, odom_frame: str, base_frame: str,
+                 input_timeout_s: float, odom_frame: str, base_frame: str, publish_tf: bool,
                  diagnostics: Diagnostics, warnings: ThrottledWarnings, logger) -> None:
         self._method = method
         self._fusion = fusion
@@ -250,6 +258,8 @@ class ComplementaryFusionProcessor:
         self._reset_jump_s = reset_jump_s
         self._input_timeout_s = input_timeout_s
         self._odom_frame, self._base_frame = odom_frame, base_frame
+        self._publish_tf = publish_tf
+        self._tf_stamp: int | None = None   # stamp of the last transform sent
         self._start_ns: int | None = None
         self.diagnostics = diagnostics   # counted here, published by the node
         self._warnings = warnings
@@ -264,7 +274,8 @@ class ComplementaryFusionProcessor:
                 for name in (WHEEL, IMU, SCAN) if self._records[name].enabled]
 
     def outputs(self) -> list[Output]:
-        return [Output('/odometry/filtered', Odometry, ESTIMATE_QOS)]
+        return [Output('/odometry/filtered', Odometry, ESTIMATE_QOS)] + \
+            ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
 
     def held(self) -> int:
         """How many inputs the reorder buffer holds."""
@@ -335,18 +346,38 @@ class ComplementaryFusionProcessor:
         for record in self._records.values():
             record.clear()
         self._start_ns = None
+        self._tf_stamp = None
         self._converter.reset()
 
     # -- fusion and output ---------------------------------------------------------------------
     def _process(self, ready) -> Outputs:
         out: Outputs = []
+        held = None   # (stamp, pose) of the newest output not yet on /tf
         for stamp, (source, reading) in ready:
             self._records[source].processed_at(stamp)
             self._fusion.update(source, reading)
             if source == IMU and (self._records[WHEEL].enabled or self._records[SCAN].enabled):
                 continue  # heading only: published with the next position update
-            out += self._publish(stamp)
+            published = self._publish(stamp)
+            out += published
+            if published and self._publish_tf:
+                if held is not None and held[0] != stamp:
+                    out += self._transform(*held)
+                held = (stamp, self._fusion.state.pose)
+        if held is not None:
+            out += self._transform(*held)
         return out
+
+    def _transform(self, stamp: int, pose) -> Outputs:
+        """odom -> base_link at the output's stamp (the input just fused: never ahead of the
+        inputs). tf2 keeps one sample per stamp and drops a repeat with a TF_REPEATED_DATA
+        warning, so of the outputs at one stamp (a wheel and a scan-match update) the last of a
+        batch goes out, once."""
+        if stamp == self._tf_stamp:
+            return []
+        self._tf_stamp = stamp
+        return [(TF_TOPIC, transform_message(stamp, self._odom_frame, self._base_frame,
+                                             Transform.from_planar(*pose)))]
 
     def _publish(self, stamp: int) -> Outputs:
         state = self._fusion.state

@@ -9,12 +9,49 @@ import shutil
 import signal
 import subprocess
 import sys
+from collections import defaultdict
 from pathlib import Path
 
 from sensing_nodes.paths import config_file
 
 PROCESSING_NODES = ('wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
                     'complementary_fusion')
+
+
+class GraphArgumentError(ValueError):
+    """A command-line description of nodes, parameters or remaps that does not parse."""
+
+
+def parse_node_params(specs: list[str]) -> dict[str, list[str]]:
+    """['icp_matcher:laser_x_m:=0.0'] -> {'icp_matcher': ['-p', 'laser_x_m:=0.0']}."""
+    extra: dict[str, list[str]] = defaultdict(list)
+    for spec in specs:
+        node, sep, assignment = spec.partition(':')
+        if not sep or ':=' not in assignment or node not in PROCESSING_NODES:
+            raise GraphArgumentError(f'--param {spec!r}: write NODE:NAME:=VALUE with NODE one of '
+                                     f'{", ".join(PROCESSING_NODES)}')
+        extra[node] += ['-p', assignment]
+    return extra
+
+
+def parse_remaps(specs: list[str]) -> dict[str, str]:
+    """['/odom:=/wheel/odom'] -> {'/odom': '/wheel/odom'}."""
+    remaps = {}
+    for spec in specs:
+        src, sep, dst = spec.partition(':=')
+        if not sep or not src.startswith('/') or not dst.startswith('/'):
+            raise GraphArgumentError(f'--remap {spec!r}: write /BAG_TOPIC:=/TOPIC')
+        remaps[src] = dst
+    return remaps
+
+
+def parse_nodes(spec: str) -> tuple[str, ...]:
+    """'a,b' -> ('a', 'b'), each one of PROCESSING_NODES."""
+    nodes = tuple(n for n in spec.split(',') if n)
+    unknown = [n for n in nodes if n not in PROCESSING_NODES]
+    if unknown or not nodes:
+        raise GraphArgumentError(f'--nodes: unknown node(s) {unknown}; known: {PROCESSING_NODES}')
+    return nodes
 
 
 def executable(name: str) -> str:
@@ -41,10 +78,12 @@ def isolated_environment(domain_id: int | None, offset: int = 0) -> dict[str, st
 
 
 class Graph:
-    """The node processes, started with their parameter files, stopped with SIGINT."""
+    """The node processes, started with their parameter files (then params_file, a robot preset
+    overriding them), stopped with SIGINT."""
 
-    def __init__(self, out: Path, env: dict[str, str]) -> None:
-        self.out, self.env = out, env
+    def __init__(self, out: Path, env: dict[str, str],
+                 params_file: Path | None = None) -> None:
+        self.out, self.env, self.params_file = out, env, params_file
         self.processes: dict[str, subprocess.Popen] = {}
         self._logs = {}
 
@@ -52,7 +91,7 @@ class Graph:
         log = open(self.out / 'logs' / f'{name}.log', 'w')
         self._logs[name] = log
         cmd = [executable(name), '--ros-args', '--params-file', str(config_file(f'{name}.yaml')),
-               *extra]
+               *(['--params-file', str(self.params_file)] if self.params_file else []), *extra]
         self.processes[name] = subprocess.Popen(
             cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
 

@@ -16,6 +16,7 @@ from tf2_msgs.msg import TFMessage
 from sensing_nodes.core import quaternion as quat
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.conversions import make_transform_stamped, transform_of
+from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.qos import TF_QOS, TF_STATIC_QOS, TF_STATIC_READER_QOS
 
 TF_TOPIC = '/tf'
@@ -72,6 +73,7 @@ class StaticTransformBuffer:
         self._on_update = on_update
         self._parents: dict[str, tuple[str, Transform]] = {}
         self.rejected = 0
+        self._warnings = ThrottledWarnings(node, period_s=5.0)   # node clock: follows /clock
         node.create_subscription(TFMessage, TF_STATIC_TOPIC, self._on_message,
                                  TF_STATIC_READER_QOS)
 
@@ -84,9 +86,8 @@ class StaticTransformBuffer:
             problem = _problem(parent, child, transform)
             if problem:
                 self.rejected += 1
-                self._node.get_logger().warning(
-                    f'ignoring /tf_static {parent!r} -> {child!r}: {problem}',
-                    throttle_duration_sec=5.0)
+                self._warnings.warn(f'{parent} -> {child}',
+                                    f'ignoring /tf_static {parent!r} -> {child!r}: {problem}')
                 continue
             transform = Transform(transform.translation, quat.normalized(transform.rotation))
             if self._parents.get(child) != (parent, transform):

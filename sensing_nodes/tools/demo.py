@@ -21,7 +21,9 @@ import numpy as np
 from sensing_nodes.core import se2
 from sensing_nodes.core.evaluation import path_length, sigma_consistency, trajectory_errors
 from sensing_nodes.paths import config_file
-from sensing_nodes.ros.graph import PROCESSING_NODES, Graph, isolated_environment
+from sensing_nodes.ros.graph import (
+    PROCESSING_NODES, Graph, GraphArgumentError, isolated_environment, parse_node_params,
+)
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
 
 # Estimate name -> (topic, what it estimates)
@@ -80,10 +82,22 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--domain-id', type=int, default=None,
                         help='ROS_DOMAIN_ID for the graph (default: one of this run\'s own, so the '
                              'demo never talks to a robot on your network)')
+    parser.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
+                        help='a parameter override for one node, sensor_sim or a processing '
+                             'node (as sensing_replay)')
     parser.add_argument('--quiet', action='store_true', help='no progress lines')
     args = parser.parse_args(argv)
     if args.duration <= 0 or args.rate <= 0:
         parser.error('--duration and --rate must be > 0')
+    try:
+        sim = 'sensor_sim:'
+        args.node_params = parse_node_params([p for p in args.param if not p.startswith(sim)])
+        args.node_params['sensor_sim'] = [a for p in args.param if p.startswith(sim)
+                                          for a in ('-p', p[len(sim):])]
+        if any(':=' not in a for a in args.node_params['sensor_sim'][1::2]):
+            raise GraphArgumentError('--param sensor_sim:NAME:=VALUE')
+    except GraphArgumentError as exc:
+        parser.error(str(exc))
     return args
 
 
@@ -163,10 +177,11 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
             sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
                         '-p', f'real_time_factor:={args.rate}', '-p', 'wait_for_subscribers:=1',
                         '-p', f'wait_for_scan_subscribers:={SCAN_SUBSCRIBERS}',
-                        '-p', f'pace_topic:={PACE_TOPIC}', '-p', 'pace_timeout_s:=5.0']
+                        '-p', f'pace_topic:={PACE_TOPIC}', '-p', 'pace_timeout_s:=5.0',
+                        *args.node_params['sensor_sim']]
             launched = time.monotonic()
             for name in PROCESSING_NODES:
-                graph.start(name, [])
+                graph.start(name, args.node_params.get(name, []))
             graph.start('sensor_sim', sim_args)
             _wait_for_nodes(node, executor, PROCESSING_NODES, graph, recorder)
             for topic, (type_name, qos) in SIM_TOPICS.items():

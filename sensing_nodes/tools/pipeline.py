@@ -238,7 +238,7 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    from sensing_nodes.tools.replay import PROCESSING_NODES
+    from sensing_nodes.ros.graph import PROCESSING_NODES
 
     parser = argparse.ArgumentParser(prog='sensing_pipeline', description=__doc__.split('\n\n')[0])
     parser.add_argument('bag', help='input bag: a rosbag2 folder (MCAP or sqlite3) or a ROS 1 '
@@ -261,8 +261,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     args = parse_args(argv)
-    from sensing_nodes.tools.replay import (
-        ReplayError, parse_node_params, parse_nodes, parse_remaps,
+    from sensing_nodes.ros.graph import (
+        GraphArgumentError, parse_node_params, parse_nodes, parse_remaps,
     )
 
     try:
@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
             nodes = parse_nodes(args.nodes)
             node_params = parse_node_params(args.param)   # node -> ['-p', 'NAME:=VALUE', ...]
             remaps = parse_remaps(args.remap)
-        except ReplayError as exc:
+        except GraphArgumentError as exc:
             raise PipelineError(str(exc)) from None
         for f in args.params_file:
             if not f.is_file():

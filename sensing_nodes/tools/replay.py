@@ -24,7 +24,10 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sensing_nodes.ros.graph import PROCESSING_NODES, Graph, executable
+from sensing_nodes.ros.graph import (
+    PROCESSING_NODES, Graph, GraphArgumentError, executable, parse_node_params, parse_nodes,
+    parse_remaps,
+)
 
 # Input topic -> output topics that carry its stamp (one message each), for this package's graph.
 DEFAULT_EXPECTATIONS: dict[str, tuple[str, ...]] = {
@@ -166,38 +169,6 @@ def parse_expectations(specs: list[str]) -> dict[str, tuple[str, ...]]:
     return table
 
 
-def parse_node_params(specs: list[str]) -> dict[str, list[str]]:
-    """['icp_matcher:laser_x_m:=0.0'] -> {'icp_matcher': ['-p', 'laser_x_m:=0.0']}."""
-    extra: dict[str, list[str]] = defaultdict(list)
-    for spec in specs:
-        node, sep, assignment = spec.partition(':')
-        if not sep or ':=' not in assignment or node not in PROCESSING_NODES:
-            raise ReplayError(f'--param {spec!r}: write NODE:NAME:=VALUE with NODE one of '
-                              f'{", ".join(PROCESSING_NODES)}')
-        extra[node] += ['-p', assignment]
-    return extra
-
-
-def parse_remaps(specs: list[str]) -> dict[str, str]:
-    """['/odom:=/wheel/odom'] -> {'/odom': '/wheel/odom'}."""
-    remaps = {}
-    for spec in specs:
-        src, sep, dst = spec.partition(':=')
-        if not sep or not src.startswith('/') or not dst.startswith('/'):
-            raise ReplayError(f'--remap {spec!r}: write /BAG_TOPIC:=/TOPIC')
-        remaps[src] = dst
-    return remaps
-
-
-def parse_nodes(spec: str) -> tuple[str, ...]:
-    """'a,b' -> ('a', 'b'), each one of PROCESSING_NODES."""
-    nodes = tuple(n for n in spec.split(',') if n)
-    unknown = [n for n in nodes if n not in PROCESSING_NODES]
-    if unknown or not nodes:
-        raise ReplayError(f'--nodes: unknown node(s) {unknown}; known: {PROCESSING_NODES}')
-    return nodes
-
-
 def shifted_stamp(raw: bytes, offset_ns: int) -> bytes:
     """A CDR message whose first field is a Header, with its stamp moved by offset_ns."""
     order = '<' if raw[1] == 1 else '>'
@@ -208,11 +179,25 @@ def shifted_stamp(raw: bytes, offset_ns: int) -> bytes:
     return bytes(out)
 
 
+def header_stamp_ns(raw: bytes) -> int:
+    """Stamp of a CDR message whose first field is a Header."""
+    order = '<' if raw[1] == 1 else '>'
+    sec, nanosec = struct.unpack_from(order + 'iI', raw, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+def stamped_topics(bag: InputBag, topics) -> set[str]:
+    """The topics among `topics` whose message type starts with a Header."""
+    from sensing_nodes.bag import message_class
+
+    return {t for t in topics if next(iter(message_class(bag.types[t])
+                                           .get_fields_and_field_types().values()), '')
+            == 'std_msgs/Header'}
+
+
 def warm_up_bag(bag: InputBag, inputs: set[str], warmup_s: float) -> InputBag:
     """The inputs of the bag's first warmup_s, and at least the first message of every input
     topic, with stamps (header and bag time) moved to 1 s after the bag's last message."""
-    from sensing_nodes.bag import message_class
-
     firsts: dict[str, int] = {}
     for topic, stamp, _ in bag.messages:
         if topic in inputs:
@@ -220,9 +205,7 @@ def warm_up_bag(bag: InputBag, inputs: set[str], warmup_s: float) -> InputBag:
     start = min(firsts.values())
     end = max(start + int(warmup_s * 1e9), max(firsts.values()))
     offset = bag.messages[-1][1] - start + 1_000_000_000
-    stamped = {t for t in firsts if next(iter(message_class(bag.types[t])
-                                              .get_fields_and_field_types().values()), '')
-               == 'std_msgs/Header'}
+    stamped = stamped_topics(bag, firsts)
     return InputBag(bag.path, bag.types, [
         (t, s + offset, shifted_stamp(raw, offset) if t in stamped else raw)
         for t, s, raw in bag.messages if t in inputs and s <= end])
@@ -279,6 +262,11 @@ class Replayer:
         self.input_stamp_ns = 0
         self.subscribed: set[str] = set()
         self.deferred: set[str] = set(ANSWERS_LATER)   # expected outputs that come later
+        # Timed mode: while the graph comes up, /clock runs at wall speed from this stamp (so far
+        # before the bag's first that it never reaches it), so nodes with use_sim_time have a
+        # time that advances (their timers, diagnostics included, run on it) and never see it
+        # go backwards when the pass starts.
+        self.lead_in_clock_ns: int | None = None
 
     def _on_output(self, topic: str, raw: bytes, stamp: int) -> None:
         if topic in self.marker_topics:
@@ -317,9 +305,12 @@ class Replayer:
         graph has been stable (no new subscriptions or publishers) for a second and each of
         `nodes` has published diagnostics since (so its executor runs and has had time to match
         its own subscriptions; a message sent before two nodes match is lost)."""
-        deadline = time.monotonic() + timeout_s
+        started = time.monotonic()
+        deadline = started + timeout_s
         stable_since, last = time.monotonic(), None
         while time.monotonic() < deadline:
+            if self.lead_in_clock_ns is not None:
+                self.publish_clock(self.lead_in_clock_ns + int((time.monotonic() - started) * 1e9))
             self.spin(0.1)
             if failed():
                 raise ReplayError(f'node(s) exited at start-up: {", ".join(failed())}')
@@ -377,6 +368,9 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
     replayer.current = result
     started = time.monotonic()
     todo = [(t, s, raw) for t, s, raw in bag.messages if t in inputs]
+    # The outputs carry the input's header stamp, which a bag recorded by ROS tools has apart
+    # from its bag time (the time of receipt).
+    stamped = stamped_topics(bag, inputs)
     first_stamp = todo[0][1] if todo else 0
     next_report = next_discovery = started + 2.0
     deferred_pending: list[tuple[str, int]] = []   # (output, stamp) of outputs that answer later
@@ -388,8 +382,9 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
             replayer.publish_clock(stamp)
         if mode == 'lockstep' and settle_before.get(topic, 0.0) > 0.0:
             replayer.spin(settle_before[topic])
-        replayer.input_stamp_ns = stamp
         replayer.publishers[topic].publish(raw)
+        stamp = header_stamp_ns(raw) if topic in stamped else stamp   # what the outputs carry
+        replayer.input_stamp_ns = stamp
         result.inputs_published += 1
         if mode == 'lockstep':
             expected = replayer.expectations.get(topic, ())
@@ -488,13 +483,25 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
            progress: bool = True, logs: Path | None = None,
            compress: bool = False, settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
            settle_s: float = 0.002, warmup_s: float = 2.0,
-           settle_before: dict[str, float] | None = None) -> list[PassResult]:
+           settle_before: dict[str, float] | None = None,
+           params_file: Path | None = None) -> list[PassResult]:
     """Replay a bag through the graph (started here when `launch`), `loops` times back to back;
     writes `out` (one pass) or out/pass-K (several), complete or not at all."""
-    expectations = dict(DEFAULT_EXPECTATIONS if expectations is None else expectations)
     remaps = dict(remaps or {})
+    if expectations is None:   # the default table names node inputs: a remapped bag topic feeds one
+        published_as = {dst: src for src, dst in remaps.items()}
+        expectations = {published_as.get(t, t): o for t, o in DEFAULT_EXPECTATIONS.items()}
+    expectations = dict(expectations)
     bag = load_bag(bag_path)
     check_inputs(bag, list(expectations), remaps)
+    if params_file is not None and not Path(params_file).is_file():
+        from sensing_nodes.paths import config_file
+
+        preset = config_file(f'robots/{params_file}.yaml')    # a preset by name: turtlebot3
+        if not preset.is_file():
+            raise ReplayError(f'--params-file {params_file}: no such file, and no preset '
+                              f'{preset}')
+        params_file = preset
     published_names = {remaps.get(t, t) for t in expectations}
     outputs = ({o for outs in expectations.values() for o in outs} | set(extra_outputs)) \
         - published_names
@@ -527,7 +534,7 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                 # output the replay has received is already on its way to the other subscribers
                 # (asynchronous publishing sends from a separate thread, later).
                 env.setdefault('RMW_FASTRTPS_PUBLICATION_MODE', 'SYNCHRONOUS')
-            graph = Graph(log_dir, env)
+            graph = Graph(log_dir, env, params_file)
             for name in nodes:
                 extra = list((node_params or {}).get(name, []))
                 if name == 'complementary_fusion' and mode == 'lockstep' \
@@ -538,12 +545,15 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                     extra = ['-p', f'flush_after_s:={LOCKSTEP_FUSION_FLUSH_S}', *extra]
                     quiet_s = max(quiet_s, 1.5 * LOCKSTEP_FUSION_FLUSH_S + 1.0)
                 graph.start(name, extra)
+        if mode == 'timed':
+            replayer.lead_in_clock_ns = next(s for t, s, _ in bag.messages if t in expectations) \
+                - int((startup_timeout_s + 1.0) * 1e9)
         try:
             replayer.wait_for_graph(
                 required, startup_timeout_s,
                 failed=(graph.failed if graph is not None else lambda: []),
                 nodes=nodes if launch and '/diagnostics' in outputs else ())
-        except ReplayError as exc:
+        except (ReplayError, GraphArgumentError) as exc:
             raise ReplayError(f'{exc}; node logs in {log_dir / "logs"}' if launch else str(exc)) \
                 from None
         if warmup_s > 0 and launch:
@@ -811,13 +821,18 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help='further outputs recorded as they come (default: '
                              + ' '.join(DEFAULT_EXTRA_OUTPUTS) + ')')
     parser.add_argument('--remap', action='append', default=[], metavar='BAG_TOPIC:=TOPIC',
-                        help='publish a bag topic under another name')
+                        help='publish a bag topic under another name (the default expectation '
+                             'table then applies to it, e.g. /imu:=/imu/data_raw)')
     parser.add_argument('--launch', action='store_true',
                         help="start the package's processing nodes (config/ parameter files)")
     parser.add_argument('--nodes', default=','.join(PROCESSING_NODES),
                         help='with --launch: which nodes (comma separated)')
     parser.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
                         help='with --launch: a parameter override for one node')
+    parser.add_argument('--params-file', type=Path, default=None,
+                        help='with --launch: a parameter file read after each node\'s own in '
+                             'config/, e.g. a robot preset: config/robots/turtlebot3.yaml, or '
+                             'its name, turtlebot3')
     parser.add_argument('--loops', type=int, default=1,
                         help='play the bag this many times back to back (time jumps backwards); '
                              'outputs go to OUT/pass-K')
@@ -893,10 +908,10 @@ def main(argv: list[str] | None = None) -> int:
             node_params=parse_node_params(args.param), loops=args.loops, timeout_s=args.timeout,
             quiet_s=args.quiet_s, progress=not args.no_progress, logs=args.logs,
             compress=args.compress, settle_s=args.settle_ms * 1e-3, warmup_s=args.warmup_s,
-            settle_before=_settle_before(args.settle_before),
+            settle_before=_settle_before(args.settle_before), params_file=args.params_file,
             settle_after=(tuple(args.settle_after) if args.settle_after is not None
                           else DEFAULT_SETTLE_AFTER))
-    except ReplayError as exc:
+    except (ReplayError, GraphArgumentError) as exc:
         print(f'sensing_replay: error: {exc}', file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
