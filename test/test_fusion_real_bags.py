@@ -86,10 +86,12 @@ def test_upside_down_imu_heading_is_the_rotation_about_base_z():
     assert abs(math.degrees(heading[-1])) > 90.0    # it was turned by hand: a real rotation
 
 
-def test_gyro_integrator_node_with_an_upside_down_mount(probe):
-    """Over DDS: gyro_integrator with mount_roll_rad = pi reads an IMU lying upside down (-g on
-    its z) as level, learns the bias while still and integrates minus the IMU's z rate; its
-    output is in base_link."""
+@pytest.mark.parametrize('mount_from', ['parameters', 'tf_static'])
+def test_gyro_integrator_node_with_an_upside_down_mount(probe, mount_from):
+    """Over DDS: gyro_integrator with the IMU mount upside down (mount_roll_rad = pi, or
+    /tf_static's base_link -> imu_link with roll pi against zero parameters: warned) reads an IMU
+    lying upside down (-g on its z) as level, learns the bias while still and integrates minus
+    the IMU's z rate; its output is in base_link."""
     import time
 
     import rclpy
@@ -110,12 +112,26 @@ def test_gyro_integrator_node_with_an_upside_down_mount(probe):
         msg.orientation_covariance[0] = -1.0
         return msg
 
+    from rclpy.node import Node
+
+    from sensing_nodes.core import quaternion
+    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.ros.tf import StaticTransformBroadcaster
+
     pub = probe.create_publisher(Imu, '/imu/data_raw', SENSOR_QOS)
     out = Collector(probe, Imu, '/imu/data', ESTIMATE_QOS)
-    with NodeProcess('gyro_integrator', params={'mount_roll_rad': math.pi,
-                                                'use_wheel_odom': False}) as node:
+    params = {'use_wheel_odom': False}
+    talker = Node('imu_mount_talker', context=probe.context)   # destroyed: its latch goes too
+    if mount_from == 'parameters':
+        params['mount_roll_rad'] = math.pi
+    else:
+        StaticTransformBroadcaster(talker).send(t0, 'base_link', 'imu_link', Transform(
+            (0.0, 0.0, 0.05), quaternion.from_rpy(math.pi, 0.0, 0.0)))
+    with NodeProcess('gyro_integrator', params=params) as node:
         first = raw(0)
-        assert publish_until(probe, pub, first, lambda: len(out.messages) > 0), node.output()
+        # (the mount from /tf_static applies once it has arrived: the output then is in base_link)
+        assert publish_until(probe, pub, first, lambda: any(
+            m.header.frame_id == 'base_link' for m in out.messages)), node.output()
         for k in range(1, 500):
             pub.publish(raw(k))
             time.sleep(0.001)
@@ -124,6 +140,10 @@ def test_gyro_integrator_node_with_an_upside_down_mount(probe):
         assert spin_until(probe, lambda: any(stamp_to_ns(m.header.stamp) == last
                                              for m in out.messages), 20), node.output()
         assert node.alive()
+        log = node.output()
+    talker.destroy_node()
+    if mount_from == 'tf_static':
+        assert 'IMU mount from /tf_static' in log and 'disagrees with the mount parameters' in log
     pub_out = [m for m in out.messages if stamp_to_ns(m.header.stamp) == last][-1]
     out.close()
     probe.destroy_publisher(pub)

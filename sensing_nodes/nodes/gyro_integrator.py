@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import dataclass
+from typing import Callable
 
+import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
@@ -12,8 +15,9 @@ from std_srvs.srv import Trigger
 
 from sensing_nodes.core import quaternion
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
-from sensing_nodes.core.imu_mount import mount_rotation, to_base
+from sensing_nodes.core.imu_mount import is_identity, mount_rotation, to_base
 from sensing_nodes.core.timing import StampStep
+from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.cdr import imu_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
@@ -22,6 +26,7 @@ from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+from sensing_nodes.ros.tf import SensorMount, StaticTransformBuffer
 
 _HEADING_ONLY = (0.0,) * 8   # orientation covariance: only yaw's variance (last) is known
 
@@ -76,21 +81,26 @@ class GyroIntegratorNode(Node):
                          f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi',
                          minimum=-2 * math.pi, maximum=2 * math.pi)
                  for axis in ('roll', 'pitch', 'yaw')]
+        base_frame = declare(self, 'base_frame', 'base_link',
+                             "the robot's base frame: /tf_static's base_frame -> the IMU's "
+                             'frame_id gives the mount where it is published (else mount_*_rad)')
+        frame_id = declare(self, 'frame_id', '',
+                           'frame of the output; empty: keep the input frame (base_frame when '
+                           'the mount rotates: the output is about its axes)')
         # A rotated IMU: rates and accelerations are turned into base_link's axes before
         # anything else, so stillness, bias and heading are about base_link's z.
-        self._mount = None if all(a == 0.0 for a in mount) else mount_rotation(*mount)
-        self._frame_id = declare(self, 'frame_id', '',
-                                 'frame of the output; empty: keep the input frame (base_link '
-                                 'when a mount rotation is set: the output is about its axes)')
-        if not self._frame_id and self._mount is not None:
-            self._frame_id = 'base_link'
+        mount_from_tf = SensorMount(
+            self, StaticTransformBuffer(self, on_update=lambda: self.processor.mount_changed()),
+            base_frame, Transform(rotation=quaternion.from_rpy(*mount)), 'IMU',
+            compare_translation=False)   # the mount parameters are a rotation only
         for name, problem, value in config.problems():
             require(False, {'noise_density': 'gyro_noise_density'}.get(name, name), problem, value)
 
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self.processor = GyroIntegratorProcessor(
-            config, self._mount, self._frame_id, self._restart_on_backwards, use_wheels,
-            self.diagnostics, ThrottledWarnings(self), self.get_logger())
+            config, ImuMount(mount_rotation(*mount), base_frame, frame_id, mount_from_tf.from_tf),
+            self._restart_on_backwards, use_wheels, self.diagnostics, ThrottledWarnings(self),
+            self.get_logger())
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.create_service(Trigger, '~/calibrate', self._on_calibrate)
         self.get_logger().info(
@@ -118,16 +128,39 @@ class GyroIntegratorNode(Node):
         return response
 
 
+@dataclass
+class ImuMount:
+    """Which rotation turns an IMU frame's readings into base_frame's axes, and the frame the
+    output is in: /tf_static's mount of the message's frame where `from_tf` gives one, else the
+    mount parameters' rotation."""
+
+    parameters: np.ndarray          # 3x3, from mount_*_rad
+    base_frame: str
+    output_frame: str               # frame_id parameter; '' = decided by the rotation
+    from_tf: Callable[[str], Transform | None] | None = None
+
+    def resolve(self, imu_frame: str) -> tuple[np.ndarray | None, str]:
+        """(rotation into base_frame or None for none, output frame) for messages in imu_frame."""
+        found = self.from_tf(imu_frame) if self.from_tf is not None else None
+        rotation = self.parameters if found is None else \
+            mount_rotation(*quaternion.to_rpy(found.rotation))
+        if is_identity(rotation):
+            rotation = None
+        return rotation, self.output_frame or (self.base_frame if rotation is not None
+                                               else imu_frame)
+
+
 class GyroIntegratorProcessor:
     """gyro_integrator's per-message logic (ros/processor.py): /imu/data_raw -> /imu/data
     (heading about base_link's z, bias-corrected rates in rad/s); /wheel/odom vetoes stillness."""
 
-    def __init__(self, config: GyroConfig, mount, frame_id: str, restart_on_backwards: bool,
+    def __init__(self, config: GyroConfig, mount: ImuMount, restart_on_backwards: bool,
                  use_wheels: bool, diagnostics: Diagnostics, warnings: ThrottledWarnings,
                  logger) -> None:
         self._config = config
-        self._mount = mount   # 3x3 rotation into base_link, or None
-        self._frame_id = frame_id
+        self._mount_source = mount
+        # Resolved per IMU frame id, again after /tf_static changes: (frame, rotation, output)
+        self._mount_for: tuple[str, np.ndarray | None, str] | None = None
         self._restart_on_backwards = restart_on_backwards
         self._use_wheels = use_wheels
         self.integrator = GyroIntegrator(config)
@@ -144,6 +177,10 @@ class GyroIntegratorProcessor:
     def outputs(self) -> list[Output]:
         return [Output('/imu/data', Imu, ESTIMATE_QOS)]
 
+    def mount_changed(self) -> None:
+        """/tf_static changed: resolve the mount again at the next message."""
+        self._mount_for = None
+
     def on_wheel_odom(self, msg: Odometry) -> Outputs:
         twist = msg.twist.twist
         self.integrator.observe_wheels(
@@ -154,8 +191,12 @@ class GyroIntegratorProcessor:
         stamp = stamp_to_ns(msg.header.stamp)
         w, a = msg.angular_velocity, msg.linear_acceleration
         rate, accel = (w.x, w.y, w.z), (a.x, a.y, a.z)
-        if self._mount is not None:
-            rate, accel = to_base(rate, self._mount), to_base(accel, self._mount)
+        frame = msg.header.frame_id
+        if self._mount_for is None or self._mount_for[0] != frame:
+            self._mount_for = (frame, *self._mount_source.resolve(frame))
+        _, rotation, self._output_frame = self._mount_for
+        if rotation is not None:
+            rate, accel = to_base(rate, rotation), to_base(accel, rotation)
         gi = self.integrator
         if self._restart_on_backwards and gi.stamp_ns is not None and stamp < gi.stamp_ns:
             self.diagnostics.count(StampStep.BACKWARDS.value)
@@ -191,7 +232,7 @@ class GyroIntegratorProcessor:
         # Planar: roll and pitch are taken as zero (level IMU), so only yaw carries variance.
         rate_var = gi.rate_variance()
         out = imu_cdr(
-            stamp, self._frame_id or raw.header.frame_id, quaternion.from_yaw(gi.heading),
+            stamp, self._output_frame, quaternion.from_yaw(gi.heading),
             _HEADING_ONLY + (gi.heading_variance,), gi.rate.tolist(),
             (rate_var, 0.0, 0.0, 0.0, rate_var, 0.0, 0.0, 0.0, rate_var),
             (float(accel[0]), float(accel[1]), float(accel[2])),

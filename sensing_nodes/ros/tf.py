@@ -138,8 +138,9 @@ class SensorMount:
     the node's mount parameters. A disagreement between the two is warned about once."""
 
     def __init__(self, node: Node, buffer: StaticTransformBuffer, base_frame: str,
-                 parameters: Transform, what: str) -> None:
+                 parameters: Transform, what: str, compare_translation: bool = True) -> None:
         self._node = node
+        self._compare_translation = compare_translation
         self._buffer = buffer
         self._base_frame = base_frame
         self.parameters = parameters
@@ -163,6 +164,8 @@ class SensorMount:
             return
         self._reported.add(key)
         distance, angle = from_tf.distance_to(self.parameters)
+        if not self._compare_translation:
+            distance = 0.0
         x, y, yaw = from_tf.planar()
         text = (f'{self._what} mount from /tf_static: {self._base_frame} -> {sensor_frame} '
                 f'x={x:.4f} m y={y:.4f} m yaw={math.degrees(yaw):.3f} deg')
