@@ -251,6 +251,10 @@ def test_laser_mount_from_tf_static_and_odom_to_base_link_on_tf(probe, pubs):
     count = 15
     with NodeProcess('icp_matcher', params_file=config_file('icp_matcher.yaml'),
                      params={'publish_tf': True}) as node:
+        # The mount must be there before the first scan (a late one restarts the keyframe):
+        # the node's /tf_static reader matched, and a moment for the latched sample to land.
+        assert spin_until(probe, lambda: statics._publisher.get_subscription_count() > 0, 30)
+        spin_until(probe, lambda: False, 1.0)
         out = run_sequence(probe, pubs, node, count, mount=mount)
         spin_until(probe, lambda: len(tf.messages) >= count, 5)
         log = node.output()
