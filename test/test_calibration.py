@@ -128,6 +128,8 @@ def test_nodes_start_with_the_written_yaml(calibrated):
         for node in nodes:
             assert node.alive(), node.output()
             assert 'parameter' not in node.output().lower(), node.output()
+        gyro = yaml.safe_load(out.read_text())['gyro_integrator']['ros__parameters']
+        assert set(gyro) >= {'initial_bias_z_rad_s', 'gyro_scale_error'}   # as parameters
     finally:
         for node in nodes:
             node.stop()

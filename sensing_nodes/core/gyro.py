@@ -143,6 +143,7 @@ class GyroConfig:
     noise_density: float = 7.1e-5        # rad/s/sqrt(Hz)
     bias_random_walk: float = 1e-6       # rad/s/sqrt(s)
     initial_bias_sigma_rad_s: float = 0.01
+    initial_bias_z_rad_s: float = 0.0    # the bias estimate before the first stillness (calibrated)
     max_gap_s: float = 0.5
     wheel_timeout_s: float = 0.25
     wheel_still_linear_m_s: float = 1e-3
@@ -280,6 +281,7 @@ class GyroIntegrator:
     def __post_init__(self) -> None:
         if self.p_bias < 0:
             self.p_bias = self.config.initial_bias_sigma_rad_s ** 2
+            self.bias[2] = self.config.initial_bias_z_rad_s
         self._window = _Window(self.config.stillness_window_s)
 
     # -- wheel odometry gate -------------------------------------------------------------------

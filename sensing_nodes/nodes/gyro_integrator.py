@@ -58,6 +58,10 @@ class GyroIntegratorNode(Node):
             initial_bias_sigma_rad_s=declare(
                 self, 'initial_bias_sigma_rad_s', d.initial_bias_sigma_rad_s,
                 'std of the bias before any calibration (rad/s)'),
+            initial_bias_z_rad_s=declare(
+                self, 'initial_bias_z_rad_s', d.initial_bias_z_rad_s,
+                'z bias estimate before the first stillness (rad/s; sensing_calibrate writes it)',
+                minimum=-1.0, maximum=1.0),
             max_gap_s=declare(self, 'max_gap_s', d.max_gap_s,
                               'a stamp gap longer than this (s) is not integrated across'),
             wheel_timeout_s=declare(
@@ -81,6 +85,9 @@ class GyroIntegratorNode(Node):
                          f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi',
                          minimum=-2 * math.pi, maximum=2 * math.pi)
                  for axis in ('roll', 'pitch', 'yaw')]
+        scale_error = declare(self, 'gyro_scale_error', 0.0,
+                              'the z rate reads (1 + this) x the true rate; readings are divided '
+                              'by it (sensing_calibrate writes it)', minimum=-0.5, maximum=0.5)
         base_frame = declare(self, 'base_frame', 'base_link',
                              "the robot's base frame: /tf_static's base_frame -> the IMU's "
                              'frame_id gives the mount where it is published (else mount_*_rad)')
@@ -99,7 +106,7 @@ class GyroIntegratorNode(Node):
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self.processor = GyroIntegratorProcessor(
             config, ImuMount(mount_rotation(*mount), base_frame, frame_id, mount_from_tf.from_tf),
-            self._restart_on_backwards, use_wheels, self.diagnostics, ThrottledWarnings(self),
+            scale_error, self._restart_on_backwards, use_wheels, self.diagnostics, ThrottledWarnings(self),
             self.get_logger())
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.create_service(Trigger, '~/calibrate', self._on_calibrate)
@@ -154,11 +161,13 @@ class GyroIntegratorProcessor:
     """gyro_integrator's per-message logic (ros/processor.py): /imu/data_raw -> /imu/data
     (heading about base_link's z, bias-corrected rates in rad/s); /wheel/odom vetoes stillness."""
 
-    def __init__(self, config: GyroConfig, mount: ImuMount, restart_on_backwards: bool,
+    def __init__(self, config: GyroConfig, mount: ImuMount, scale_error: float,
+                 restart_on_backwards: bool,
                  use_wheels: bool, diagnostics: Diagnostics, warnings: ThrottledWarnings,
                  logger) -> None:
         self._config = config
         self._mount_source = mount
+        self._z_scale = 1.0 + scale_error
         # Resolved per IMU frame id, again after /tf_static changes: (frame, rotation, output)
         self._mount_for: tuple[str, np.ndarray | None, str] | None = None
         self._restart_on_backwards = restart_on_backwards
@@ -197,6 +206,8 @@ class GyroIntegratorProcessor:
         _, rotation, self._output_frame = self._mount_for
         if rotation is not None:
             rate, accel = to_base(rate, rotation), to_base(accel, rotation)
+        if self._z_scale != 1.0:       # calibrated scale factor of base_link's z rate
+            rate = (rate[0], rate[1], rate[2] / self._z_scale)
         gi = self.integrator
         if self._restart_on_backwards and gi.stamp_ns is not None and stamp < gi.stamp_ns:
             self.diagnostics.count(StampStep.BACKWARDS.value)

@@ -116,10 +116,13 @@ def params_yaml(result: cal.CalibrationResult, wheel_radius_m: float, bag: str,
         lines.append(f'#   gyro z bias {gyro.bias.value:.6g} +- {gyro.bias.std:.2g} rad/s'
                      + (f', scale factor error {gyro.scale.value:+.5f} +- {gyro.scale.std:.2g}'
                         if gyro.scale.excited else f', scale not estimated: {gyro.scale.note}'))
-        lines.append('#   (gyro_integrator estimates its bias itself while still and has no scale '
-                     'parameter; its stillness gate must accept the bias found here)')
-        doc['gyro_integrator'] = {'ros__parameters': {
-            'max_gyro_bias_rad_s': round(max(0.05, 3.0 * abs(gyro.bias.value)), 6)}}
+        lines.append('#   (read about the IMU\'s own z, taken as base_link\'s: a level, unrotated '
+                     'IMU; gyro_integrator refines the bias itself while still)')
+        gyro_params = {'max_gyro_bias_rad_s': round(max(0.05, 3.0 * abs(gyro.bias.value)), 6),
+                       'initial_bias_z_rad_s': float(gyro.bias.value)}
+        if gyro.scale.excited:
+            gyro_params['gyro_scale_error'] = float(gyro.scale.value)
+        doc['gyro_integrator'] = {'ros__parameters': gyro_params}
         report['gyro_bias_rad_s'] = float(gyro.bias.value)
         report['gyro_bias_std_rad_s'] = float(gyro.bias.std)
         report['gyro_scale_estimated'] = gyro.scale.excited
