@@ -203,7 +203,8 @@ def test_killing_fusion_itself_leaves_the_rest_running(graph):
     graph.fused.messages.clear()
     graph.nodes['complementary_fusion'] = start('complementary_fusion')
     assert graph.wait_fusion(lambda message, values: message == 'all enabled inputs present'
-                             and int(values['fusion_updates']) > 10, 60), graph.logs()
+                             and int(values['fusion_updates']) > 10, 60), \
+        (graph.fusion_status(), graph.logs())
     assert spin_until(probe, lambda: len(graph.fused.messages) > 50, 30), graph.logs()
     fused = [odometry_pose(m)[0] for m in graph.fused.messages]
     assert all(np.all(np.isfinite(p)) for p in fused)
