@@ -19,6 +19,9 @@ DURATION_S = 10.0     # simulated: 100 scans
 # the run down instead of making the fusion drop late inputs (what a consumer would then see is
 # the machine's overload, not the graph's TF).
 PACED = 'sensor_sim:pace_topic:=/odometry/filtered'
+# ... and starts once the consumer's /scan subscription is matched too (line_extractor,
+# icp_matcher, the demo's recorder and the consumer): a consumer discovered late saw 1 scan.
+WAIT_FOR_THE_CONSUMER = 'sensor_sim:wait_for_scan_subscribers:=4'
 
 
 def _consume_while_the_demo_runs(tmp_path, *params):
@@ -31,7 +34,8 @@ def _consume_while_the_demo_runs(tmp_path, *params):
         demo = run_to_exit('sensing_demo', [
             '--duration', str(DURATION_S), '--domain-id', os.environ['ROS_DOMAIN_ID'],
             '--out', str(tmp_path / 'demo'), '--quiet',
-            *[a for p in (PACED, *params) for a in ('--param', p)]], timeout=300)
+            *[a for p in (PACED, WAIT_FOR_THE_CONSUMER, *params) for a in ('--param', p)]],
+            timeout=300)
         assert demo.returncode == 0, demo.stdout + demo.stderr
         out, err = consumer.communicate(timeout=60)
     finally:
