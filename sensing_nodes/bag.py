@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import heapq
 import importlib
+import signal
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,8 @@ import yaml
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
+
+_DEFERRED_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -116,7 +119,15 @@ class BagWriter:
         """Append one CDR-serialised message (as rclpy or DDS gave it) of a topic registered
         with add_topic; it is stored in canonical CDR."""
         connection = self._connections[topic]
-        self._writer.write(connection, int(stamp_ns), canonical_cdr(data, connection.msgtype))
+        raw = canonical_cdr(data, connection.msgtype)
+        # SIGINT/SIGTERM held off for the one write: raised inside the writer, after it counted
+        # the message and before it stored it, the bag's metadata counted one message more than
+        # it held (seen: 4471 counted, 4470 read back after a SIGINT).
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, _DEFERRED_SIGNALS)
+        try:
+            self._writer.write(connection, int(stamp_ns), raw)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
         self.counts[topic] += 1
 
 
