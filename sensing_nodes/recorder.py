@@ -9,7 +9,6 @@ is handed to listeners for latency measurements.
 
 from __future__ import annotations
 
-import struct
 import time
 from collections import defaultdict
 from typing import Callable
@@ -18,18 +17,12 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from sensing_nodes.bag import BagWriter, message_class
+from sensing_nodes.ros.cdr import leading_stamp_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
 # Graph-internal topics nobody wants in a data bag.
 EXCLUDED_TOPICS = {'/rosout', '/parameter_events'}
 _STAMP_FIRST = {'std_msgs/Header', 'builtin_interfaces/Time'}
-
-
-def leading_stamp_ns(raw: bytes) -> int:
-    """Stamp of a CDR-serialised message whose first field is a Header or a Time: the two
-    32-bit words after the 4-byte encapsulation header (its second byte says the byte order)."""
-    sec, nanosec = struct.unpack_from('<iI' if raw[1] == 1 else '>iI', raw, 4)
-    return sec * 1_000_000_000 + nanosec
 
 
 class TopicRecorder:

@@ -15,7 +15,7 @@ import pytest
 from harness import REPO, run_to_exit
 
 from sensing_nodes.bag import BagReader, read_messages, topic_counts
-from sensing_nodes.tools.replay import compare_outputs, output_messages
+from sensing_nodes.ros.compare import compare_outputs, output_messages
 
 BAGS = REPO / 'bags'
 CARMEN = REPO.parent / 'shared' / 'datasets' / 'carmen'

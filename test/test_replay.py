@@ -16,15 +16,15 @@ from harness import REPO, run_to_exit
 from rclpy.serialization import deserialize_message
 
 from sensing_nodes.bag import BagWriter, message_class, topic_counts
-from sensing_nodes.tools.replay import (
-    DEFAULT_EXPECTATIONS,
+from sensing_nodes.ros.cdr import first_element_stamp_ns
+from sensing_nodes.ros.compare import (
     REPRODUCE_ATOL,
     REPRODUCE_RTOL,
     compare_outputs,
-    load_bag,
-    marker_array_stamp_ns,
     output_messages,
 )
+from sensing_nodes.ros.input_bag import load_bag
+from sensing_nodes.ros.replayer import DEFAULT_EXPECTATIONS
 
 BAGS = REPO / 'bags'
 # Every output of the graph that is a function of the inputs (not /diagnostics: wall-clock timer).
@@ -140,7 +140,7 @@ def test_tolerance_tells_a_changed_output_from_blas_noise():
     from nav_msgs.msg import Odometry
     from visualization_msgs.msg import Marker
 
-    from sensing_nodes.tools.replay import message_difference
+    from sensing_nodes.ros.compare import message_difference
 
     a = Odometry()
     a.pose.pose.position.x = 3.0
@@ -290,8 +290,8 @@ def test_marker_array_stamp_is_read_from_the_first_marker():
 
     msg = MarkerArray(markers=[Marker(), Marker()])
     msg.markers[0].header.stamp.sec, msg.markers[0].header.stamp.nanosec = 17, 250
-    assert marker_array_stamp_ns(serialize_message(msg), 5) == 17_000_000_250
-    assert marker_array_stamp_ns(serialize_message(MarkerArray()), 5) == 5
+    assert first_element_stamp_ns(serialize_message(msg), 5) == 17_000_000_250
+    assert first_element_stamp_ns(serialize_message(MarkerArray()), 5) == 5
 
 
 def test_every_expected_output_carries_its_input_stamp():

@@ -17,7 +17,7 @@ import sys
 import time
 from collections import defaultdict
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 EXIT_BAD_INPUT = 2
 
@@ -30,9 +30,6 @@ NODE_CLASSES = {
     'complementary_fusion': ('sensing_nodes.nodes.complementary_fusion',
                              'ComplementaryFusionNode'),
 }
-# Published by every node on a wall-clock timer: not produced here (see docs/pipeline.md), and
-# the input bag's copy is dropped (it describes another run).
-DIAGNOSTICS_TOPIC = '/diagnostics'
 PROGRESS_AFTER_S = 1.0   # no progress display for bags done sooner
 
 
@@ -81,22 +78,6 @@ def close(nodes: dict[str, Any]) -> None:
     rclpy.try_shutdown()
 
 
-def stamp_reader(topic_type: str) -> Callable[[bytes, int], int]:
-    """(CDR bytes, stamp of the input being processed) -> bag time of an output of this type,
-    as the replay records it: the header stamp (a MarkerArray's first marker's), else the
-    input's stamp."""
-    from sensing_nodes.bag import message_class
-    from sensing_nodes.recorder import leading_stamp_ns
-    from sensing_nodes.tools.replay import marker_array_stamp_ns
-
-    if topic_type == 'visualization_msgs/msg/MarkerArray':
-        return marker_array_stamp_ns
-    fields = message_class(topic_type).get_fields_and_field_types()
-    if next(iter(fields.values()), '') == 'std_msgs/Header':
-        return lambda raw, fallback_ns: leading_stamp_ns(raw)
-    return lambda raw, fallback_ns: fallback_ns
-
-
 class Progress:
     """A progress bar with the bag time done, the speed and an ETA, on stderr (a line every
     5 s when stderr is not a terminal); nothing for bags done within PROGRESS_AFTER_S."""
@@ -142,8 +123,10 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
     from rclpy.serialization import deserialize_message, serialize_message
 
     from sensing_nodes.bag import message_class, type_name
-    from sensing_nodes.tools.replay import (
-        NODE_INPUT_TYPES, PassResult, ReplayError, load_bag, write_output_bag,
+    from sensing_nodes.ros.cdr import stamp_reader
+    from sensing_nodes.ros.graph import DIAGNOSTICS, NODE_INPUT_TYPES
+    from sensing_nodes.ros.input_bag import (
+        InputBagError, PassResult, load_bag, write_output_bag,
     )
 
     remaps = dict(remaps or {})
@@ -152,7 +135,7 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
         raise PipelineError(f'{out}: already exists; choose a new output folder')
     try:
         bag = load_bag(bag_path)
-    except ReplayError as exc:
+    except InputBagError as exc:
         raise PipelineError(str(exc)) from None
     built = build_nodes(nodes, list(params_files or []), dict(node_params or {}))
     try:
@@ -222,7 +205,9 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
         # them: its recorder stamps each message with its header stamp).
         for topic in recorded:
             recorded[topic].sort(key=lambda row: row[0])
-        replaced = set(outputs) | {DIAGNOSTICS_TOPIC}
+        # /diagnostics: published by every node on a wall-clock timer, not produced here (see
+        # docs/pipeline.md); the input bag's copy is dropped (it describes another run).
+        replaced = set(outputs) | {DIAGNOSTICS}
         staging = out.with_name(f'.{out.name}.partial')
         shutil.rmtree(staging, ignore_errors=True)
         staging.mkdir(parents=True)

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     from rclpy.node import Node
 
     from sensing_nodes.bag import message_class
-    from sensing_nodes.recorder import leading_stamp_ns
+    from sensing_nodes.ros.cdr import leading_stamp_ns
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
     from sensing_nodes.ros.run import make_executor
 
