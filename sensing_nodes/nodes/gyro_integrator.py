@@ -21,6 +21,7 @@ from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.cdr import imu_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.graph import IMU, IMU_RAW, WHEEL_ODOM
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
@@ -179,12 +180,12 @@ class GyroIntegratorProcessor:
         self._was_still = False
 
     def inputs(self) -> list[Input]:
-        return [Input('/imu/data_raw', Imu, SENSOR_QOS, self.on_imu, decoded=True)] + \
-            ([Input('/wheel/odom', Odometry, ESTIMATE_QOS, self.on_wheel_odom, decoded=True)]
+        return [Input(IMU_RAW, Imu, SENSOR_QOS, self.on_imu, decoded=True)] + \
+            ([Input(WHEEL_ODOM, Odometry, ESTIMATE_QOS, self.on_wheel_odom, decoded=True)]
              if self._use_wheels else [])
 
     def outputs(self) -> list[Output]:
-        return [Output('/imu/data', Imu, ESTIMATE_QOS)]
+        return [Output(IMU, Imu, ESTIMATE_QOS)]
 
     def mount_changed(self) -> None:
         """/tf_static changed: resolve the mount again at the next message."""
@@ -251,7 +252,7 @@ class GyroIntegratorProcessor:
         diag = self.diagnostics
         diag.count('published')
         diag.last_stamp_ns = stamp
-        return [('/imu/data', out)]
+        return [(IMU, out)]
 
 
 def main(args: list[str] | None = None) -> None:

@@ -25,6 +25,7 @@ from sensing_nodes.ros.conversions import (
 )
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.graph import SCAN, SCAN_MATCH, SCAN_MATCH_KEYFRAME
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
@@ -172,15 +173,15 @@ class IcpMatcherProcessor:
         self._warnings = warnings
 
     def inputs(self) -> list[Input]:
-        return [Input('/scan', LaserScan, SENSOR_QOS, self.on_scan)] + \
+        return [Input(SCAN, LaserScan, SENSOR_QOS, self.on_scan)] + \
             ([Input(self._odom_topic, Odometry, ESTIMATE_QOS, self.on_odometry, decoded=True)]
              if self._odom_topic else [])
 
     def outputs(self) -> list[Output]:
         # Each match relative to its keyframe, the keyframe named by its stamp, for a fusion
         # that keeps its state at keyframe stamps (docs/fusion.md, "Keyframe-relative matches").
-        return [Output('/scan_match/keyframe_odom', Odometry, ESTIMATE_QOS),
-                Output('/scan_match/odom', Odometry, ESTIMATE_QOS)] + \
+        return [Output(SCAN_MATCH_KEYFRAME, Odometry, ESTIMATE_QOS),
+                Output(SCAN_MATCH, Odometry, ESTIMATE_QOS)] + \
             ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
 
     def on_odometry(self, msg: Odometry) -> Outputs:
@@ -247,8 +248,8 @@ class IcpMatcherProcessor:
         # The keyframe-relative message first: a consumer waiting for /scan_match/odom (a lockstep
         # replay) then knows the fusion's input for this scan is already on its way.
         out: Outputs = [
-            ('/scan_match/keyframe_odom', keyframe_odometry(step, self._base_frame)),
-            ('/scan_match/odom', make_odometry(
+            (SCAN_MATCH_KEYFRAME, keyframe_odometry(step, self._base_frame)),
+            (SCAN_MATCH, make_odometry(
                 stamp, self._odom_frame, self._base_frame, step.pose, step.covariance,
                 step.twist, step.twist_covariance))]
         if self._publish_tf:

@@ -23,6 +23,7 @@ from sensing_nodes.core.scan import valid_ranges
 from sensing_nodes.core.timing import StampStep, classify_step
 from sensing_nodes.ros.conversions import scan_arrays, stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.graph import SCAN, SCAN_LINES, SCAN_LINES_TABLE
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
@@ -147,11 +148,11 @@ class LineExtractorProcessor:
         self._last_stamp_ns: int | None = None
 
     def inputs(self) -> list[Input]:
-        return [Input('/scan', LaserScan, SENSOR_QOS, self.on_scan)]
+        return [Input(SCAN, LaserScan, SENSOR_QOS, self.on_scan)]
 
     def outputs(self) -> list[Output]:
-        return [Output('/scan/lines', MarkerArray, ESTIMATE_QOS),
-                Output('/scan/lines/table', PointCloud2, ESTIMATE_QOS)]
+        return [Output(SCAN_LINES, MarkerArray, ESTIMATE_QOS),
+                Output(SCAN_LINES_TABLE, PointCloud2, ESTIMATE_QOS)]
 
     def on_scan(self, msg: LaserScan) -> Outputs:
         stamp_ns = stamp_to_ns(msg.header.stamp)
@@ -163,8 +164,8 @@ class LineExtractorProcessor:
         if not lines:
             self._diagnostics.count('empty_results')
         header = Header(stamp=msg.header.stamp, frame_id=msg.header.frame_id)
-        return [('/scan/lines', lines_markers(lines, header, self._marker_width_m)),
-                ('/scan/lines/table', lines_table(lines, header))]
+        return [(SCAN_LINES, lines_markers(lines, header, self._marker_width_m)),
+                (SCAN_LINES_TABLE, lines_table(lines, header))]
 
     def _check_stamp(self, stamp_ns: int) -> None:
         # Extraction keeps no state, so an odd step is only reported, nothing is reset.

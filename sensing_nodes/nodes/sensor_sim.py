@@ -37,6 +37,9 @@ from sensing_nodes.core.world import World, load_world
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import float32_array, yaw_to_quaternion
 from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.graph import (
+    CLOCK, CMD_VEL, GROUND_TRUTH, IMU_RAW, JOINT_STATES, SCAN, TOPIC_TYPES,
+)
 from sensing_nodes.ros.params import ParameterError, declare
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
@@ -49,13 +52,9 @@ _PACED_PERIOD_S = 0.001         # ... and how often it checks for the pace topic
 _LINGER_S = 0.5                 # wall seconds between the last sample and shutdown
 _SETTLE_S = 0.5                 # wall seconds between the graph's matching and simulated time
 
-TOPICS = {
-    core.CLOCK: ('/clock', 'rosgraph_msgs/msg/Clock'),
-    core.TRUTH: ('/ground_truth/odom', 'nav_msgs/msg/Odometry'),
-    core.IMU: ('/imu/data_raw', 'sensor_msgs/msg/Imu'),
-    core.JOINTS: ('/joint_states', 'sensor_msgs/msg/JointState'),
-    core.SCAN: ('/scan', 'sensor_msgs/msg/LaserScan'),
-}
+TOPICS = {kind: (topic, TOPIC_TYPES[topic]) for kind, topic in (
+    (core.CLOCK, CLOCK), (core.TRUTH, GROUND_TRUTH), (core.IMU, IMU_RAW),
+    (core.JOINTS, JOINT_STATES), (core.SCAN, SCAN))}
 
 
 @dataclass(frozen=True)
@@ -354,7 +353,7 @@ class SensorSimNode(Node):
             self._outputs[core.CLOCK] = self.create_publisher(Clock, TOPICS[core.CLOCK][0],
                                                               CLOCK_QOS)
         if self._commands is not None:
-            self.create_subscription(Twist, '/cmd_vel', self._on_cmd_vel, 10)
+            self.create_subscription(Twist, CMD_VEL, self._on_cmd_vel, 10)
         self._truth_tf = None
         if settings.publish_tf:
             self._publish_mounts()
@@ -433,7 +432,7 @@ class SensorSimNode(Node):
             missing.append(TOPICS[core.SCAN][0])
         if self._paced:
             if self._outputs[core.SCAN].get_subscription_count() < 1:
-                missing.append('/scan')
+                missing.append(SCAN)
             if self.count_publishers(self.settings.pace_topic) < 1:
                 missing.append(f'a publisher on {self.settings.pace_topic}')
         if missing:

@@ -17,6 +17,7 @@ from sensing_nodes.core.wheel_odometry import METHODS, WheelOdometry, WheelOdome
 from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.cdr import odometry_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.graph import JOINT_STATES, WHEEL_ODOM
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
@@ -136,10 +137,10 @@ class WheelOdometryProcessor:
         self.diagnostics = diagnostics   # counted here, published by the node
 
     def inputs(self) -> list[Input]:
-        return [Input('/joint_states', JointState, SENSOR_QOS, self.on_joint_state, decoded=True)]
+        return [Input(JOINT_STATES, JointState, SENSOR_QOS, self.on_joint_state, decoded=True)]
 
     def outputs(self) -> list[Output]:
-        return [Output('/wheel/odom', Odometry, ESTIMATE_QOS)] + \
+        return [Output(WHEEL_ODOM, Odometry, ESTIMATE_QOS)] + \
             ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
 
     def on_joint_state(self, msg: JointState) -> Outputs:
@@ -171,7 +172,7 @@ class WheelOdometryProcessor:
             pose_cov, twist_cov = self._static
         # Packed straight into CDR bytes (ros/cdr.py): building or refilling an rclpy Odometry
         # and having rclpy convert and serialise it cost more than the odometry itself.
-        out: Outputs = [('/wheel/odom', odometry_cdr(
+        out: Outputs = [(WHEEL_ODOM, odometry_cdr(
             stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov))]
         if self._publish_tf:
             out.append((TF_TOPIC, transform_message(stamp, self._odom_frame, self._base_frame,

@@ -16,11 +16,12 @@ from tf2_msgs.msg import TFMessage
 from sensing_nodes.core import quaternion as quat
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.conversions import make_transform_stamped, transform_of
+from sensing_nodes.ros.graph import TF, TF_STATIC
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.qos import TF_QOS, TF_STATIC_QOS, TF_STATIC_READER_QOS
 
-TF_TOPIC = '/tf'
-TF_STATIC_TOPIC = '/tf_static'
+TF_TOPIC = TF
+TF_STATIC_TOPIC = TF_STATIC
 
 # A mount from /tf_static that differs from the parameters by more than this is warned about.
 MOUNT_TOLERANCE_M = 1e-3

@@ -22,48 +22,40 @@ from sensing_nodes.core import se2
 from sensing_nodes.core.evaluation import path_length, sigma_consistency, trajectory_errors
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.graph import (
-    PROCESSING_NODES, Graph, GraphArgumentError, isolated_environment, parse_node_params,
+    CLOCK, DIAGNOSTICS, FUSED, GROUND_TRUTH, IMU, NODES, PROCESSING_NODES, SCAN, SCAN_LINES,
+    SCAN_MATCH, SCAN_MATCH_KEYFRAME, SENSOR_TOPICS, SIMULATOR_TOPICS, TOPIC_TYPES,
+    WALL_PERIODIC_TOPICS, WHEEL_ODOM, Graph, GraphArgumentError, isolated_environment,
+    parse_node_params,
 )
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
 
 # Estimate name -> (topic, what it estimates)
 ESTIMATES = {
-    'wheel_odometry': ('/wheel/odom', 'pose'),
-    'gyro': ('/imu/data', 'heading'),
-    'scan_matching': ('/scan_match/odom', 'pose'),
-    'fused': ('/odometry/filtered', 'pose'),
+    'wheel_odometry': (WHEEL_ODOM, 'pose'),
+    'gyro': (IMU, 'heading'),
+    'scan_matching': (SCAN_MATCH, 'pose'),
+    'fused': (FUSED, 'pose'),
 }
 # Node -> (input topic it processes one output per message of, its output topics)
-NODE_TOPICS = {
-    'sensor_sim': (None, ['/scan', '/imu/data_raw', '/joint_states', '/ground_truth/odom', '/clock']),
-    'wheel_odometry': ('/joint_states', ['/wheel/odom']),
-    'gyro_integrator': ('/imu/data_raw', ['/imu/data']),
-    'line_extractor': ('/scan', ['/scan/lines']),
-    'icp_matcher': ('/scan', ['/scan_match/odom']),
-    'complementary_fusion': (None, ['/odometry/filtered']),
-}
+NODE_TOPICS = {'sensor_sim': (None, list(SIMULATOR_TOPICS)),
+               **{name: (t.answers, [t.outputs[0]]) for name, t in NODES.items()}}
+
+
+def _qos(topic: str):
+    return SENSOR_QOS if topic in SENSOR_TOPICS else CLOCK_QOS if topic == CLOCK else ESTIMATE_QOS
 
 
 # Simulator topics the recorder subscribes to before the simulator starts.
-SIM_TOPICS = {
-    '/scan': ('sensor_msgs/msg/LaserScan', SENSOR_QOS),
-    '/imu/data_raw': ('sensor_msgs/msg/Imu', SENSOR_QOS),
-    '/joint_states': ('sensor_msgs/msg/JointState', SENSOR_QOS),
-    '/ground_truth/odom': ('nav_msgs/msg/Odometry', ESTIMATE_QOS),
-    '/clock': ('rosgraph_msgs/msg/Clock', CLOCK_QOS),
-}
+SIM_TOPICS = {t: (TOPIC_TYPES[t], _qos(t)) for t in SIMULATOR_TOPICS}
 # Topics between processing nodes, and how many subscribers each has in the graph (the
-# recorder included) once every node has matched.
+# recorder included) once every node has matched, with config/'s parameters.
 # /scan_match/odom: the recorder; /scan_match/keyframe_odom: the fusion (method ekf).
-INTERNAL_EDGES = {'/wheel/odom': 4, '/imu/data': 2, '/scan_match/odom': 1,
-                  '/scan_match/keyframe_odom': 1}
+INTERNAL_EDGES = {WHEEL_ODOM: 4, IMU: 2, SCAN_MATCH: 1, SCAN_MATCH_KEYFRAME: 1}
 SCAN_SUBSCRIBERS = 3  # line_extractor, icp_matcher and the recorder
 # Simulator topics and their subscribers among the processing nodes. The simulator (started with
 # them) counts the recorder's subscription too, so they must be there before the recorder's.
-SIM_CONSUMERS = {'/scan': 2, '/imu/data_raw': 1, '/joint_states': 1}
-# Published on a wall-clock timer whatever the data: not an output the drain waits for.
-WALL_PERIODIC_TOPICS = {'/diagnostics'}
-PACE_TOPIC = '/odometry/filtered'   # a scan goes out once the fused output reached the last one
+SIM_CONSUMERS = {t: sum(t in n.inputs for n in NODES.values()) for t in SENSOR_TOPICS}
+PACE_TOPIC = FUSED   # a scan goes out once the fused output reached the last one
 DRAIN_QUIET_S = 1.0   # the end: this long without an output (fusion flushes after 0.5 s idle)
 
 
@@ -117,21 +109,21 @@ class Collected:
         def fused(raw, stamp, wall):
             self.fused_wall[stamp] = wall  # the scan-match update comes after wheel updates
 
-        return {'/scan': scan, '/odometry/filtered': fused}
+        return {SCAN: scan, FUSED: fused}
 
     def load(self, bag_path: Path) -> None:
         """Estimates, ground truth and final diagnostics from the recorded bag."""
         from sensing_nodes.bag import read_messages
         from sensing_nodes.ros.conversions import odometry_pose, quaternion_to_yaw
 
-        odometry = {'/ground_truth/odom', '/wheel/odom', '/scan_match/odom', '/odometry/filtered'}
+        odometry = {GROUND_TRUTH, WHEEL_ODOM, SCAN_MATCH, FUSED}
         self.diagnostics: dict[str, dict[str, str]] = {}
-        for topic, stamp, msg in read_messages(bag_path, odometry | {'/imu/data', '/diagnostics'}):
+        for topic, stamp, msg in read_messages(bag_path, odometry | {IMU, DIAGNOSTICS}):
             if topic in odometry:
                 pose, cov = odometry_pose(msg)
                 self.poses[topic].append((stamp, *pose))
                 self.covariances[topic].append(cov)
-            elif topic == '/imu/data':
+            elif topic == IMU:
                 self.poses[topic].append((stamp, 0.0, 0.0, quaternion_to_yaw(msg.orientation)))
                 self.covariances[topic].append(np.diag([0.0, 0.0, msg.orientation_covariance[8]]))
             else:
@@ -259,7 +251,7 @@ def _wait_for_nodes(node, executor, names, graph, recorder, timeout=30.0) -> Non
 
 def score(collected: Collected, counts: dict, wall_s: float, duration_s: float) -> dict:
     """report.json's content from what was collected."""
-    t_ref, truth = collected.arrays('/ground_truth/odom')
+    t_ref, truth = collected.arrays(GROUND_TRUTH)
     if len(t_ref) < 2:
         raise SystemExit('sensing_demo: no ground truth was recorded')
     report = {
@@ -292,13 +284,13 @@ def score(collected: Collected, counts: dict, wall_s: float, duration_s: float) 
     sim_diag = collected.diagnostics.get('sensor_sim', {})
     # The simulator's last diagnostics may predate its last scans and the recorder's best-effort
     # subscription may miss one; no consumer can process a scan that was not published.
-    scans_published = max(int(sim_diag.get('/scan', 0)), counts.get('/scan', 0),
-                          counts.get('/scan_match/odom', 0), counts.get('/scan/lines', 0))
+    scans_published = max(int(sim_diag.get(SCAN, 0)), counts.get(SCAN, 0),
+                          counts.get(SCAN_MATCH, 0), counts.get(SCAN_LINES, 0))
     report['scans'] = {
         'published_by_sim': scans_published,
-        'received_by_recorder': counts.get('/scan', 0),
-        'processed_by_icp_matcher': counts.get('/scan_match/odom', 0),
-        'processed_by_line_extractor': counts.get('/scan/lines', 0),
+        'received_by_recorder': counts.get(SCAN, 0),
+        'processed_by_icp_matcher': counts.get(SCAN_MATCH, 0),
+        'processed_by_line_extractor': counts.get(SCAN_LINES, 0),
     }
     latencies = [(collected.fused_wall[stamp] - wall) * 1e-6
                  for stamp, wall in collected.scan_wall.items() if stamp in collected.fused_wall]
@@ -345,7 +337,7 @@ def plot(report: dict, collected: Collected, out: Path) -> list[Path]:
     from sensing_nodes.core.world import load_world
 
     world = load_world(config_file('default_world.yaml'))
-    t_ref, truth = collected.arrays('/ground_truth/odom')
+    t_ref, truth = collected.arrays(GROUND_TRUTH)
     fig, ax = plt.subplots(figsize=(9, 7.5))
     for x0, y0, x1, y1 in world.segments:
         ax.plot([x0, x1], [y0, y1], color='0.3', lw=2)

@@ -19,13 +19,13 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-from sensing_nodes.ros.graph import PROCESSING_NODES, Graph, isolated_environment
+from sensing_nodes.ros.graph import (
+    DIAGNOSTICS, FUSED, PROCESSING_NODES, SCAN, SCAN_LINES_TABLE, SCAN_MATCH, SENSOR_TOPICS,
+    TOPIC_TYPES, Graph, isolated_environment,
+)
 
 NS = 1_000_000_000
-COUNTED = {'/scan': 'sensor_msgs/msg/LaserScan',
-           '/scan_match/odom': 'nav_msgs/msg/Odometry',
-           '/scan/lines/table': 'sensor_msgs/msg/PointCloud2',
-           '/odometry/filtered': 'nav_msgs/msg/Odometry'}
+COUNTED = {t: TOPIC_TYPES[t] for t in (SCAN, SCAN_MATCH, SCAN_LINES_TABLE, FUSED)}
 
 
 def rss_kb(pid: int) -> int | None:
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     executor.add_node(node)
     counts = {topic: 0 for topic in COUNTED}
     stamps_by_topic: dict[str, set[int]] = {topic: set() for topic in COUNTED
-                                            if topic != '/odometry/filtered'}
+                                            if topic != FUSED}
     stamps = {'first': None, 'newest': 0}
     diagnostics: dict[str, dict[str, str]] = {}
 
@@ -110,9 +110,9 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                                         **{kv.key: kv.value for kv in status.values}}
 
     for topic, type_name in COUNTED.items():
-        qos = SENSOR_QOS if topic == '/scan' else ESTIMATE_QOS
+        qos = SENSOR_QOS if topic in SENSOR_TOPICS else ESTIMATE_QOS
         node.create_subscription(message_class(type_name), topic, counter(topic), qos, raw=True)
-    node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 50)
+    node.create_subscription(DiagnosticArray, DIAGNOSTICS, on_diagnostics, 50)
 
     samples: list[dict] = []        # {'sim_s', 'wall_s', 'rss_kb': {node: kB}}
 
@@ -193,20 +193,20 @@ def report(args, samples, counts, stamps_by_topic, first_stamp, diagnostics, wal
         }
     sim_diag = diagnostics.get('sensor_sim', {})
     known = set().union(*stamps_by_topic.values())
-    published = max(int(sim_diag.get('/scan', 0)), len(known))
+    published = max(int(sim_diag.get(SCAN, 0)), len(known))
     scans = {
         'published_by_sim': published,
-        'received_by_soak': counts['/scan'],
-        'processed_by_icp_matcher': counts['/scan_match/odom'],
-        'processed_by_line_extractor': counts['/scan/lines/table'],
-        'fused_outputs': counts['/odometry/filtered'],
+        'received_by_soak': counts[SCAN],
+        'processed_by_icp_matcher': counts[SCAN_MATCH],
+        'processed_by_line_extractor': counts[SCAN_LINES_TABLE],
+        'fused_outputs': counts[FUSED],
         'pace_timeouts': int(sim_diag.get('pace_timeouts', 0)),
     }
     # Which scans (by stamp, seconds after the first) got no answer. A reader that had not yet
     # matched the simulator's writer when the first scan went out misses it: that is start-up,
     # not a drop, so only misses after the first simulated second count as dropped.
-    for consumer, topic in (('icp_matcher', '/scan_match/odom'),
-                            ('line_extractor', '/scan/lines/table')):
+    for consumer, topic in (('icp_matcher', SCAN_MATCH),
+                            ('line_extractor', SCAN_LINES_TABLE)):
         missed = sorted(known - stamps_by_topic[topic])
         missed_s = [round((t - first_stamp) / NS, 1) for t in missed] if first_stamp else []
         scans[f'unanswered_by_{consumer}_s'] = missed_s[:20]
