@@ -25,6 +25,7 @@ import numpy as np
 
 from sensing_nodes.core import se2
 from sensing_nodes.core.carmen import CarmenLog, read_carmen
+from sensing_nodes.ros.graph import GROUND_TRUTH, SCAN
 
 EXIT_BAD_INPUT = 2
 NS = 1_000_000_000
@@ -100,7 +101,7 @@ def convert(log_path: str | Path, out: str | Path, laser_x_m: float = 0.0,
     staging.mkdir(parents=True)
     try:
         rows, skipped = odometry_rows(log)
-        counts = {'/scan': 0, '/odom': 0, '/ground_truth/odom': 0}
+        counts = {SCAN: 0, '/odom': 0, GROUND_TRUTH: 0}
         messages = []  # (stamp ns, order, topic, msg)
         laser_in_base = (laser_x_m, 0.0, 0.0)
         base_from_laser = se2.inverse(laser_in_base)
@@ -123,10 +124,10 @@ def convert(log_path: str | Path, out: str | Path, laser_x_m: float = 0.0,
             else:
                 msg.range_max = float(np.max(ranges)) + 1.0
             msg.ranges = float32_array(ranges)
-            messages.append((stamp(scan.time_s), 2, '/scan', msg))
+            messages.append((stamp(scan.time_s), 2, SCAN, msg))
             base_pose = se2.compose(tuple(scan.pose), base_from_laser)
             truth = make_odometry(stamp(scan.time_s), 'map', 'base_link', base_pose, zero_cov)
-            messages.append((stamp(scan.time_s), 0, '/ground_truth/odom', truth))
+            messages.append((stamp(scan.time_s), 0, GROUND_TRUTH, truth))
         poses = log.odom_pose[rows]
         covs = odometry_covariances(poses, odom_var_per_m_xy, odom_var_per_m_yaw,
                                     odom_var_per_rad_yaw)
@@ -140,9 +141,9 @@ def convert(log_path: str | Path, out: str | Path, laser_x_m: float = 0.0,
         messages.sort(key=lambda m: (m[0], m[1]))
         with BagWriter(staging / out.name, compress=compress) as bag:
             # Offered QoS for `ros2 bag play`: the scan as a driver offers it, the rest reliable.
-            bag.add_topic('/scan', 'sensor_msgs/msg/LaserScan', SENSOR_QOS)
+            bag.add_topic(SCAN, 'sensor_msgs/msg/LaserScan', SENSOR_QOS)
             bag.add_topic('/odom', 'nav_msgs/msg/Odometry', ESTIMATE_QOS)
-            bag.add_topic('/ground_truth/odom', 'nav_msgs/msg/Odometry', ESTIMATE_QOS)
+            bag.add_topic(GROUND_TRUTH, 'nav_msgs/msg/Odometry', ESTIMATE_QOS)
             for t, _, topic, msg in messages:
                 bag.write(topic, msg, t)
                 counts[topic] += 1
@@ -179,9 +180,9 @@ def main(argv: list[str] | None = None) -> int:
     for number, reason in summary['errors']:
         print(f'carmen_to_bag: {args.log}:{number}: skipped: {reason}', file=sys.stderr)
     skipped = summary['skipped_odom']
-    print(f"carmen_to_bag: wrote {out}: {summary['counts']['/scan']} scans "
+    print(f"carmen_to_bag: wrote {out}: {summary['counts'][SCAN]} scans "
           f"({summary['beams']} beams, no-return value {summary['no_return_value']} -> +inf), "
-          f"{summary['counts']['/odom']} odometry, {summary['counts']['/ground_truth/odom']} "
+          f"{summary['counts']['/odom']} odometry, {summary['counts'][GROUND_TRUTH]} "
           f"reference poses; ODOM lines skipped: {skipped['stamped_zero']} stamped 0 (the "
           f"reference pose repeated), {skipped['not_after_previous']} not after the previous; "
           f"{len(summary['errors'])} bad lines")
