@@ -246,6 +246,75 @@ def laser_motion_of(base_motion: NDArray[np.float64], laser: Sequence[float]
     return np.column_stack((cl * tx + sl * ty, -sl * tx + cl * ty, o[:, 2]))
 
 
+def _interval_ends(st: NDArray[np.int64], path: NDArray[np.float64], turn: NDArray[np.float64],
+                   gaps_t: NDArray[np.int64], gap_ns: int,
+                   options: IntervalOptions) -> list[tuple[int, int]]:
+    """(first, last) scan indices of each interval: consecutive scans until the nominal path
+    length, turning or duration reaches the options' limit; a gap in the scans or the encoder
+    samples (gaps_t: encoder stamps followed by one) ends an interval unused."""
+    ends: list[tuple[int, int]] = []
+    i = 0
+    max_ns = int(options.max_duration_s * 1e9)
+    while i < st.size - 1:
+        j = i + 1
+        broken = False
+        while j < st.size:
+            if st[j] - st[j - 1] > gap_ns or np.any((gaps_t >= st[j - 1]) & (gaps_t < st[j])):
+                broken = True
+                break
+            if (path[j] - path[i] >= options.distance_m or turn[j] - turn[i] >= options.angle_rad
+                    or st[j] - st[i] >= max_ns):
+                break
+            j += 1
+        if broken:
+            i = j
+            continue
+        if j >= st.size:
+            break
+        ends.append((i, j))
+        i = j
+    return ends
+
+
+def _refusal(result, guess: NDArray[np.float64], options: IntervalOptions) -> str:
+    """Why an interval's scan match is not used ('' when it is): not converged, degenerate,
+    a large alignment error, or far (m, rad) from the odometry guess."""
+    if not result.converged:
+        return 'not converged'
+    if result.degenerate:
+        return 'degenerate geometry'
+    if not result.error <= options.max_error_m:
+        return 'alignment error too large'
+    dx, dy = result.x - guess[0], result.y - guess[1]
+    if (math.hypot(dx, dy) > options.max_jump_m
+            or abs(float(wrap_angle(result.yaw - guess[2]))) > options.max_jump_rad):
+        return 'far from the odometry guess'
+    return ''
+
+
+def _encoder_steps(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64], t0: int,
+                   t1: int) -> NDArray[np.float64]:
+    """Encoder increments (rad) from t0 to t1: interpolated ends, recorded samples between."""
+    lo = np.searchsorted(joint_t, t0, side='right')
+    hi = np.searchsorted(joint_t, t1, side='left')
+    ends = _interp_angles(joint_t, joint_pos, np.array([t0, t1]))
+    angles = np.vstack((ends[:1], joint_pos[lo:hi], ends[1:]))
+    return np.diff(angles, axis=0)
+
+
+def _packed(t0s: list, t1s: list, motions: list, covs: list, step_list: list, stills: list,
+            rejected: dict[str, int]) -> Intervals:
+    """The matched intervals' lists as one Intervals (encoder steps concatenated)."""
+    counts = np.array([len(s) for s in step_list], dtype=np.intp)
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1])).astype(np.intp) if counts.size \
+        else np.zeros(0, np.intp)
+    return Intervals(np.array(t0s, dtype=np.int64), np.array(t1s, dtype=np.int64),
+                     np.array(motions, dtype=float).reshape(-1, 3),
+                     np.array(covs, dtype=float).reshape(-1, 3, 3),
+                     np.concatenate(step_list) if step_list else np.zeros((0, 2)),
+                     starts, counts, np.array(stills, dtype=bool), rejected)
+
+
 def make_intervals(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64],
                    scan_t: NDArray[np.int64], scan_points: Sequence[NDArray[np.float64]],
                    nominal: Geometry, options: IntervalOptions = IntervalOptions(),
@@ -268,42 +337,13 @@ def make_intervals(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64],
     joint_gaps = np.flatnonzero(np.diff(joint_t) > gap_ns)
     r_l, r_r, b = nominal.left_radius_m, nominal.right_radius_m, nominal.wheel_separation_m
 
-    def encoder_steps(t0: int, t1: int) -> NDArray[np.float64]:
-        """Encoder increments (rad) from t0 to t1: interpolated ends, recorded samples between."""
-        lo = np.searchsorted(joint_t, t0, side='right')
-        hi = np.searchsorted(joint_t, t1, side='left')
-        ends = _interp_angles(joint_t, joint_pos, np.array([t0, t1]))
-        angles = np.vstack((ends[:1], joint_pos[lo:hi], ends[1:]))
-        return np.diff(angles, axis=0)
-
     # Path length and turning of the nominal odometry at each scan, for cutting.
     ds_scan, dth_scan = body_increments(np.diff(at_scans[:, 0]) * r_l,
                                         np.diff(at_scans[:, 1]) * r_r, b)
     path = np.concatenate(([0.0], np.cumsum(np.abs(ds_scan))))
     turn = np.concatenate(([0.0], np.cumsum(np.abs(dth_scan))))
     st = scan_t[scan_idx]
-    ends: list[tuple[int, int]] = []
-    i = 0
-    max_ns = int(options.max_duration_s * 1e9)
-    while i < scan_idx.size - 1:
-        j = i + 1
-        broken = False
-        while j < scan_idx.size:
-            if st[j] - st[j - 1] > gap_ns or np.any((joint_t[joint_gaps] >= st[j - 1])
-                                                   & (joint_t[joint_gaps] < st[j])):
-                broken = True
-                break
-            if (path[j] - path[i] >= options.distance_m or turn[j] - turn[i] >= options.angle_rad
-                    or st[j] - st[i] >= max_ns):
-                break
-            j += 1
-        if broken:
-            i = j
-            continue
-        if j >= scan_idx.size:
-            break
-        ends.append((i, j))
-        i = j
+    ends = _interval_ends(st, path, turn, joint_t[joint_gaps], gap_ns, options)
 
     t0s, t1s, motions, covs, step_list, stills = [], [], [], [], [], []
     rejected: dict[str, int] = {}
@@ -314,7 +354,7 @@ def make_intervals(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64],
         if progress is not None and n % 20 == 0:
             progress(n, len(ends))
         a, bidx = scan_idx[i], scan_idx[j]
-        steps = encoder_steps(int(st[i]), int(st[j]))
+        steps = _encoder_steps(joint_t, joint_pos, int(st[i]), int(st[j]))
         guess_base = nominal_motion(steps, nominal)
         still = (path[j] - path[i] < options.still_distance_m
                  and turn[j] - turn[i] < options.still_angle_rad)
@@ -324,18 +364,7 @@ def make_intervals(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64],
             continue
         guess = mount_transform(guess_base, laser_nominal)
         result = icp.match(source_pts, icp.prepare_target(target_pts), guess, **match_options)
-        reason = ''
-        if not result.converged:
-            reason = 'not converged'
-        elif result.degenerate:
-            reason = 'degenerate geometry'
-        elif not result.error <= options.max_error_m:
-            reason = 'alignment error too large'
-        else:
-            dx, dy = result.x - guess[0], result.y - guess[1]
-            if (math.hypot(dx, dy) > options.max_jump_m
-                    or abs(float(wrap_angle(result.yaw - guess[2]))) > options.max_jump_rad):
-                reason = 'far from the odometry guess'
+        reason = _refusal(result, guess, options)
         if reason:
             rejected[reason] = rejected.get(reason, 0) + 1
             continue
@@ -347,14 +376,7 @@ def make_intervals(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64],
         stills.append(still)
     if progress is not None:
         progress(len(ends), len(ends))
-    counts = np.array([len(s) for s in step_list], dtype=np.intp)
-    starts = np.concatenate(([0], np.cumsum(counts)[:-1])).astype(np.intp) if counts.size \
-        else np.zeros(0, np.intp)
-    return Intervals(np.array(t0s, dtype=np.int64), np.array(t1s, dtype=np.int64),
-                     np.array(motions, dtype=float).reshape(-1, 3),
-                     np.array(covs, dtype=float).reshape(-1, 3, 3),
-                     np.concatenate(step_list) if step_list else np.zeros((0, 2)),
-                     starts, counts, np.array(stills, dtype=bool), rejected)
+    return _packed(t0s, t1s, motions, covs, step_list, stills, rejected)
 
 
 # --- closed form ----------------------------------------------------------------------------
@@ -489,6 +511,75 @@ def _unexcited(jac: NDArray[np.float64], free: NDArray[np.bool_]) -> NDArray[np.
     return out
 
 
+def _starting_geometry(intervals: Intervals, nominal: Geometry, reject_sigma: float,
+                       notes: list[str]) -> tuple[Geometry | None, NDArray[np.float64]]:
+    """The closed form and its parameter vector when it is solvable and physical, else (None,
+    the nominal vector) with a note saying why."""
+    try:
+        closed, _ = closed_form(intervals, reject_sigma)
+        start = closed.vector()
+        if not np.all(np.isfinite(start)) or start[2] <= 0 or min(start[:2]) <= 0:
+            raise CalibrationError('closed form gave a non-physical geometry')
+    except (CalibrationError, np.linalg.LinAlgError) as exc:
+        closed, start = None, nominal.vector()
+        notes.append(f'closed form not solvable ({exc}); started from the nominal geometry')
+    return closed, start
+
+
+def _estimates(values: NDArray[np.float64], std: NDArray[np.float64], free: NDArray[np.bool_],
+               limits: NDArray[np.float64]) -> list[Estimate]:
+    """Each parameter's estimate, or why there is none: held (not excited) or its std over the
+    limit (weakly excited); m, and rad for the laser yaw."""
+    units = ('m', 'm', 'm', 'm', 'm', 'rad')
+    estimates = []
+    for i, name in enumerate(PARAMETERS):
+        if not free[i]:
+            estimates.append(Estimate(name, None, None, units[i],
+                                      'not excited by the motion in the bag'))
+        elif not std[i] <= limits[i]:
+            estimates.append(Estimate(name, None, None, units[i],
+                                      f'weakly excited: std {std[i]:.3g} {units[i]} exceeds '
+                                      f'{limits[i]:.3g} {units[i]}'))
+        else:
+            estimates.append(Estimate(name, float(values[i]), float(std[i]), units[i]))
+    return estimates
+
+
+def _fit(sub: Intervals, covariance: NDArray[np.float64], values: NDArray[np.float64],
+         free: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Whitened least squares (interval covariances (K, 3, 3)) of the free parameters over the
+    intervals; updates `values` in place, returns the (rows, 6) Jacobian (zero columns for held
+    parameters)."""
+    whiten = _whitener(covariance)
+
+    def fun(p_free: NDArray[np.float64]) -> NDArray[np.float64]:
+        p = values.copy()
+        p[free] = p_free
+        return np.einsum('kij,kj->ki', whiten, interval_residuals(sub, p)).ravel()
+
+    result = least_squares(fun, values[free], x_scale=_SCALES[free], method='lm'
+                           if free.sum() <= sub.t0_ns.size * 3 else 'trf')
+    values[free] = result.x
+    jac = np.zeros((result.fun.size, 6))
+    jac[:, free] = result.jac
+    return jac
+
+
+def _parameter_covariance(jac: NDArray[np.float64], free: NDArray[np.bool_],
+                          res: NDArray[np.float64], cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(6, 6) covariance of the parameters from the fit's Jacobian, scaled by the reduced
+    chi-square of the residuals (K, 3) under their covariances (K, 3, 3) when above 1; NaN rows
+    and columns for held parameters."""
+    dof = max(res.size - int(free.sum()), 1)
+    chi2 = max(float(np.einsum('ki,kij,kj->', res, np.linalg.inv(cov), res)) / dof, 1.0)
+    jac_free = jac[:, free]
+    covariance = np.full((6, 6), np.nan)
+    covariance[np.ix_(free, free)] = np.linalg.pinv(jac_free.T @ jac_free) * chi2
+    return covariance
+
+
+# long: the estimation in its order (start, reweighted fit rejecting outliers, covariance,
+# report), each step a helper above; cut further it would hand eight arrays around.
 def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0,
               max_relative_std: float = 0.01, max_laser_std_m: float = 0.02,
               max_laser_yaw_std_rad: float = math.radians(1.0)) -> CalibrationResult:
@@ -508,14 +599,7 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
                                        intervals.step_count, nominal.vector()[:3])
     distance = float(np.hypot(base_nominal[moving, 0], base_nominal[moving, 1]).sum())
     turned = float(np.abs(intervals.laser_motion[moving, 2]).sum())
-    try:
-        closed, _ = closed_form(intervals, reject_sigma)
-        start = closed.vector()
-        if not np.all(np.isfinite(start)) or start[2] <= 0 or min(start[:2]) <= 0:
-            raise CalibrationError('closed form gave a non-physical geometry')
-    except (CalibrationError, np.linalg.LinAlgError) as exc:
-        closed, start = None, nominal.vector()
-        notes.append(f'closed form not solvable ({exc}); started from the nominal geometry')
+    closed, start = _starting_geometry(intervals, nominal, reject_sigma, notes)
 
     data = intervals.select(moving)
     free = np.ones(6, dtype=bool)
@@ -525,23 +609,10 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
     # A floor: the matcher's covariance alone can be optimistic (1 mm, 0.01 deg).
     matcher = data.laser_covariance + np.diag([1e-6, 1e-6, math.radians(0.01) ** 2])
     noise = (4e-6, 1.0)          # (wheel m^2/m as wheel_odometry's default, matcher scale)
+
     def fit(keep: NDArray[np.bool_], noise: tuple[float, float]) -> NDArray[np.float64]:
-        """Whitened least squares over the kept intervals; updates `values`, returns the
-        (rows, 6) Jacobian (zero columns for held parameters)."""
         sub = data.select(keep)
-        whiten = _whitener(noise[0] * wheel_shape[keep] + noise[1] * matcher[keep])
-
-        def fun(p_free: NDArray[np.float64]) -> NDArray[np.float64]:
-            p = values.copy()
-            p[free] = p_free
-            return np.einsum('kij,kj->ki', whiten, interval_residuals(sub, p)).ravel()
-
-        result = least_squares(fun, values[free], x_scale=_SCALES[free], method='lm'
-                               if free.sum() <= sub.t0_ns.size * 3 else 'trf')
-        values[free] = result.x
-        jac = np.zeros((result.fun.size, 6))
-        jac[:, free] = result.jac
-        return jac
+        return _fit(sub, noise[0] * wheel_shape[keep] + noise[1] * matcher[keep], values, free)
 
     for _round in range(8):
         if _round:
@@ -570,31 +641,15 @@ def calibrate(intervals: Intervals, nominal: Geometry, reject_sigma: float = 4.0
     sub = data.select(keep)
     res = interval_residuals(sub, values)
     cov_sub = noise[0] * wheel_shape[keep] + noise[1] * matcher[keep]
-    dof = max(res.size - int(free.sum()), 1)
-    chi2 = max(float(np.einsum('ki,kij,kj->', res, np.linalg.inv(cov_sub), res)) / dof, 1.0)
     sigma = np.array([_robust_std(res[:, c]) for c in range(3)])
-    jac_free = jac[:, free]
-    cov_free = np.linalg.pinv(jac_free.T @ jac_free) * chi2
-    covariance = np.full((6, 6), np.nan)
-    covariance[np.ix_(free, free)] = cov_free
+    covariance = _parameter_covariance(jac, free, res, cov_sub)
     std = np.sqrt(np.diag(covariance))
     correlation = covariance / np.outer(std, std)
     limits = np.array([max_relative_std * nominal.left_radius_m,
                        max_relative_std * nominal.right_radius_m,
                        max_relative_std * nominal.wheel_separation_m,
                        max_laser_std_m, max_laser_std_m, max_laser_yaw_std_rad])
-    units = ('m', 'm', 'm', 'm', 'm', 'rad')
-    estimates = []
-    for i, name in enumerate(PARAMETERS):
-        if not free[i]:
-            estimates.append(Estimate(name, None, None, units[i],
-                                      'not excited by the motion in the bag'))
-        elif not std[i] <= limits[i]:
-            estimates.append(Estimate(name, None, None, units[i],
-                                      f'weakly excited: std {std[i]:.3g} {units[i]} exceeds '
-                                      f'{limits[i]:.3g} {units[i]}'))
-        else:
-            estimates.append(Estimate(name, float(values[i]), float(std[i]), units[i]))
+    estimates = _estimates(values, std, free, limits)
     if turned < math.radians(90.0):
         notes.append(f'the robot turned only {math.degrees(turned):.0f} deg in matched '
                      'intervals: separation and laser position need turns')
