@@ -502,41 +502,12 @@ class SensorSim:
         # so summing rate x period gives the true heading change exactly.
         k = samples('imu')
         imu_t = stamps(k)
-        period_s = self.periods['imu'] * self.tick_ns / NS_PER_S
-        head = np.concatenate(([self._imu_last[0]], heading[k]))
-        vel = np.concatenate(([self._imu_last[1]], speed[k]))
-        noise = self._rng_imu.standard_normal((k.size, 6))
-        imu_gyro = p.gyro_noise_std_rad_s * noise[:, :3]
-        true_rate = np.diff(head) / period_s
-        if p.gyro_scale_error:
-            true_rate = true_rate * (1.0 + p.gyro_scale_error)
-        imu_gyro[:, 2] += true_rate + p.gyro_bias_rad_s
-        if self._gyro_bias.active:
-            imu_gyro += self._gyro_bias.sample(k.size)
-        imu_accel = p.accel_noise_std_m_s2 * noise[:, 3:]
-        imu_accel += np.column_stack((np.diff(vel) / period_s, speed[k] * yaw_rate[k],
-                                      np.full(k.size, p.gravity_m_s2)))
-        imu_accel += (p.accel_bias_x_m_s2, p.accel_bias_y_m_s2, p.accel_bias_z_m_s2)
-        if k.size:
-            self._imu_last = np.array([head[-1], vel[-1]])
+        imu_gyro, imu_accel = self._imu(heading[k], speed[k], yaw_rate[k])
 
         # Encoders: wheel rotation = travel x slip / true radius, plus random slip ~ sqrt(|travel|).
         k = samples('joint')
         joint_t = stamps(k)
-        travel = self._wheel_travel(distance[k], heading[k])
-        step = np.diff(np.vstack((self._wheel_travel_last, travel)), axis=0)
-        slip_noise = (p.slip_noise_sqrt_m * np.sqrt(np.abs(step))
-                      * self._rng_wheels.standard_normal(step.shape))
-        angle = self._wheel_angle_last + np.cumsum(
-            (step * self._slip + slip_noise) / self._true_radius, axis=0)
-        counts = np.floor(angle / p.count_angle_rad).astype(np.int64)
-        joint_position = counts * p.count_angle_rad
-        joint_period_s = self.periods['joint'] * self.tick_ns / NS_PER_S
-        joint_velocity = np.diff(np.vstack((self._counts_last, counts)), axis=0) \
-            * (p.count_angle_rad / joint_period_s)
-        if k.size:
-            self._wheel_travel_last, self._wheel_angle_last = travel[-1], angle[-1]
-            self._counts_last = counts[-1]
+        joint_position, joint_velocity = self._encoders(distance[k], heading[k])
 
         k = samples('scan')
         scan_t = stamps(k)
@@ -549,6 +520,52 @@ class SensorSim:
         self._motion_last = np.array([c[-1] for c in cols])
         return SimBlock(truth_t, truth_pose, truth_twist, scan_t, scan_ranges, imu_t, imu_gyro,
                         imu_accel, joint_t, joint_position, joint_velocity, clock_t)
+
+    def _imu(self, heading: NDArray, speed: NDArray, yaw_rate: NDArray
+             ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Gyro (rad/s) and accelerometer (m/s^2) samples, body frame, at the IMU samples with
+        the given true heading (rad, since the start), speed (m/s) and yaw rate (rad/s)."""
+        p = self.params
+        n = heading.size
+        period_s = self.periods['imu'] * self.tick_ns / NS_PER_S
+        head = np.concatenate(([self._imu_last[0]], heading))
+        vel = np.concatenate(([self._imu_last[1]], speed))
+        noise = self._rng_imu.standard_normal((n, 6))
+        imu_gyro = p.gyro_noise_std_rad_s * noise[:, :3]
+        true_rate = np.diff(head) / period_s
+        if p.gyro_scale_error:
+            true_rate = true_rate * (1.0 + p.gyro_scale_error)
+        imu_gyro[:, 2] += true_rate + p.gyro_bias_rad_s
+        if self._gyro_bias.active:
+            imu_gyro += self._gyro_bias.sample(n)
+        imu_accel = p.accel_noise_std_m_s2 * noise[:, 3:]
+        imu_accel += np.column_stack((np.diff(vel) / period_s, speed * yaw_rate,
+                                      np.full(n, p.gravity_m_s2)))
+        imu_accel += (p.accel_bias_x_m_s2, p.accel_bias_y_m_s2, p.accel_bias_z_m_s2)
+        if n:
+            self._imu_last = np.array([head[-1], vel[-1]])
+        return imu_gyro, imu_accel
+
+    def _encoders(self, distance: NDArray, heading: NDArray
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Wheel positions (rad, whole encoder counts) and velocities (rad/s) [left, right] at
+        the encoder samples with the given true distance (m) and heading (rad)."""
+        p = self.params
+        travel = self._wheel_travel(distance, heading)
+        step = np.diff(np.vstack((self._wheel_travel_last, travel)), axis=0)
+        slip_noise = (p.slip_noise_sqrt_m * np.sqrt(np.abs(step))
+                      * self._rng_wheels.standard_normal(step.shape))
+        angle = self._wheel_angle_last + np.cumsum(
+            (step * self._slip + slip_noise) / self._true_radius, axis=0)
+        counts = np.floor(angle / p.count_angle_rad).astype(np.int64)
+        joint_position = counts * p.count_angle_rad
+        joint_period_s = self.periods['joint'] * self.tick_ns / NS_PER_S
+        joint_velocity = np.diff(np.vstack((self._counts_last, counts)), axis=0) \
+            * (p.count_angle_rad / joint_period_s)
+        if travel.shape[0]:
+            self._wheel_travel_last, self._wheel_angle_last = travel[-1], angle[-1]
+            self._counts_last = counts[-1]
+        return joint_position, joint_velocity
 
     def _scans(self, x: NDArray, y: NDArray, yaw: NDArray) -> NDArray[np.float32]:
         """Noisy ranges (m, float32 as published) of scans taken at base poses (x, y, yaw)."""

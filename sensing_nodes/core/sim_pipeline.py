@@ -58,6 +58,7 @@ def wheel_config(params: SimParams) -> WheelOdometryConfig:
                                right_radius_multiplier=1.01)
 
 
+# long: one loop over the events in stamp order, a branch per sensor, as the graph runs them.
 def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
                     gyro: GyroConfig | None = None,
                     matcher: ScanMatcherSettings | None = None) -> FusionInputs:

@@ -33,6 +33,7 @@ _HEADING_ONLY = (0.0,) * 8   # orientation covariance: only yaw's variance (last
 
 
 class GyroIntegratorNode(Node):
+    # long: the parameter declarations (descriptors, ranges), then validation and wiring.
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('gyro_integrator', **node_options)

@@ -74,6 +74,7 @@ class IcpMatcherNode(Node):
             f'{math.degrees(settings.keyframe_angle_rad):.1f} deg; '
             f'{options.method}, robust {options.correspondences.robust}')
 
+    # long: a parameter table (descriptors, ranges) in its documented order.
     def _declare_settings(self) -> ScanMatcherSettings:
         """Declare and check the parameters after the frames (laser mount, keyframes, ICP,
         acceptance gates, fallback, odometry use) in their documented order: a parameter table,

@@ -26,6 +26,7 @@ from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TF_TOPIC, transform_message
 
 class WheelOdometryNode(Node):
+    # long: the parameter declarations (descriptors, ranges), then validation and wiring.
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('wheel_odometry', **node_options)
