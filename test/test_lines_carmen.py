@@ -13,7 +13,6 @@ from sensing_nodes.core.carmen import read_carmen
 from sensing_nodes.core.lines import extract_lines
 from sensing_nodes.core.world import raycast
 from sensing_nodes.ros.conversions import ns_to_stamp
-from sensing_nodes.tools.lines_plot import carmen_ranges
 
 CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'
 LOGS = ['aces-corrected.log.gz', 'freiburg-101-corrected.log.gz']
@@ -25,7 +24,7 @@ needs_logs = pytest.mark.skipif(not CARMEN.is_dir(), reason=f'CARMEN logs not fo
 def test_every_scan_of_the_real_logs(name):
     log = read_carmen(CARMEN / name)
     counts = []
-    for ranges in carmen_ranges(log):
+    for ranges in log.ranges_without_returns():
         angles = log.scan_angles(ranges.size)
         lines = extract_lines(ranges, angles)
         counts.append(len(lines))

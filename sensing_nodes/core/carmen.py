@@ -41,6 +41,17 @@ class CarmenLog:
         """Beam angles (rad, laser frame) of a scan with beam_count beams over 180 degrees."""
         return -np.pi / 2 + np.pi * np.arange(beam_count) / beam_count
 
+    def largest_range(self) -> float:
+        """The largest range in the log (m): the plots take it for the no-return value."""
+        return max(float(scan.ranges.max()) for scan in self.scans)
+
+    def ranges_without_returns(self) -> list[NDArray[np.float64]]:
+        """Ranges (m) of every scan, with the log's no-return value (its largest range) as +inf."""
+        if not self.scans:
+            return []
+        no_return = self.largest_range()
+        return [np.where(scan.ranges >= no_return, np.inf, scan.ranges) for scan in self.scans]
+
 
 def _open_text(path: Path):
     return gzip.open(path, 'rt') if path.suffix == '.gz' else path.open('r')

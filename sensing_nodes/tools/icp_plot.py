@@ -17,7 +17,6 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core import icp
@@ -36,10 +35,9 @@ def carmen_pair(path: str | Path, index: int, step: int
         raise ValueError(f'{path}: {count} scans, need at least {step + 1}')
     if not 0 <= index < count - step:
         raise ValueError(f'scan index {index} out of range: 0 .. {count - step - 1}')
-    no_return = max(float(s.ranges.max()) for s in log.scans)
+    no_return, all_ranges = log.largest_range(), log.ranges_without_returns()
     clouds = []
-    for scan in (log.scans[index], log.scans[index + step]):
-        ranges = np.where(scan.ranges >= no_return, np.inf, scan.ranges)
+    for ranges in (all_ranges[index], all_ranges[index + step]):
         clouds.append(scan_to_points(ranges, log.scan_angles(ranges.size), 0.01, no_return)[0])
     reference = between(log.scans[index].pose, log.scans[index + step].pose)
     return clouds[0], clouds[1], reference, f'{Path(path).name} scans {index} -> {index + step}'

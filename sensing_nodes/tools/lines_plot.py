@@ -16,16 +16,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core.carmen import CarmenLog, read_carmen
+from sensing_nodes.core.carmen import read_carmen
 from sensing_nodes.core.lines import Line, extract_lines
-
-
-def carmen_ranges(log: CarmenLog) -> list[NDArray[np.float64]]:
-    """Ranges (m) of every scan, with the log's no-return value (its largest range) as +inf."""
-    if not log.scans:
-        return []
-    no_return = max(float(scan.ranges.max()) for scan in log.scans)
-    return [np.where(scan.ranges >= no_return, np.inf, scan.ranges) for scan in log.scans]
 
 
 def carmen_scan(path: str | Path, index: int) -> tuple[NDArray, NDArray, dict, str]:
@@ -33,7 +25,7 @@ def carmen_scan(path: str | Path, index: int) -> tuple[NDArray, NDArray, dict, s
     log = read_carmen(path)
     if not log.scans:
         raise ValueError(f'{path}: no FLASER scans')
-    ranges = carmen_ranges(log)[_check_index(index, len(log.scans))]
+    ranges = log.ranges_without_returns()[_check_index(index, len(log.scans))]
     return ranges, log.scan_angles(ranges.size), {}, f'{Path(path).name} scan {index}'
 
 
