@@ -8,6 +8,7 @@ ranges keep their REP 117 values (NaN, +-inf mean no measurement).
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 import tempfile
@@ -19,6 +20,8 @@ from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
+
+from sensing_nodes.ros.graph import SCAN
 
 JOINT_STATE = ('sensor_msgs/msg/JointState', 'sensor_msgs/JointState')
 LASER_SCAN = ('sensor_msgs/msg/LaserScan', 'sensor_msgs/LaserScan')
@@ -127,7 +130,7 @@ def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
             if t:
                 chosen[t] = 'joints'
         if 'scan' in want:
-            t = _choose(topics, LASER_SCAN, scan_topic, ('/scan',))
+            t = _choose(topics, LASER_SCAN, scan_topic, (SCAN,))
             if t:
                 chosen[t] = 'scan'
         if 'imu' in want:
@@ -242,6 +245,16 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def add_scan_source(parser: argparse.ArgumentParser, index_help: str) -> None:
+    """The plots' scan source: --carmen LOG or --bag BAG (with --topic), and --index."""
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument('--carmen', help='CARMEN log (.log or .log.gz)')
+    source.add_argument('--bag', help='bag with LaserScan messages: a rosbag2 folder or a '
+                        'ROS 1 .bag file')
+    parser.add_argument('--topic', default=SCAN, help='LaserScan topic in the bag')
+    parser.add_argument('--index', type=int, default=0, help=index_help)
 
 
 def stderr_progress(prefix: str) -> Callable[[str], None]:

@@ -158,6 +158,19 @@ def isolated_environment(domain_id: int | None, offset: int = 0) -> dict[str, st
     return env
 
 
+def new_run_folder(out: Path | None, default_root: str, marker: str, prog: str) -> Path | None:
+    """The output folder of a graph run (default: default_root/run-<date-time>), created; None
+    (with a line on stderr) when it already holds a run (its `marker` file or folder exists)."""
+    from datetime import datetime
+
+    out = out or Path(default_root) / datetime.now().strftime('run-%Y%m%d-%H%M%S')
+    if (out / marker).exists():
+        print(f'{prog}: {out} already holds a run; choose another --out', file=sys.stderr)
+        return None
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
 class Graph:
     """The node processes, started with their parameter files (then params_file, a robot preset
     overriding them), stopped with SIGINT."""

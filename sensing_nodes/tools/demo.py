@@ -13,7 +13,6 @@ import signal
 import sys
 import time
 from collections import defaultdict
-from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +24,7 @@ from sensing_nodes.ros.graph import (
     CLOCK, DIAGNOSTICS, FUSED, GROUND_TRUTH, IMU, NODES, PROCESSING_NODES, SCAN, SCAN_LINES,
     SCAN_MATCH, SCAN_MATCH_KEYFRAME, SENSOR_TOPICS, SIMULATOR_TOPICS, TOPIC_TYPES,
     WALL_PERIODIC_TOPICS, WHEEL_ODOM, Graph, GraphArgumentError, isolated_environment,
-    parse_node_params,
+    new_run_folder, parse_node_params,
 )
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
 
@@ -378,11 +377,9 @@ def plot(report: dict, collected: Collected, out: Path) -> list[Path]:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    out = args.out or Path('demo_out') / datetime.now().strftime('run-%Y%m%d-%H%M%S')
-    if (out / 'bag').exists():
-        print(f'sensing_demo: {out} already holds a run; choose another --out', file=sys.stderr)
+    out = new_run_folder(args.out, 'demo_out', 'bag', 'sensing_demo')
+    if out is None:
         return 2
-    out.mkdir(parents=True, exist_ok=True)
     print(f'sensing_demo: {args.duration:g} s of the default route at {args.rate:g}x, seed {args.seed}')
     collected, counts, wall_s, duration = run_graph(args, out)
     collected.load(out / 'bag')

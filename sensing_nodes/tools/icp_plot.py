@@ -23,6 +23,7 @@ from sensing_nodes.core import icp
 from sensing_nodes.core.carmen import read_carmen
 from sensing_nodes.core.scan import scan_to_points
 from sensing_nodes.core.se2 import Pose2, between, transform_points
+from sensing_nodes.sensor_bag import add_scan_source
 
 
 def carmen_pair(path: str | Path, index: int, step: int
@@ -100,12 +101,7 @@ def render(target, source, guess: Pose2, result: icp.MatchResult, out: str | Pat
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='icp_plot', description=__doc__.split('\n')[0])
-    source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument('--carmen', help='CARMEN log (.log or .log.gz)')
-    source.add_argument('--bag', help='bag with LaserScan messages: a rosbag2 folder or a '
-                        'ROS 1 .bag file')
-    parser.add_argument('--topic', default='/scan', help='LaserScan topic in the bag')
-    parser.add_argument('--index', type=int, default=0, help='target scan (0-based)')
+    add_scan_source(parser, 'target scan (0-based)')
     parser.add_argument('--step', type=int, default=1, help='source = scan index + step')
     parser.add_argument('--guess', choices=('identity', 'reference'), default='identity',
                         help="initial guess (CARMEN only: 'reference' = the logs' poses)")

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from sensing_nodes.core.carmen import read_carmen
 from sensing_nodes.core.lines import Line, extract_lines
+from sensing_nodes.sensor_bag import add_scan_source
 
 
 def carmen_scan(path: str | Path, index: int) -> tuple[NDArray, NDArray, dict, str]:
@@ -91,12 +92,7 @@ def render(ranges, angles, lines: list[Line], out: str | Path, title: str) -> No
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='lines_plot', description=__doc__.split('\n')[0])
-    source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument('--carmen', help='CARMEN log (.log or .log.gz)')
-    source.add_argument('--bag', help='bag with LaserScan messages: a rosbag2 folder or a '
-                        'ROS 1 .bag file')
-    parser.add_argument('--topic', default='/scan', help='LaserScan topic in the bag')
-    parser.add_argument('--index', type=int, default=0, help='which scan (0-based; negative from the end)')
+    add_scan_source(parser, 'which scan (0-based; negative from the end)')
     parser.add_argument('--out', required=True, help='PNG file to write')
     parser.add_argument('--split-distance', type=float, default=0.05)
     parser.add_argument('--max-line-gap', type=float, default=0.5)

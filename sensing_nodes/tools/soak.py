@@ -21,7 +21,7 @@ from pathlib import Path
 
 from sensing_nodes.ros.graph import (
     DIAGNOSTICS, FUSED, PROCESSING_NODES, SCAN, SCAN_LINES_TABLE, SCAN_MATCH, SENSOR_TOPICS,
-    TOPIC_TYPES, Graph, isolated_environment,
+    TOPIC_TYPES, Graph, isolated_environment, new_run_folder,
 )
 
 NS = 1_000_000_000
@@ -252,11 +252,9 @@ def print_table(result: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    out = args.out or Path('soak_out') / datetime.now().strftime('run-%Y%m%d-%H%M%S')
-    if (out / 'soak.json').exists():
-        print(f'sensing_soak: {out} already holds a run; choose another --out', file=sys.stderr)
+    out = new_run_folder(args.out, 'soak_out', 'soak.json', 'sensing_soak')
+    if out is None:
         return 2
-    out.mkdir(parents=True, exist_ok=True)
     print(f'sensing_soak: {args.duration:g} s simulated, '
           f"{'paced by the graph' if args.rate == 'paced' else f'{args.rate:g}x real time'}, "
           f'output in {out}', flush=True)
