@@ -204,7 +204,7 @@ def test_metadata_follows_rosbag2_version_9(written_bags, name, probe):
             assert qos['durability'] in {'volatile', 'transient_local', 'system_default'}
             for key in ('deadline', 'lifespan', 'liveliness_lease_duration'):
                 assert set(qos[key]) == {'sec', 'nsec'}
-        assert re.fullmatch(r'[a-z_]+/msg/[A-Za-z0-9]+', meta['type'])
+        assert re.fullmatch(r'[a-z][a-z0-9_]*/msg/[A-Za-z0-9]+', meta['type'])  # REP 144
         # The hash ROS 2 computes for the type (what `ros2 bag play` compares).
         assert meta['type_description_hash'] == _live_type_hash(probe, meta['type'])
 
