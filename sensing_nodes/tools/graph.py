@@ -15,33 +15,16 @@ import faulthandler
 import sys
 from pathlib import Path
 
-EXECUTORS = ('events', 'single', 'multi')
-
-
-def make_executor(kind: str, threads: int | None):
-    """events: rclpy's EventsExecutor (the nodes' default, ros/run.py); single:
-    SingleThreadedExecutor; multi: MultiThreadedExecutor (each node's callbacks stay serialised
-    in its default mutually exclusive group; nodes may run side by side)."""
-    from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
-
-    if kind == 'single':
-        return SingleThreadedExecutor()
-    if kind == 'multi':
-        return MultiThreadedExecutor(num_threads=threads)
-    from rclpy.experimental import EventsExecutor
-
-    return EventsExecutor()
-
 
 def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list[str]],
-        executor_kind: str = 'events', threads: int | None = None) -> int:
+        executor_kind: str | None = None, threads: int | None = None) -> int:
     """Build the nodes (in `names` order) in one context and spin them until shutdown; 2 when a
     node refuses its parameters (the nodes built before it are destroyed)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
     from sensing_nodes.ros.graph import make_node, node_arguments
-    from sensing_nodes.ros.run import _PARAMETER_ERRORS, EXIT_BAD_PARAMETER
+    from sensing_nodes.ros.run import _PARAMETER_ERRORS, EXIT_BAD_PARAMETER, make_executor
 
     faulthandler.enable()
     # Never this tool's argv: its options are not ROS arguments, and every node gets its own.
@@ -59,7 +42,7 @@ def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list
         executor = make_executor(executor_kind, threads)
         for node in nodes:
             executor.add_node(node)
-        print(f'sensing_graph: {", ".join(names)} in one process ({executor_kind} executor)',
+        print(f'sensing_graph: {", ".join(names)} in one process ({type(executor).__name__})',
               file=sys.stderr, flush=True)
         # spin_once in a loop, as run_node: EventsExecutor.spin() of rclpy 7.1 neither fires
         # timers nor returns on shutdown.
@@ -76,6 +59,7 @@ def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     from sensing_nodes.ros.graph import PROCESSING_NODES
+    from sensing_nodes.ros.run import EXECUTORS
 
     parser = argparse.ArgumentParser(prog='sensing_graph', description=__doc__.split('\n\n')[0])
     parser.add_argument('--nodes', default=','.join(PROCESSING_NODES),
@@ -87,8 +71,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help='a parameter override for one node (after the parameter files)')
     parser.add_argument('--remap', action='append', default=[], metavar='NODE:FROM:=TO',
                         help='a topic remapping for one node (as its executable\'s -r FROM:=TO)')
-    parser.add_argument('--executor', choices=EXECUTORS, default='events',
-                        help='what spins the nodes (default events, as each node executable)')
+    parser.add_argument('--executor', choices=EXECUTORS, default=None,
+                        help='what spins the nodes: events (rclpy\'s EventsExecutor), single '
+                             '(SingleThreadedExecutor) or multi (MultiThreadedExecutor: each '
+                             'node\'s callbacks stay serialised in its default mutually exclusive '
+                             'group); default: SENSING_NODES_EXECUTOR, else events, as each node '
+                             'executable')
     parser.add_argument('--threads', type=int, default=None,
                         help='with --executor multi: worker threads (default: rclpy\'s, the CPU '
                              'count)')
