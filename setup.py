@@ -14,6 +14,7 @@ EXECUTABLES = {
     'line_extractor': 'sensing_nodes.nodes.line_extractor:main',
     'icp_matcher': 'sensing_nodes.nodes.icp_matcher:main',
     'complementary_fusion': 'sensing_nodes.nodes.complementary_fusion:main',
+    'sensing_graph': 'sensing_nodes.tools.graph:main',
     'sensing_demo': 'sensing_nodes.tools.demo:main',
     'sensing_bench': 'sensing_nodes.tools.bench:main',
     'lines_plot': 'sensing_nodes.tools.lines_plot:main',

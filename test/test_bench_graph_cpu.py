@@ -3,7 +3,7 @@ node takes in, from the simulator's parameter file, and CPU time read from /proc
 
 import os
 
-from sensing_nodes.bench.graph_cpu import _cpu_seconds, input_rates
+from sensing_nodes.bench.graph_cpu import _cpu_seconds, _memory_mb, input_rates
 
 
 def test_input_rates_follow_the_simulator_rates():
@@ -19,3 +19,13 @@ def test_cpu_seconds_of_this_process_and_of_none():
     sum(i * i for i in range(200_000))
     assert spent is not None and _cpu_seconds(os.getpid()) > spent
     assert _cpu_seconds(2 ** 22 + 12345) is None   # beyond pid_max: no such process
+
+
+def test_memory_of_this_process_grows_with_an_allocation_and_none_when_gone():
+    before = _memory_mb(os.getpid())
+    block = bytearray(50_000_000)   # 50 MB touched (zero-filled): resident
+    after = _memory_mb(os.getpid())
+    assert after['rss_mb'] - before['rss_mb'] > 45.0, (before, after)
+    assert after['peak_rss_mb'] >= after['rss_mb'] and after['pss_mb'] <= after['rss_mb']
+    del block
+    assert _memory_mb(2 ** 22 + 12345) is None

@@ -9,7 +9,9 @@ and end of a measuring window. % of a core per 1x = CPU seconds / wall seconds /
 factor. Messages per simulated second come from config/sensor_sim.yaml (what each node takes
 in); per-message figures are CPU time over those messages (whatever else the process does,
 timers and /diagnostics included). The load average is reported with the figures: on a shared
-machine, compare figures from one run only.
+machine, compare figures from one run only. With one_process the nodes run in one sensing_graph
+process instead (ros/graph.py); each process's resident memory (RSS, and its peak) is read from
+/proc at the end of the window.
 """
 
 from __future__ import annotations
@@ -27,8 +29,7 @@ import yaml
 
 from sensing_nodes.paths import config_file
 
-PROCESSING_NODES = ('wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
-                    'complementary_fusion')
+from sensing_nodes.ros.graph import ONE_PROCESS, PROCESSING_NODES
 
 
 def input_rates(sim_overrides: dict[str, float] | None = None) -> dict[str, float]:
@@ -58,6 +59,22 @@ def _cpu_seconds(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
+def _memory_mb(pid: int) -> dict[str, float] | None:
+    """Resident memory (VmRSS), its peak (VmHWM) and the proportional set size (Pss: shared
+    pages divided among the processes mapping them, so separate processes' figures add up
+    fairly) of a live process, in MB (10^6 bytes)."""
+    try:
+        lines = (Path(f'/proc/{pid}/status').read_text().splitlines()
+                 + Path(f'/proc/{pid}/smaps_rollup').read_text().splitlines())
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+    kb = {k: int(v.split()[0]) for k, _, v in (line.partition(':') for line in lines)
+          if k in ('VmRSS', 'VmHWM', 'Pss')}
+    return {'rss_mb': round(kb['VmRSS'] * 1.024e-3, 1),
+            'peak_rss_mb': round(kb['VmHWM'] * 1.024e-3, 1),
+            'pss_mb': round(kb['Pss'] * 1.024e-3, 1)}
+
+
 def stop_processes(processes) -> None:
     """SIGINT to every live process (the nodes shut down cleanly), then wait; kill what hangs."""
     processes = list(processes)
@@ -77,11 +94,15 @@ def _load_average() -> float:
 
 
 def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: float,
-            rate: float = 1.0, start_timeout_s: float = 60.0) -> dict:
-    """Run sensor_sim and `nodes` as processes; CPU per process over window_s wall seconds.
+            rate: float = 1.0, start_timeout_s: float = 60.0, one_process: bool = False,
+            executor: str | None = None) -> dict:
+    """Run sensor_sim and `nodes` as processes (the nodes in one sensing_graph process with
+    one_process, spun by `executor`); CPU per process over window_s wall seconds, and memory.
 
-    Returns {'processes': {name: {'core_percent_per_1x', 'cpu_us_per_message'}}, 'total...'}.
+    Returns {'processes': {name: {'core_percent_per_1x', 'cpu_us_per_message', 'rss_mb',
+    'peak_rss_mb'}}, 'total...'}.
     """
+
     bin_dir = Path(sys.executable).parent
     env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
            'ROS_DOMAIN_ID': str(150 + os.getpid() % 80)}
@@ -94,13 +115,18 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
     with tempfile.TemporaryDirectory() as tmp:
         logs = {}
         try:
-            for name in (*nodes, 'sensor_sim'):
+            commands = {name: [str(bin_dir / name), '--ros-args', '--params-file',
+                               str(config_file(f'{name}.yaml'))] for name in nodes}
+            if one_process:
+                commands = {ONE_PROCESS: [sys.executable, '-m', 'sensing_nodes.tools.graph',
+                                          '--nodes', ','.join(nodes),
+                                          *(['--executor', executor] if executor else [])]}
+            commands['sensor_sim'] = [str(bin_dir / 'sensor_sim'), '--ros-args', '--params-file',
+                                      str(config_file('sensor_sim.yaml')), *sim_args]
+            for name, command in commands.items():
                 logs[name] = Path(tmp) / f'{name}.log'
-                extra = sim_args if name == 'sensor_sim' else []
                 procs[name] = subprocess.Popen(
-                    [str(bin_dir / name), '--ros-args', '--params-file',
-                     str(config_file(f'{name}.yaml')), *extra],
-                    stdout=logs[name].open('w'), stderr=subprocess.STDOUT, env=env,
+                    command, stdout=logs[name].open('w'), stderr=subprocess.STDOUT, env=env,
                     start_new_session=True)
             # Started: the simulator says so (it waits for the scan consumers), or, with none to
             # wait for, every node has logged its start-up line.
@@ -124,26 +150,32 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
             time.sleep(window_s)
             after = {n: _cpu_seconds(p.pid) for n, p in procs.items()}
             wall = time.monotonic() - t0
+            memory = {n: _memory_mb(p.pid) for n, p in procs.items()}
             load_after = _load_average()
         finally:
             stop_processes(procs.values())
     rates = input_rates(sim_overrides)
+    rates[ONE_PROCESS] = sum(rates[n] for n in nodes)
     out: dict = {'window_s': round(wall, 1), 'rate': rate,
                  'load_average_1min': [load_before, load_after], 'processes': {}}
-    total = 0.0
-    for name in (*nodes, 'sensor_sim'):
-        if before[name] is None or after[name] is None:
+    total, total_rss, total_pss = 0.0, 0.0, 0.0
+    for name in procs:
+        if before[name] is None or after[name] is None or memory[name] is None:
             out['processes'][name] = {'error': 'process ended inside the window'}
             continue
         cpu = after[name] - before[name]
         percent = 100.0 * cpu / wall / rate
-        if name in PROCESSING_NODES:
+        if name != 'sensor_sim':
             total += percent
+            total_rss += memory[name]['rss_mb']
+            total_pss += memory[name]['pss_mb']
         out['processes'][name] = {
             'core_percent_per_1x': round(percent, 2),
             'cpu_us_per_message': round(1e6 * cpu / (wall * rate * rates[name]), 1),
-            'messages_per_s_at_1x': rates[name]}
+            'messages_per_s_at_1x': rates[name], **memory[name]}
     out['processing_graph_core_percent_per_1x'] = round(total, 2)
+    out['processing_graph_rss_mb'] = round(total_rss, 1)
+    out['processing_graph_pss_mb'] = round(total_pss, 1)
     return out
 
 
@@ -236,6 +268,18 @@ def run(quick: bool = False) -> dict:
             if key != 'messages_per_s_at_1x':
                 figures[f'{name}_{key}'] = value
     figures['processing_graph_core_percent_per_1x'] = graph['processing_graph_core_percent_per_1x']
+    figures['processing_graph_rss_mb'] = graph['processing_graph_rss_mb']
+    figures['processing_graph_pss_mb'] = graph['processing_graph_pss_mb']
+    # The same nodes in one sensing_graph process: its memory and CPU against the sum above.
+    one = measure(PROCESSING_NODES, {}, window, one_process=True)
+    figures['one_process_graph_core_percent_per_1x'] = one['processing_graph_core_percent_per_1x']
+    figures['one_process_graph_rss_mb'] = one['processing_graph_rss_mb']
+    figures['one_process_graph_peak_rss_mb'] = one['processes'].get(ONE_PROCESS, {}).get(
+        'peak_rss_mb')
+    if one['processing_graph_core_percent_per_1x'] and graph['processing_graph_core_percent_per_1x']:
+        figures['one_process_over_separate_cpu_ratio'] = round(
+            one['processing_graph_core_percent_per_1x']
+            / graph['processing_graph_core_percent_per_1x'], 3)
     g = gyro['processes']['gyro_integrator']
     figures['gyro_integrator_1khz_imu_core_percent'] = g.get('core_percent_per_1x')
     figures['gyro_integrator_1khz_imu_cpu_us_per_message'] = g.get('cpu_us_per_message')
@@ -256,6 +300,10 @@ if __name__ == '__main__':
                         help='IMU rate (Hz); given: measure wheel_odometry + gyro_integrator')
     parser.add_argument('--floor', type=float, default=None, metavar='HZ',
                         help='measure the relay floor (one Imu in, one out) at this rate')
+    parser.add_argument('--one-process', action='store_true',
+                        help='the processing nodes in one sensing_graph process')
+    parser.add_argument('--executor', choices=('events', 'single', 'multi'), default=None,
+                        help='with --one-process: sensing_graph\'s executor')
     parser.add_argument('--relay', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.relay:
@@ -264,7 +312,8 @@ if __name__ == '__main__':
     if args.floor is not None:
         result = relay_floor(args.floor, args.window)
     elif args.imu_rate is None:
-        result = measure(PROCESSING_NODES, {}, args.window, args.rate)
+        result = measure(PROCESSING_NODES, {}, args.window, args.rate, one_process=args.one_process,
+                         executor=args.executor)
     else:
         result = measure(('wheel_odometry', 'gyro_integrator'), {'imu_rate_hz': args.imu_rate},
                          args.window, args.rate)

@@ -1,7 +1,7 @@
 """The node graph: its topics (names, types, who publishes and takes what), its nodes as
 processes (where their executables are, their isolated DDS environment, starting and stopping
 them). One description used by the nodes, sensor_sim, sensing_demo, sensing_soak,
-sensing_replay and sensing_pipeline."""
+sensing_replay, sensing_pipeline and sensing_graph (all processing nodes in one process)."""
 
 from __future__ import annotations
 
@@ -88,6 +88,17 @@ NODES = {
                                        (FUSED,), optional=(TF,)),
 }
 PROCESSING_NODES = tuple(NODES)
+# Processing node name -> (module, class): what its executable constructs.
+NODE_CLASSES = {
+    'wheel_odometry': ('sensing_nodes.nodes.wheel_odometry', 'WheelOdometryNode'),
+    'gyro_integrator': ('sensing_nodes.nodes.gyro_integrator', 'GyroIntegratorNode'),
+    'line_extractor': ('sensing_nodes.nodes.line_extractor', 'LineExtractorNode'),
+    'icp_matcher': ('sensing_nodes.nodes.icp_matcher', 'IcpMatcherNode'),
+    'complementary_fusion': ('sensing_nodes.nodes.complementary_fusion',
+                             'ComplementaryFusionNode'),
+}
+# The one-process graph (sensing_graph), run by the interpreter of the tool that starts it.
+ONE_PROCESS = 'sensing_graph'
 
 # Input topic -> the outputs that answer it, one message each carrying its stamp.
 ANSWERS: dict[str, tuple[str, ...]] = {}
@@ -103,15 +114,18 @@ class GraphArgumentError(ValueError):
     """A command-line description of nodes, parameters or remaps that does not parse."""
 
 
-def parse_node_params(specs: list[str]) -> dict[str, list[str]]:
-    """['icp_matcher:laser_x_m:=0.0'] -> {'icp_matcher': ['-p', 'laser_x_m:=0.0']}."""
+def parse_node_params(specs: list[str], flag: str = '-p',
+                      option: str = '--param') -> dict[str, list[str]]:
+    """['icp_matcher:laser_x_m:=0.0'] -> {'icp_matcher': ['-p', 'laser_x_m:=0.0']}; with
+    flag='-r' (option '--remap') a remapping of one node: NODE:FROM:=TO -> ['-r', 'FROM:=TO']."""
     extra: dict[str, list[str]] = defaultdict(list)
     for spec in specs:
         node, sep, assignment = spec.partition(':')
         if not sep or ':=' not in assignment or node not in PROCESSING_NODES:
-            raise GraphArgumentError(f'--param {spec!r}: write NODE:NAME:=VALUE with NODE one of '
+            what = 'NAME:=VALUE' if flag == '-p' else 'FROM:=TO'
+            raise GraphArgumentError(f'{option} {spec!r}: write NODE:{what} with NODE one of '
                                      f'{", ".join(PROCESSING_NODES)}')
-        extra[node] += ['-p', assignment]
+        extra[node] += [flag, assignment]
     return extra
 
 
@@ -169,6 +183,24 @@ def new_run_folder(out: Path | None, default_root: str, marker: str, prog: str) 
         return None
     out.mkdir(parents=True, exist_ok=True)
     return out
+def node_arguments(name: str, params_files: list[Path], extra: list[str]) -> list[str]:
+    """The ROS arguments a processing node starts with: its config/<name>.yaml, then
+    params_files (a robot preset), then extra (its own -p/-r), as later overrides earlier."""
+    args = ['--ros-args', '--params-file', str(config_file(f'{name}.yaml'))]
+    for f in params_files:
+        args += ['--params-file', str(f)]
+    return args + list(extra)
+
+
+def make_node(name: str, arguments: list[str]):
+    """The processing node `name` constructed in this process's rclpy context with only
+    `arguments` (node_arguments) as its own, as its executable constructs it; the process's
+    global ROS arguments do not apply, so nodes built side by side never share a -p or -r."""
+    import importlib
+
+    module, cls = NODE_CLASSES[name]
+    return getattr(importlib.import_module(module), cls)(
+        cli_args=arguments, use_global_arguments=False)
 
 
 class Graph:
@@ -184,9 +216,31 @@ class Graph:
     def start(self, name: str, extra: list[str]) -> None:
         log = open(self.out / 'logs' / f'{name}.log', 'w')
         self._logs[name] = log
-        cmd = [executable(name), '--ros-args', '--params-file', str(config_file(f'{name}.yaml')),
-               *(['--params-file', str(self.params_file)] if self.params_file else []), *extra]
+        cmd = [executable(name), *node_arguments(
+            name, [self.params_file] if self.params_file else [], extra)]
         self.processes[name] = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
+
+    def start_one_process(self, names: tuple[str, ...], extras: dict[str, list[str]],
+                          executor_kind: str | None = None) -> None:
+        """The named processing nodes in one sensing_graph process (self.processes[ONE_PROCESS]),
+        each with the arguments start() would give it; extras: node -> ['-p'|'-r', 'A:=B', ...]."""
+        cmd = [sys.executable, '-m', 'sensing_nodes.tools.graph', '--nodes', ','.join(names)]
+        if self.params_file:
+            cmd += ['--params-file', str(self.params_file)]
+        if executor_kind:
+            cmd += ['--executor', executor_kind]
+        options = {'-p': '--param', '-r': '--remap'}
+        for name in names:
+            extra = list(extras.get(name, []))
+            if len(extra) % 2 or any(f not in options for f in extra[::2]):
+                raise GraphArgumentError(f'{name}: one-process arguments must be -p/-r pairs: '
+                                         f'{extra}')
+            for flag, value in zip(extra[::2], extra[1::2]):
+                cmd += [options[flag], f'{name}:{value}']
+        log = open(self.out / 'logs' / f'{ONE_PROCESS}.log', 'w')
+        self._logs[ONE_PROCESS] = log
+        self.processes[ONE_PROCESS] = subprocess.Popen(
             cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
 
     def failed(self) -> list[str]:

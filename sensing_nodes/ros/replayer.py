@@ -294,9 +294,10 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
            compress: bool = False, settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
            settle_s: float = 0.002, warmup_s: float = 2.0,
            settle_before: dict[str, float] | None = None,
-           params_file: Path | None = None) -> list[PassResult]:
-    """Replay a bag through the graph (started here when `launch`), `loops` times back to back;
-    writes `out` (one pass) or out/pass-K (several), complete or not at all."""
+           params_file: Path | None = None, one_process: bool = False) -> list[PassResult]:
+    """Replay a bag through the graph (started here when `launch`: with one_process, in one
+    sensing_graph process), `loops` times back to back; writes `out` (one pass) or out/pass-K
+    (several), complete or not at all."""
     remaps = dict(remaps or {})
     if expectations is None:   # the default table names node inputs: a remapped bag topic feeds one
         published_as = {dst: src for src, dst in remaps.items()}
@@ -345,6 +346,7 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                 # (asynchronous publishing sends from a separate thread, later).
                 env.setdefault('RMW_FASTRTPS_PUBLICATION_MODE', 'SYNCHRONOUS')
             graph = Graph(log_dir, env, params_file)
+            extras = {}
             for name in nodes:
                 extra = list((node_params or {}).get(name, []))
                 if name == 'complementary_fusion' and mode == 'lockstep' \
@@ -354,7 +356,12 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                     # machine) would flush before the match arrives and change the outputs.
                     extra = ['-p', f'flush_after_s:={LOCKSTEP_FUSION_FLUSH_S}', *extra]
                     quiet_s = max(quiet_s, 1.5 * LOCKSTEP_FUSION_FLUSH_S + 1.0)
-                graph.start(name, extra)
+                extras[name] = extra
+            if one_process:
+                graph.start_one_process(nodes, extras)
+            else:
+                for name in nodes:
+                    graph.start(name, extras[name])
         if mode == 'timed':
             replayer.lead_in_clock_ns = next(s for t, s, _ in bag.messages if t in expectations) \
                 - int((startup_timeout_s + 1.0) * 1e9)

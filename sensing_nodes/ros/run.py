@@ -28,12 +28,23 @@ _PARAMETER_ERRORS = (
 )
 
 
-def make_executor():
+EXECUTORS = ('events', 'single', 'multi')
+
+
+def make_executor(kind: str | None = None, threads: int | None = None):
     """rclpy's C++-backed EventsExecutor (several times the message throughput of the Python
-    SingleThreadedExecutor, which matters at 1 kHz IMU input); SENSING_NODES_EXECUTOR=single
-    selects the classic one."""
-    if os.environ.get('SENSING_NODES_EXECUTOR', 'events') == 'single':
+    SingleThreadedExecutor, which matters at 1 kHz IMU input); kind (default: the environment's
+    SENSING_NODES_EXECUTOR) 'single' selects the classic one, 'multi' a MultiThreadedExecutor
+    with `threads` workers (rclpy's default: the CPU count)."""
+    kind = kind or os.environ.get('SENSING_NODES_EXECUTOR', 'events')
+    if kind not in EXECUTORS:
+        raise ValueError(f'executor {kind!r}: one of {", ".join(EXECUTORS)}')
+    if kind == 'single':
         return SingleThreadedExecutor()
+    if kind == 'multi':
+        from rclpy.executors import MultiThreadedExecutor
+
+        return MultiThreadedExecutor(num_threads=threads)
     from rclpy.experimental import EventsExecutor
 
     return EventsExecutor()

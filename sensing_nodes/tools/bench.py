@@ -22,13 +22,14 @@ from pathlib import Path
 AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'allan', 'graph_cpu']
 
 
-def demo_figures(quick: bool) -> dict:
-    """Real-time factor, latency and dropped scans of the whole graph, from a sensing_demo run."""
+def demo_figures(quick: bool, extra: tuple[str, ...] = ()) -> dict:
+    """Real-time factor, latency and dropped scans of the whole graph, from a sensing_demo run
+    (with `extra` options)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / 'run'
         demo = Path(sys.argv[0]).resolve().parent / 'sensing_demo'
         cmd = [str(demo) if demo.is_file() else 'sensing_demo', '--out', str(out), '--quiet',
-               '--duration', '40' if quick else '130']
+               '--duration', '40' if quick else '130', *extra]
         result = subprocess.run(cmd, capture_output=True, text=True)
         if result.returncode != 0:
             return {'error': result.stderr.strip().splitlines()[-1:] or ['sensing_demo failed']}
@@ -65,6 +66,12 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if area == 'graph':
                 figures = demo_figures(args.quick)
+                # The processing nodes in one process (sensing_graph), allowed up to 10x (the
+                # demo is paced by the fused output: it runs as fast as the machine allows).
+                one = demo_figures(args.quick, ('--one-process', '--rate', '10'))
+                figures.update({f'one_process_rate_10_{k}': v for k, v in one.items()
+                                if k in ('error', 'real_time_factor', 'scans_published',
+                                         'scans_matched', 'scans_lines')})
             else:
                 figures = importlib.import_module(f'sensing_nodes.bench.{area}').run(quick=args.quick)
         except Exception as exc:  # a failing area must not hide the others' figures

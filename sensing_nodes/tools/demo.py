@@ -76,6 +76,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
                         help='a parameter override for one node, sensor_sim or a processing '
                              'node (as sensing_replay)')
+    parser.add_argument('--one-process', action='store_true',
+                        help='the processing nodes in one process (sensing_graph) instead of '
+                             'one process each')
     parser.add_argument('--quiet', action='store_true', help='no progress lines')
     args = parser.parse_args(argv)
     if args.duration <= 0 or args.rate <= 0:
@@ -171,8 +174,11 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
                         '-p', f'pace_topic:={PACE_TOPIC}', '-p', 'pace_timeout_s:=5.0',
                         *args.node_params['sensor_sim']]
             launched = time.monotonic()
-            for name in PROCESSING_NODES:
-                graph.start(name, args.node_params.get(name, []))
+            if args.one_process:
+                graph.start_one_process(PROCESSING_NODES, args.node_params)
+            else:
+                for name in PROCESSING_NODES:
+                    graph.start(name, args.node_params.get(name, []))
             graph.start('sensor_sim', sim_args)
             _wait_for_nodes(node, executor, PROCESSING_NODES, graph, recorder)
             for topic, (type_name, qos) in SIM_TOPICS.items():

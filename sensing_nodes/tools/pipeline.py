@@ -21,15 +21,6 @@ from typing import Any
 
 EXIT_BAD_INPUT = 2
 
-# Node name -> (module, class) of the processing nodes.
-NODE_CLASSES = {
-    'wheel_odometry': ('sensing_nodes.nodes.wheel_odometry', 'WheelOdometryNode'),
-    'gyro_integrator': ('sensing_nodes.nodes.gyro_integrator', 'GyroIntegratorNode'),
-    'line_extractor': ('sensing_nodes.nodes.line_extractor', 'LineExtractorNode'),
-    'icp_matcher': ('sensing_nodes.nodes.icp_matcher', 'IcpMatcherNode'),
-    'complementary_fusion': ('sensing_nodes.nodes.complementary_fusion',
-                             'ComplementaryFusionNode'),
-}
 PROGRESS_AFTER_S = 1.0   # no progress display for bags done sooner
 
 
@@ -44,11 +35,9 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
     overrides, as its own cli_args: the same precedence and parsing as a separate process),
     in one rclpy context that is never spun, with discovery off: nothing goes over DDS.
     PipelineError on a bad parameter."""
-    import importlib
-
     import rclpy
 
-    from sensing_nodes.paths import config_file
+    from sensing_nodes.ros.graph import make_node, node_arguments
     from sensing_nodes.ros.run import _PARAMETER_ERRORS
 
     # The nodes exist only to hold their parameters, logger and diagnostics: no peer should
@@ -57,13 +46,9 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
     rclpy.init(args=['sensing_pipeline'])   # never the tool's own argv (its ':=' are not ROS's)
     nodes = {}
     for name in names:
-        module, cls = NODE_CLASSES[name]
-        args = ['--ros-args']
-        for f in [config_file(f'{name}.yaml'), *params_files]:
-            args += ['--params-file', str(f)]
         try:
-            nodes[name] = getattr(importlib.import_module(module), cls)(
-                cli_args=args + list(node_params.get(name, [])), use_global_arguments=False)
+            nodes[name] = make_node(name, node_arguments(name, params_files,
+                                                         node_params.get(name, [])))
         except _PARAMETER_ERRORS as exc:
             close(nodes)
             raise PipelineError(f'{name}: invalid parameter: {exc}') from None

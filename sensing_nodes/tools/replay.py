@@ -109,6 +109,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="start the package's processing nodes (config/ parameter files)")
     parser.add_argument('--nodes', default=','.join(PROCESSING_NODES),
                         help='with --launch: which nodes (comma separated)')
+    parser.add_argument('--one-process', action='store_true',
+                        help='with --launch: the nodes in one process (sensing_graph)')
     parser.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
                         help='with --launch: a parameter override for one node')
     parser.add_argument('--params-file', type=Path, default=None,
@@ -191,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
             quiet_s=args.quiet_s, progress=not args.no_progress, logs=args.logs,
             compress=args.compress, settle_s=args.settle_ms * 1e-3, warmup_s=args.warmup_s,
             settle_before=_settle_before(args.settle_before), params_file=args.params_file,
+            one_process=args.one_process,
             settle_after=(tuple(args.settle_after) if args.settle_after is not None
                           else DEFAULT_SETTLE_AFTER))
     except (InputBagError, GraphArgumentError) as exc:
