@@ -11,7 +11,7 @@ from sensing_nodes.bag import BagWriter
 from sensing_nodes.core import characterization as ch
 from sensing_nodes.core import sim
 from sensing_nodes.core.world import load_world
-from sensing_nodes.nodes.sensor_sim import NodeSettings, record
+from sensing_nodes.ros.sim_robot import NodeSettings, record
 from sensing_nodes.paths import config_file
 from sensing_nodes.tools import characterize
 

@@ -10,7 +10,7 @@ from harness import REPO, Collector, NodeProcess, run_to_exit, spin_until
 
 from sensing_nodes.core import sim
 from sensing_nodes.core.world import load_world
-from sensing_nodes.nodes.sensor_sim import NodeSettings
+from sensing_nodes.ros.sim_robot import NodeSettings
 
 SECOND = 10**9
 START = sim.SimParams().start_ns

@@ -35,7 +35,7 @@ def _best_of(repeats: int, fn) -> tuple[float, float]:
 
 def run(quick: bool = False) -> dict:
     """Measure and return a flat dict of figures."""
-    from sensing_nodes.nodes.sensor_sim import NodeSettings, record
+    from sensing_nodes.ros.sim_robot import NodeSettings, record
 
     params = sim.SimParams()
     world = load_world(config_file('default_world.yaml'))

@@ -12,14 +12,11 @@ from __future__ import annotations
 
 import argparse
 import math
-import signal
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
-import numpy as np
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock as RosClock
@@ -33,16 +30,14 @@ from sensor_msgs.msg import Imu, JointState, LaserScan
 
 from sensing_nodes.core import sim as core
 from sensing_nodes.core.transform import Transform
-from sensing_nodes.core.world import World, load_world
-from sensing_nodes.paths import config_file
-from sensing_nodes.ros.conversions import float32_array, yaw_to_quaternion
 from sensing_nodes.ros.diagnostics import Diagnostics
-from sensing_nodes.ros.graph import (
-    CLOCK, CMD_VEL, GROUND_TRUTH, IMU_RAW, JOINT_STATES, SCAN, TOPIC_TYPES,
-)
+from sensing_nodes.ros.graph import CMD_VEL, SCAN
 from sensing_nodes.ros.params import ParameterError, declare
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+from sensing_nodes.ros.sim_robot import (
+    NODE_DOCS, NODE_RANGES, TOPICS, NodeSettings, SimMessages, record, settings_from_values,
+)
 from sensing_nodes.ros.tf import StaticTransformBroadcaster, TransformBroadcaster
 
 NODE_NAME = 'sensor_sim'
@@ -51,210 +46,6 @@ _WALL_PERIOD_S = 0.005          # how often the node checks which samples have c
 _PACED_PERIOD_S = 0.001         # ... and how often it checks for the pace topic's answer
 _LINGER_S = 0.5                 # wall seconds between the last sample and shutdown
 _SETTLE_S = 0.5                 # wall seconds between the graph's matching and simulated time
-
-TOPICS = {kind: (topic, TOPIC_TYPES[topic]) for kind, topic in (
-    (core.CLOCK, CLOCK), (core.TRUTH, GROUND_TRUTH), (core.IMU, IMU_RAW),
-    (core.JOINTS, JOINT_STATES), (core.SCAN, SCAN))}
-
-
-@dataclass(frozen=True)
-class NodeSettings:
-    """The node's own parameters (everything that is not a number of the simulation)."""
-
-    seed: int = 0
-    world_file: str = ''
-    real_time_factor: float = 1.0
-    duration_s: float = 0.0
-    use_cmd_vel: bool = False
-    publish_clock: bool = True
-    map_frame: str = 'map'
-    base_frame: str = 'base_link'
-    laser_frame: str = 'laser'
-    imu_frame: str = 'imu_link'
-    left_joint_name: str = 'left_wheel_joint'
-    right_joint_name: str = 'right_wheel_joint'
-    wait_for_subscribers: int = 0
-    wait_for_scan_subscribers: int = 0
-    pace_topic: str = ''
-    pace_timeout_s: float = 5.0
-    publish_tf: bool = True
-    truth_frame: str = 'base_link_truth'
-
-
-NODE_DOCS = {
-    'seed': 'random seed; same seed and parameters give the same messages',
-    'world_file': "world YAML (walls/polygons); '' = the shipped config/default_world.yaml",
-    'real_time_factor': 'simulated seconds per wall second (1.0 live, > 1 faster; with '
-                        'pace_topic the most)',
-    'duration_s': 'stop publishing and exit after this much simulated time; 0 = run on',
-    'use_cmd_vel': 'follow /cmd_vel (geometry_msgs/Twist) instead of the scripted route',
-    'publish_clock': 'publish simulated time on /clock',
-    'map_frame': 'frame of the ground truth pose',
-    'base_frame': 'child frame of the ground truth (the robot body)',
-    'laser_frame': 'frame of /scan',
-    'imu_frame': 'frame of /imu/data_raw (coincides with base_frame)',
-    'left_joint_name': 'name of the left wheel joint in /joint_states',
-    'right_joint_name': 'name of the right wheel joint in /joint_states',
-    'wait_for_subscribers': 'start simulated time once /scan, /imu/data_raw, /joint_states and '
-                            '/ground_truth/odom have at least this many subscribers each',
-    'wait_for_scan_subscribers': 'and /scan at least this many (every scan consumer matched, '
-                                 'so none misses the first scans)',
-    'pace_topic': "'' = paced by real_time_factor; else also paced by the graph (at most "
-                  'real_time_factor): a scan is published only once an Odometry stamped at or '
-                  'after the previous scan arrived on this topic',
-    'pace_timeout_s': 'with pace_topic: wall seconds to wait for an answer before going on '
-                      '(with a warning)',
-    'publish_tf': 'publish the sensor mounts on /tf_static (base_frame -> laser_frame, '
-                  'imu_frame) and the ground truth on /tf (map_frame -> truth_frame)',
-    'truth_frame': 'child frame of the ground truth on /tf (not base_frame: the estimate owns '
-                   'odom -> base_frame)',
-}
-NODE_RANGES = {'real_time_factor': (1e-3, 1e6), 'duration_s': (0.0, None), 'seed': (0, 2**63 - 1),
-               'pace_timeout_s': (1e-3, None), 'wait_for_subscribers': (0, 1000),
-               'wait_for_scan_subscribers': (0, 1000)}
-
-
-def settings_from_values(values: dict[str, Any]) -> tuple[core.SimParams, NodeSettings, World]:
-    """Parameters, node settings and world from a dict of parameter values; SimParameterError
-    names the first parameter that is missing its type, out of range, or unusable."""
-    params = core.params_from_dict(values)
-    core.validate(params)
-    fields = {}
-    for name, default in NodeSettings.__dataclass_fields__.items():
-        value = values.get(name, default.default)
-        expected = type(default.default)
-        if expected is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
-            raise core.SimParameterError(name, f'must be of type {expected.__name__}', value)
-        fields[name] = value
-    settings = NodeSettings(**fields)
-    for name, (lo, hi) in NODE_RANGES.items():
-        value = getattr(settings, name)
-        if not math.isfinite(value) or value < lo or (hi is not None and value > hi):
-            upper = hi if hi is not None else 'inf'
-            raise core.SimParameterError(name, f'must be in [{lo}, {upper}]',
-                                         value)
-    for name in ('map_frame', 'base_frame', 'laser_frame', 'imu_frame', 'truth_frame',
-                 'left_joint_name', 'right_joint_name'):
-        if not getattr(settings, name).strip():
-            raise core.SimParameterError(name, 'must not be empty')
-    if settings.left_joint_name == settings.right_joint_name:
-        raise core.SimParameterError('right_joint_name', 'must differ from left_joint_name',
-                                     settings.right_joint_name)
-    path = settings.world_file or str(config_file('default_world.yaml'))
-    try:
-        world = load_world(path)
-    except ValueError as exc:
-        raise core.SimParameterError('world_file', str(exc), path) from None
-    return params, settings, world
-
-
-class SimMessages:
-    """Turns a block's samples into rclpy messages (one reused message object per topic: both
-    publishing and bag writing serialise a message at once)."""
-
-    def __init__(self, params: core.SimParams, settings: NodeSettings) -> None:
-        p = params
-        self._clock = Clock()
-        self._odom = Odometry()
-        self._odom.header.frame_id = settings.map_frame
-        self._odom.child_frame_id = settings.base_frame
-        self._imu = Imu()
-        self._imu.header.frame_id = settings.imu_frame
-        self._imu.orientation_covariance[0] = -1.0          # no orientation (REP 145)
-        gyro_var, accel_var = p.gyro_noise_std_rad_s ** 2, p.accel_noise_std_m_s2 ** 2
-        self._imu.angular_velocity_covariance = np.diag([gyro_var] * 3).ravel().tolist()
-        self._imu.linear_acceleration_covariance = np.diag([accel_var] * 3).ravel().tolist()
-        self._joints = JointState()
-        self._joints.name = [settings.left_joint_name, settings.right_joint_name]
-        self._scan = LaserScan()
-        self._scan.header.frame_id = settings.laser_frame
-        self._scan.angle_min = p.scan_angle_min_rad
-        self._scan.angle_increment = p.scan_angle_increment_rad
-        self._scan.angle_max = (p.scan_angle_min_rad
-                                + (p.scan_beams - 1) * p.scan_angle_increment_rad)
-        self._scan.time_increment = 0.0                    # every beam at the scan's stamp
-        self._scan.scan_time = 1.0 / p.scan_rate_hz
-        self._scan.range_min = p.range_min_m
-        self._scan.range_max = p.range_max_m
-
-    def messages(self, block: core.SimBlock) -> Iterator[tuple[int, int, Any]]:
-        """(time ns, kind, message) for every sample of the block, in publishing order."""
-        times, kinds, indices = core.block_events(block)
-        for t, kind, i in zip(times.tolist(), kinds.tolist(), indices.tolist()):
-            yield t, kind, self.message(block, kind, i, t)
-
-    def message(self, block: core.SimBlock, kind: int, i: int, t: int) -> Any:
-        """The message of sample i of the given kind, stamped t (ns)."""
-        sec, nanosec = divmod(t, core.NS_PER_S)
-        if kind == core.CLOCK:
-            msg = self._clock
-            msg.clock.sec, msg.clock.nanosec = sec, nanosec
-            return msg
-        if kind == core.TRUTH:
-            msg = self._odom
-            x, y, yaw = block.truth_pose[i].tolist()
-            msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
-            yaw_to_quaternion(yaw, out=msg.pose.pose.orientation)
-            msg.twist.twist.linear.x, msg.twist.twist.angular.z = block.truth_twist[i].tolist()
-        elif kind == core.IMU:
-            msg = self._imu
-            g, a = msg.angular_velocity, msg.linear_acceleration
-            g.x, g.y, g.z = block.imu_gyro[i].tolist()
-            a.x, a.y, a.z = block.imu_accel[i].tolist()
-        elif kind == core.JOINTS:
-            msg = self._joints
-            msg.position = block.joint_position[i].tolist()
-            msg.velocity = block.joint_velocity[i].tolist()
-        else:
-            msg = self._scan
-            msg.ranges = float32_array(block.scan_ranges[i])
-        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
-        return msg
-
-
-def record(out_dir: str | Path, duration_s: float, params: core.SimParams, settings: NodeSettings,
-           world: World, progress: bool = False) -> dict[str, int]:
-    """Write a rosbag2 MCAP bag of every topic for duration_s simulated seconds; topic -> count."""
-    from sensing_nodes.bag import BagWriter
-
-    sim = core.SensorSim(params, world, settings.seed)
-    convert = SimMessages(params, settings)
-    end_ns = params.start_ns + int(round(duration_s * core.NS_PER_S))
-    skip = set() if settings.publish_clock else {core.CLOCK}
-    next_report = params.start_ns
-    # SIGINT stops between two messages, so the bag is closed with exactly what it holds
-    # (an interrupt inside a write could leave a message in the file that the metadata misses).
-    interrupted: list[int] = []
-    previous_handler = signal.signal(signal.SIGINT, lambda signum, frame: interrupted.append(signum))
-    try:
-        with BagWriter(out_dir) as bag:
-            for kind, (topic, msg_type) in TOPICS.items():
-                if kind not in skip:
-                    bag.add_topic(topic, msg_type)
-            while not interrupted:
-                block = sim.advance()
-                for t, kind, msg in convert.messages(block):
-                    if t > end_ns or interrupted:
-                        break
-                    if kind not in skip:
-                        bag.write(TOPICS[kind][0], msg, t)
-                if sim.time_ns >= end_ns:
-                    break
-                if progress and sim.time_ns >= next_report:
-                    print(f'\rsensor_sim: recorded {(sim.time_ns - params.start_ns) / 1e9:6.1f} / '
-                          f'{duration_s:.1f} s', end='', file=sys.stderr, flush=True)
-                    next_report += 10 * core.NS_PER_S
-            if progress:
-                print(file=sys.stderr)
-            counts = dict(bag.counts)
-    finally:
-        signal.signal(signal.SIGINT, previous_handler)
-    if interrupted:
-        raise KeyboardInterrupt(f'interrupted: {sum(counts.values())} messages in {out_dir}')
-    return counts
-
 
 def ros_args_values(ros_args: list[str]) -> dict[str, Any]:
     """Parameter values of `--ros-args` arguments for --record, read as the live node reads them:
