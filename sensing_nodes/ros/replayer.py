@@ -182,12 +182,9 @@ class Replayer:
 
     def drain(self, quiet_s: float, timeout_s: float = 60.0) -> None:
         """Until nothing has arrived for quiet_s (the fusion's idle flush included)."""
-        deadline = time.monotonic() + timeout_s
-        quiet_since, seen = time.monotonic(), self.arrivals
-        while time.monotonic() - quiet_since < quiet_s and time.monotonic() < deadline:
-            self.spin(0.02)
-            if self.arrivals != seen:
-                quiet_since, seen = time.monotonic(), self.arrivals
+        from sensing_nodes.ros.run import spin_until_quiet
+
+        spin_until_quiet(self.executor, lambda: self.arrivals, quiet_s, timeout_s)
 
     def close(self) -> None:
         self.node.destroy_node()

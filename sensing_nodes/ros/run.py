@@ -50,6 +50,20 @@ def make_executor(kind: str | None = None, threads: int | None = None):
     return EventsExecutor()
 
 
+def spin_until_quiet(executor, arrivals: Callable[[], int], quiet_s: float, timeout_s: float,
+                     step_s: float = 0.01) -> None:
+    """Spin until arrivals() has not changed for quiet_s wall seconds, or timeout_s has passed:
+    the graph's last answers are in (the tools' drain after the last input)."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    quiet_since, seen = time.monotonic(), arrivals()
+    while time.monotonic() - quiet_since < quiet_s and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=step_s)
+        if arrivals() != seen:
+            quiet_since, seen = time.monotonic(), arrivals()
+
+
 def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
     """Create the node, spin until shutdown; a bad parameter is reported and exits with 2."""
     # A crash inside the C++ executor or a message library then leaves a Python stack in the log.

@@ -148,7 +148,7 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
 
     from sensing_nodes.bag import BagWriter
     from sensing_nodes.recorder import TopicRecorder
-    from sensing_nodes.ros.run import make_executor
+    from sensing_nodes.ros.run import make_executor, spin_until_quiet
 
     env = isolated_environment(args.domain_id)
     (out / 'logs').mkdir(parents=True, exist_ok=True)
@@ -216,13 +216,7 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
             def outputs() -> int:
                 return sum(n for t, n in recorder.counts.items() if t not in WALL_PERIODIC_TOPICS)
 
-            drain_deadline = time.monotonic() + 30.0
-            quiet_since, seen = time.monotonic(), outputs()
-            while time.monotonic() - quiet_since < DRAIN_QUIET_S \
-                    and time.monotonic() < drain_deadline:
-                executor.spin_once(timeout_sec=0.01)
-                if outputs() != seen:
-                    quiet_since, seen = time.monotonic(), outputs()
+            spin_until_quiet(executor, outputs, DRAIN_QUIET_S, timeout_s=30.0)
             counts = dict(recorder.counts)
     finally:
         codes = graph.stop()

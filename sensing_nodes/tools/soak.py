@@ -20,7 +20,7 @@ from datetime import datetime
 from pathlib import Path
 
 from sensing_nodes.ros.graph import (
-    DIAGNOSTICS, FUSED, PROCESSING_NODES, SCAN, SCAN_LINES_TABLE, SCAN_MATCH, SENSOR_TOPICS,
+    DIAGNOSTICS, FUSED, NODES, PROCESSING_NODES, SCAN, SCAN_LINES_TABLE, SCAN_MATCH, SENSOR_TOPICS,
     TOPIC_TYPES, Graph, isolated_environment, new_run_folder,
 )
 
@@ -78,7 +78,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     from sensing_nodes.bag import message_class
     from sensing_nodes.ros.cdr import leading_stamp_ns
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
-    from sensing_nodes.ros.run import make_executor
+    from sensing_nodes.ros.run import make_executor, spin_until_quiet
 
     (out / 'logs').mkdir(parents=True, exist_ok=True)
     graph = Graph(out, env)
@@ -129,7 +129,12 @@ def run(args: argparse.Namespace, out: Path) -> dict:
             if graph.failed() or time.monotonic() > deadline:
                 raise SystemExit(f'sensing_soak: the graph did not come up (failed: '
                                  f'{graph.failed()}); see {out / "logs"}')
-        sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}']
+        # Simulated time starts once every /scan reader (this process's counter included) is
+        # matched: a scan published earlier is lost to a late reader (line_extractor missed the
+        # first 2 s of a run that way).
+        scan_readers = sum(SCAN in n.inputs for n in NODES.values()) + int(SCAN in COUNTED)
+        sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
+                    '-p', f'wait_for_scan_subscribers:={scan_readers}']
         if args.rate == 'paced':
             sim_args += ['-p', 'pace_topic:=/odometry/filtered', '-p', 'pace_timeout_s:=5.0',
                          '-p', 'real_time_factor:=1000.0']    # no cap: as fast as the graph
@@ -158,12 +163,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                           flush=True)
         wall_s = time.monotonic() - wall_start
         # Let the last scans work through matching and fusion: until nothing arrives for 2 s.
-        quiet_since, seen = time.monotonic(), sum(counts.values())
-        deadline = quiet_since + 60.0
-        while time.monotonic() - quiet_since < 2.0 and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-            if sum(counts.values()) != seen:
-                quiet_since, seen = time.monotonic(), sum(counts.values())
+        spin_until_quiet(executor, lambda: sum(counts.values()), 2.0, timeout_s=60.0, step_s=0.05)
         known = set().union(*stamps_by_topic.values())   # every answer carries its scan's stamp
         sim_s = (max(known) - min(known)) / NS if known else 0.0
         stamps['first'] = min(known) if known else None
