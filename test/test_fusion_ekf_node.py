@@ -190,3 +190,91 @@ def test_set_pose_moves_the_output(graph):
     pose, _ = odometry_pose(out.messages[-1])
     assert math.hypot(pose[0] - 10.0, pose[1] + 3.0) < 1.0
     assert node.alive()
+
+
+RATE_PARAMS = {'imu.source': 'rate', 'imu.mask': ['vyaw'], 'imu.gate_chi2': 0.0,  # 'y': quoted
+               'wheel_odom.mask': ["'x'", "'y'"], 'use_scan_match_position': False,
+               'use_scan_match_heading': False, 'reorder_window_s': 0.5, 'flush_after_s': 3.0}
+
+
+@pytest.mark.parametrize('mount_from', ['parameters', 'tf_static', 'late_tf_static'])
+def test_imu_rate_mount_from_parameters_or_tf_static(probe, mount_from):
+    """The EKF's own IMU input (imu.source rate) turns the IMU's rates into base_link's axes with
+    the mount: imu.mount_roll_rad = pi, or /tf_static's base_link -> imu_link (roll pi) against
+    zero parameters (warned as a disagreement, used), or that /tf_static arriving late (applied
+    from the next Imu on, the IMU input restarting there: counted). An IMU lying upside down reads
+    -YAW_RATE about its own z while the robot turns at +YAW_RATE; the wheels give no heading, so
+    the fused heading turns +YAW_RATE only with the mount applied (the other way without it).
+    Bad static transforms next to the good one (NaN, not a unit quaternion) are refused, warned
+    and counted (tf_static_rejected) and the node keeps running."""
+    from rclpy.node import Node
+
+    from sensing_nodes.core import quaternion
+    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.ros.tf import StaticTransformBroadcaster
+
+    params = dict(RATE_PARAMS)
+    if mount_from == 'parameters':
+        params['imu.mount_roll_rad'] = math.pi
+    pubs = {'wheel': probe.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS),
+            'imu': probe.create_publisher(Imu, '/imu/data', SENSOR_QOS)}
+    out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
+    diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 50)
+    talker = Node('imu_mount_talker', context=probe.context)   # destroyed: its latch goes too
+
+    def send_mount():
+        broadcaster = StaticTransformBroadcaster(talker)
+        broadcaster.send(T0, 'base_link', 'imu_link',
+                         Transform((0.0, 0.0, 0.05), quaternion.from_rpy(math.pi, 0.0, 0.0)))
+        broadcaster.send(T0, 'base_link', 'bad_nan', Transform((math.nan, 0.0, 0.0)))
+        broadcaster.send(T0, 'base_link', 'bad_quaternion',
+                         Transform((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0)))
+
+    if mount_from == 'tf_static':
+        send_mount()
+    events = [(kind, t, msg) for kind, t, msg in stream(200) if kind != 'scan']
+    half = len(events) // 2
+    with NodeProcess('complementary_fusion', params=params,
+                     params_file=config_file('complementary_fusion.yaml')) as node:
+        assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0 and all(
+            p.get_subscription_count() > 0 for p in pubs.values()), 30), node.output()
+        if mount_from == 'tf_static':
+            # the latched mount is in before the first Imu (else it applies as a late one)
+            assert spin_until(probe, lambda: talker.count_subscribers('/tf_static') > 0, 10)
+        spin_until(probe, lambda: False, 1.0)
+        send(probe, pubs, events[:half])
+        if mount_from == 'late_tf_static':
+            mid = events[half - 1][1]
+            assert spin_until(probe, lambda: any(stamp_to_ns(m.header.stamp) >= mid - STEP
+                                                 for m in out.messages), 20), node.output()
+            send_mount()
+            spin_until(probe, lambda: False, 1.0)
+        send(probe, pubs, events[half:])
+        last = events[-1][1]
+        assert spin_until(probe, lambda: any(stamp_to_ns(m.header.stamp) == last
+                                             for m in out.messages), 20), node.output()
+        if mount_from != 'parameters':
+            assert spin_until(probe, lambda: int(counts(diagnostics).get(
+                'tf_static_rejected', 0)) >= 2, 5), counts(diagnostics)
+        assert node.alive()
+        log = node.output()
+        values = counts(diagnostics)
+    talker.destroy_node()
+    out.close()
+    diagnostics.close()
+    for p in pubs.values():
+        probe.destroy_publisher(p)
+    yaw = {stamp_to_ns(m.header.stamp): odometry_pose(m)[0][2] for m in out.messages}
+    # the heading over the last 100 steps (2 s): +YAW_RATE * 2 s = +0.4 rad
+    turned = yaw[last] - yaw[last - 100 * STEP]
+    assert turned == pytest.approx(YAW_RATE * 100 * STEP * 1e-9, abs=0.01), (turned, log)
+    if mount_from == 'parameters':
+        assert 'IMU mount from /tf_static' not in log
+        return
+    assert 'IMU mount from /tf_static' in log and 'disagrees with the mount parameters' in log
+    assert 'ignoring /tf_static' in log and 'not a unit quaternion' in log
+    if mount_from == 'late_tf_static':
+        assert 'changed (/tf_static)' in log and values.get('imu_mount_changes') == '1', values
+        # before the mount arrived the heading turned the wrong way (no mount: -YAW_RATE)
+        first = min(yaw)
+        assert yaw[first + 50 * STEP] - yaw[first] < 0.0
