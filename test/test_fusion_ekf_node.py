@@ -278,3 +278,33 @@ def test_imu_rate_mount_from_parameters_or_tf_static(probe, mount_from):
         # before the mount arrived the heading turned the wrong way (no mount: -YAW_RATE)
         first = min(yaw)
         assert yaw[first + 50 * STEP] - yaw[first] < 0.0
+
+
+def test_a_reset_restarts_the_diagnostics_stamp():
+    """Time going backwards (a looping bag; sensing_replay's warm-up, played with stamps after
+    the bag's end, before the pass) resets the fusion, and /diagnostics then carries the new
+    timeline's newest stamp, not the old one's (every status of a replay carried the warm-up's)."""
+    from sensing_nodes.nodes.complementary_fusion import ComplementaryFusionNode
+
+    rclpy.init()
+    node = ComplementaryFusionNode(cli_args=[
+        '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
+        '-p', 'use_imu:=false', '-p', 'use_scan_match_position:=false',
+        '-p', 'use_scan_match_heading:=false'], use_global_arguments=False)
+    try:
+        processor = node.processor
+        late = T0 + 30 * 1_000_000_000
+        for k in range(5):
+            processor.on_message('wheel_odom', make_odometry(
+                late + k * STEP, 'odom', 'base_link', truth(k), np.eye(3) * 1e-3))
+        processor.flush()
+        assert processor.diagnostics.last_stamp_ns == late + 4 * STEP
+        for k in range(5):
+            processor.on_message('wheel_odom', make_odometry(
+                T0 + k * STEP, 'odom', 'base_link', truth(k), np.eye(3) * 1e-3))
+        processor.flush()
+        assert processor.diagnostics.counts['resets'] == 1
+        assert processor.diagnostics.last_stamp_ns == T0 + 4 * STEP
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()

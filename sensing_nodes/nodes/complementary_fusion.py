@@ -392,6 +392,9 @@ class ComplementaryFusionProcessor:
         self._start_ns = None
         self._tf_stamp = None
         self._converter.reset()
+        # /diagnostics carries the newest stamp of the new timeline (sensing_replay's warm-up
+        # plays stamps after the bag's end: every status of the pass carried them)
+        self.diagnostics.last_stamp_ns = 0
 
     # -- fusion and output ---------------------------------------------------------------------
     def _process(self, ready) -> Outputs:
