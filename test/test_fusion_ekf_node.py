@@ -308,3 +308,57 @@ def test_a_reset_restarts_the_diagnostics_stamp():
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
+
+
+def test_a_late_imu_mount_restarts_the_orientation_input_without_a_jump():
+    """imu.source orientation, relative: an IMU turned 90 deg about z reports base yaw + 90 deg.
+    Until /tf_static gives its mount the parameters (identity) apply; the mount arriving late
+    changes what the IMU's yaw reads by -90 deg, so the input restarts there (a new relative
+    origin) and the fused heading goes on without a jump; counted and warned."""
+    from rclpy.serialization import deserialize_message
+    from tf2_msgs.msg import TFMessage
+
+    from sensing_nodes.core import quaternion
+    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.nodes.complementary_fusion import ComplementaryFusionNode
+    from sensing_nodes.ros.conversions import make_transform_stamped
+
+    rclpy.init()
+    node = ComplementaryFusionNode(cli_args=[
+        '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
+        '-p', 'imu.source:=orientation', '-p', 'imu.pose_mode:=relative',
+        '-p', 'imu.covariance:=message', '-p', 'imu.gate_chi2:=0.0',
+        '-p', "wheel_odom.mask:=['x', 'y']", '-p', 'use_scan_match_position:=false',
+        '-p', 'use_scan_match_heading:=false'], use_global_arguments=False)
+    try:
+        processor = node.processor
+        tf_static = next(s for s in node.subscriptions if s.topic_name == '/tf_static')
+        yaws = {}
+
+        def take(out):
+            for topic, raw in out:
+                if topic == '/odometry/filtered':
+                    msg = deserialize_message(raw, Odometry)
+                    yaws[stamp_to_ns(msg.header.stamp)] = odometry_pose(msg)[0][2]
+
+        for k in range(100):
+            t = T0 + k * STEP
+            if k == 50:   # the mount arrives (as the node's /tf_static subscription gets it)
+                tf_static.callback(TFMessage(transforms=[make_transform_stamped(
+                    T0, 'base_link', 'imu_link',
+                    Transform(rotation=quaternion.from_rpy(0.0, 0.0, math.pi / 2)))]))
+            take(processor.on_message('wheel_odom', make_odometry(
+                t, 'odom', 'base_link', truth(k), np.eye(3) * 1e-3)))
+            imu = Imu()
+            imu.header.stamp = ns_to_stamp(t)
+            imu.header.frame_id = 'imu_link'
+            imu.orientation = yaw_to_quaternion(truth(k)[2] + math.pi / 2)
+            imu.orientation_covariance = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
+            take(processor.on_message('imu', imu))
+        take(processor.flush())
+        assert processor.diagnostics.counts['imu_mount_changes'] == 1
+        errors = [abs(yaw - truth((t - T0) // STEP)[2]) for t, yaw in yaws.items()]
+        assert len(yaws) >= 95 and max(errors) < 0.01, max(errors)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
