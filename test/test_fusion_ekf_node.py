@@ -286,8 +286,9 @@ def test_a_reset_restarts_the_diagnostics_stamp():
     timeline's newest stamp, not the old one's (every status of a replay carried the warm-up's)."""
     from sensing_nodes.nodes.complementary_fusion import ComplementaryFusionNode
 
-    rclpy.init()
-    node = ComplementaryFusionNode(cli_args=[
+    context = rclpy.Context()   # its own: the module's other tests may hold the default one
+    context.init()
+    node = ComplementaryFusionNode(context=context, cli_args=[
         '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
         '-p', 'use_imu:=false', '-p', 'use_scan_match_position:=false',
         '-p', 'use_scan_match_heading:=false'], use_global_arguments=False)
@@ -307,7 +308,7 @@ def test_a_reset_restarts_the_diagnostics_stamp():
         assert processor.diagnostics.last_stamp_ns == T0 + 4 * STEP
     finally:
         node.destroy_node()
-        rclpy.try_shutdown()
+        context.try_shutdown()
 
 
 def test_a_late_imu_mount_restarts_the_orientation_input_without_a_jump():
@@ -323,8 +324,9 @@ def test_a_late_imu_mount_restarts_the_orientation_input_without_a_jump():
     from sensing_nodes.nodes.complementary_fusion import ComplementaryFusionNode
     from sensing_nodes.ros.conversions import make_transform_stamped
 
-    rclpy.init()
-    node = ComplementaryFusionNode(cli_args=[
+    context = rclpy.Context()   # its own: the module's other tests may hold the default one
+    context.init()
+    node = ComplementaryFusionNode(context=context, cli_args=[
         '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
         '-p', 'imu.source:=orientation', '-p', 'imu.pose_mode:=relative',
         '-p', 'imu.covariance:=message', '-p', 'imu.gate_chi2:=0.0',
@@ -361,4 +363,4 @@ def test_a_late_imu_mount_restarts_the_orientation_input_without_a_jump():
         assert len(yaws) >= 95 and max(errors) < 0.01, max(errors)
     finally:
         node.destroy_node()
-        rclpy.try_shutdown()
+        context.try_shutdown()
