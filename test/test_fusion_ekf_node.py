@@ -190,3 +190,177 @@ def test_set_pose_moves_the_output(graph):
     pose, _ = odometry_pose(out.messages[-1])
     assert math.hypot(pose[0] - 10.0, pose[1] + 3.0) < 1.0
     assert node.alive()
+
+
+RATE_PARAMS = {'imu.source': 'rate', 'imu.mask': ['vyaw'], 'imu.gate_chi2': 0.0,  # 'y': quoted
+               'wheel_odom.mask': ["'x'", "'y'"], 'use_scan_match_position': False,
+               'use_scan_match_heading': False, 'reorder_window_s': 0.5, 'flush_after_s': 3.0}
+
+
+@pytest.mark.parametrize('mount_from', ['parameters', 'tf_static', 'late_tf_static'])
+def test_imu_rate_mount_from_parameters_or_tf_static(probe, mount_from):
+    """The EKF's own IMU input (imu.source rate) turns the IMU's rates into base_link's axes with
+    the mount: imu.mount_roll_rad = pi, or /tf_static's base_link -> imu_link (roll pi) against
+    zero parameters (warned as a disagreement, used), or that /tf_static arriving late (applied
+    from the next Imu on, the IMU input restarting there: counted). An IMU lying upside down reads
+    -YAW_RATE about its own z while the robot turns at +YAW_RATE; the wheels give no heading, so
+    the fused heading turns +YAW_RATE only with the mount applied (the other way without it).
+    Bad static transforms next to the good one (NaN, not a unit quaternion) are refused, warned
+    and counted (tf_static_rejected) and the node keeps running."""
+    from rclpy.node import Node
+
+    from sensing_nodes.core import quaternion
+    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.ros.tf import StaticTransformBroadcaster
+
+    params = dict(RATE_PARAMS)
+    if mount_from == 'parameters':
+        params['imu.mount_roll_rad'] = math.pi
+    pubs = {'wheel': probe.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS),
+            'imu': probe.create_publisher(Imu, '/imu/data', SENSOR_QOS)}
+    out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
+    diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 50)
+    talker = Node('imu_mount_talker', context=probe.context)   # destroyed: its latch goes too
+
+    def send_mount():
+        broadcaster = StaticTransformBroadcaster(talker)
+        broadcaster.send(T0, 'base_link', 'imu_link',
+                         Transform((0.0, 0.0, 0.05), quaternion.from_rpy(math.pi, 0.0, 0.0)))
+        broadcaster.send(T0, 'base_link', 'bad_nan', Transform((math.nan, 0.0, 0.0)))
+        broadcaster.send(T0, 'base_link', 'bad_quaternion',
+                         Transform((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0)))
+
+    if mount_from == 'tf_static':
+        send_mount()
+    events = [(kind, t, msg) for kind, t, msg in stream(200) if kind != 'scan']
+    half = len(events) // 2
+    with NodeProcess('complementary_fusion', params=params,
+                     params_file=config_file('complementary_fusion.yaml')) as node:
+        assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0 and all(
+            p.get_subscription_count() > 0 for p in pubs.values()), 30), node.output()
+        if mount_from == 'tf_static':
+            # the latched mount is in before the first Imu (else it applies as a late one)
+            assert spin_until(probe, lambda: talker.count_subscribers('/tf_static') > 0, 10)
+        spin_until(probe, lambda: False, 1.0)
+        send(probe, pubs, events[:half])
+        if mount_from == 'late_tf_static':
+            mid = events[half - 1][1]
+            assert spin_until(probe, lambda: any(stamp_to_ns(m.header.stamp) >= mid - STEP
+                                                 for m in out.messages), 20), node.output()
+            send_mount()
+            spin_until(probe, lambda: False, 1.0)
+        send(probe, pubs, events[half:])
+        last = events[-1][1]
+        assert spin_until(probe, lambda: any(stamp_to_ns(m.header.stamp) == last
+                                             for m in out.messages), 20), node.output()
+        if mount_from != 'parameters':
+            assert spin_until(probe, lambda: int(counts(diagnostics).get(
+                'tf_static_rejected', 0)) >= 2, 5), counts(diagnostics)
+        assert node.alive()
+        log = node.output()
+        values = counts(diagnostics)
+    talker.destroy_node()
+    out.close()
+    diagnostics.close()
+    for p in pubs.values():
+        probe.destroy_publisher(p)
+    yaw = {stamp_to_ns(m.header.stamp): odometry_pose(m)[0][2] for m in out.messages}
+    # the heading over the last 100 steps (2 s): +YAW_RATE * 2 s = +0.4 rad
+    turned = yaw[last] - yaw[last - 100 * STEP]
+    assert turned == pytest.approx(YAW_RATE * 100 * STEP * 1e-9, abs=0.01), (turned, log)
+    if mount_from == 'parameters':
+        assert 'IMU mount from /tf_static' not in log
+        return
+    assert 'IMU mount from /tf_static' in log and 'disagrees with the mount parameters' in log
+    assert 'ignoring /tf_static' in log and 'not a unit quaternion' in log
+    if mount_from == 'late_tf_static':
+        assert 'changed (/tf_static)' in log and values.get('imu_mount_changes') == '1', values
+        # before the mount arrived the heading turned the wrong way (no mount: -YAW_RATE)
+        first = min(yaw)
+        assert yaw[first + 50 * STEP] - yaw[first] < 0.0
+
+
+def test_a_reset_restarts_the_diagnostics_stamp():
+    """Time going backwards (a looping bag; sensing_replay's warm-up, played with stamps after
+    the bag's end, before the pass) resets the fusion, and /diagnostics then carries the new
+    timeline's newest stamp, not the old one's (every status of a replay carried the warm-up's)."""
+    from sensing_nodes.nodes.complementary_fusion import ComplementaryFusionNode
+
+    context = rclpy.Context()   # its own: the module's other tests may hold the default one
+    context.init()
+    node = ComplementaryFusionNode(context=context, cli_args=[
+        '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
+        '-p', 'use_imu:=false', '-p', 'use_scan_match_position:=false',
+        '-p', 'use_scan_match_heading:=false'], use_global_arguments=False)
+    try:
+        processor = node.processor
+        late = T0 + 30 * 1_000_000_000
+        for k in range(5):
+            processor.on_message('wheel_odom', make_odometry(
+                late + k * STEP, 'odom', 'base_link', truth(k), np.eye(3) * 1e-3))
+        processor.flush()
+        assert processor.diagnostics.last_stamp_ns == late + 4 * STEP
+        for k in range(5):
+            processor.on_message('wheel_odom', make_odometry(
+                T0 + k * STEP, 'odom', 'base_link', truth(k), np.eye(3) * 1e-3))
+        processor.flush()
+        assert processor.diagnostics.counts['resets'] == 1
+        assert processor.diagnostics.last_stamp_ns == T0 + 4 * STEP
+    finally:
+        node.destroy_node()
+        context.try_shutdown()
+
+
+def test_a_late_imu_mount_restarts_the_orientation_input_without_a_jump():
+    """imu.source orientation, relative: an IMU turned 90 deg about z reports base yaw + 90 deg.
+    Until /tf_static gives its mount the parameters (identity) apply; the mount arriving late
+    changes what the IMU's yaw reads by -90 deg, so the input restarts there (a new relative
+    origin) and the fused heading goes on without a jump; counted and warned."""
+    from rclpy.serialization import deserialize_message
+    from tf2_msgs.msg import TFMessage
+
+    from sensing_nodes.core import quaternion
+    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.nodes.complementary_fusion import ComplementaryFusionNode
+    from sensing_nodes.ros.conversions import make_transform_stamped
+
+    context = rclpy.Context()   # its own: the module's other tests may hold the default one
+    context.init()
+    node = ComplementaryFusionNode(context=context, cli_args=[
+        '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
+        '-p', 'imu.source:=orientation', '-p', 'imu.pose_mode:=relative',
+        '-p', 'imu.covariance:=message', '-p', 'imu.gate_chi2:=0.0',
+        '-p', "wheel_odom.mask:=['x', 'y']", '-p', 'use_scan_match_position:=false',
+        '-p', 'use_scan_match_heading:=false'], use_global_arguments=False)
+    try:
+        processor = node.processor
+        tf_static = next(s for s in node.subscriptions if s.topic_name == '/tf_static')
+        yaws = {}
+
+        def take(out):
+            for topic, raw in out:
+                if topic == '/odometry/filtered':
+                    msg = deserialize_message(raw, Odometry)
+                    yaws[stamp_to_ns(msg.header.stamp)] = odometry_pose(msg)[0][2]
+
+        for k in range(100):
+            t = T0 + k * STEP
+            if k == 50:   # the mount arrives (as the node's /tf_static subscription gets it)
+                tf_static.callback(TFMessage(transforms=[make_transform_stamped(
+                    T0, 'base_link', 'imu_link',
+                    Transform(rotation=quaternion.from_rpy(0.0, 0.0, math.pi / 2)))]))
+            take(processor.on_message('wheel_odom', make_odometry(
+                t, 'odom', 'base_link', truth(k), np.eye(3) * 1e-3)))
+            imu = Imu()
+            imu.header.stamp = ns_to_stamp(t)
+            imu.header.frame_id = 'imu_link'
+            imu.orientation = yaw_to_quaternion(truth(k)[2] + math.pi / 2)
+            imu.orientation_covariance = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
+            take(processor.on_message('imu', imu))
+        take(processor.flush())
+        assert processor.diagnostics.counts['imu_mount_changes'] == 1
+        errors = [abs(yaw - truth((t - T0) // STEP)[2]) for t, yaw in yaws.items()]
+        assert len(yaws) >= 95 and max(errors) < 0.01, max(errors)
+    finally:
+        node.destroy_node()
+        context.try_shutdown()

@@ -255,6 +255,14 @@ class EkfFusion:
         self.x[3:BASE], self.p[3:BASE, 3:BASE] = keep_x, keep_p
         self.stamp_ns = stamp
 
+    def restart(self, name: str) -> None:
+        """Input `name` starts again from its next message (its increments and its relative
+        origin): what it measures has changed (a new sensor mount)."""
+        self._flush()
+        if name in self._slots:
+            self._empty(self._slots[name])
+        self._origin.pop(name, None)
+
     def _clone(self, slot: _Clone, key: object = None, reading: Reading | None = None) -> None:
         """Copy the current pose (and its correlations) into the slot."""
         at = slot.offset

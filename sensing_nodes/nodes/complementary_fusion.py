@@ -41,11 +41,12 @@ from sensing_nodes.ros.params import ParameterError, declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
-from sensing_nodes.ros.tf import TF_TOPIC, transform_message
+from sensing_nodes.ros.tf import TF_TOPIC, ImuMount, imu_mount, transform_message
 
 # Processing rank at equal stamps: dead reckoning up to a stamp is in before the scan match
 # at that stamp is fused.
 RANK = {WHEEL: 0, IMU: 1, SCAN: 2}
+RESTART = 'restart'   # in the reorder buffer: the input restarts here (a new IMU mount)
 
 
 class ComplementaryFusionNode(Node):
@@ -107,7 +108,7 @@ class ComplementaryFusionNode(Node):
         topics = {WHEEL: declare(self, 'wheel_odom.topic', '/wheel/odom', 'wheel odometry topic'),
                   IMU: declare(self, 'imu.topic', '/imu/data', 'IMU topic (sensor_msgs/Imu)')}
         self._imu_source = 'integrated'
-        self._mount = np.eye(3)
+        self._mount_rpy = (0.0, 0.0, 0.0)
         if method == 'ekf':
             configs = self._declare_ekf(use_wheel, use_imu, use_scan_pos, use_scan_heading,
                                         max_gap_s)
@@ -138,13 +139,22 @@ class ComplementaryFusionNode(Node):
                         "ekf, imu.source 'orientation': count only the horizontal part of body "
                         "velocities (the IMU's roll and pitch), for a robot on slopes")
         converter = ReadingConverter(
-            method, getattr(fusion, 'inputs', {}), self._imu_source, self._mount, level)
+            method, getattr(fusion, 'inputs', {}), self._imu_source,
+            mount_rotation(*self._mount_rpy), level)
         self.diagnostics = Diagnostics(self, update=self._update_diagnostics)
+        mount = None
+        if method == 'ekf' and use_imu and self._imu_source != 'integrated':
+            # The IMU's own orientation and rates are about its frame: /tf_static's base_frame
+            # -> the Imu's frame_id gives the mount where published, imu.mount_*_rad otherwise
+            # (gyro_integrator's output is already about base_link).
+            mount = imu_mount(self, self._base_frame, self._mount_rpy,
+                              on_update=lambda: self.processor.imu_mount_changed(),
+                              diagnostics=self.diagnostics)
         self.processor = ComplementaryFusionProcessor(
             method, fusion, records, topics, converter, StampOrderedBuffer(int(window_s * 1e9)),
             self._imu_source, self._reset_jump_s, self._input_timeout_s, self._odom_frame,
             self._base_frame, publish_tf, self.diagnostics, ThrottledWarnings(self),
-            self.get_logger())
+            self.get_logger(), mount)
         self._last_arrival = time.monotonic()
         self._output_publishers = wire(
             self, [dataclasses.replace(i, handler=self._arrival(i.handler))
@@ -204,11 +214,12 @@ class ComplementaryFusionNode(Node):
                                    'estimated in the filter)')
         require(self._imu_source in IMU_SOURCES, 'imu.source', f'must be one of {IMU_SOURCES}',
                 self._imu_source)
-        mount = [declare(self, f'imu.mount_{axis}_rad', 0.0,
-                         f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi',
-                         minimum=-2 * math.pi, maximum=2 * math.pi)
-                 for axis in ('roll', 'pitch', 'yaw')]
-        self._mount = mount_rotation(*mount)
+        self._mount_rpy = tuple(
+            declare(self, f'imu.mount_{axis}_rad', 0.0,
+                    f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi; '
+                    "the fallback where /tf_static gives no base_frame -> the Imu's frame_id",
+                    minimum=-2 * math.pi, maximum=2 * math.pi)
+            for axis in ('roll', 'pitch', 'yaw'))
         configs = [
             self._declare_input(WHEEL, use_wheel, max_gap_s=max_gap_s),
             self._declare_input(IMU, use_imu, max_gap_s=max_gap_s,
@@ -247,7 +258,8 @@ class ComplementaryFusionProcessor:
                  topics: dict[str, str], converter: ReadingConverter,
                  buffer: StampOrderedBuffer, imu_source: str, reset_jump_s: float,
                  input_timeout_s: float, odom_frame: str, base_frame: str, publish_tf: bool,
-                 diagnostics: Diagnostics, warnings: ThrottledWarnings, logger) -> None:
+                 diagnostics: Diagnostics, warnings: ThrottledWarnings, logger,
+                 imu_mount: ImuMount | None = None) -> None:
         self._method = method
         self._fusion = fusion
         self._records = records
@@ -264,6 +276,11 @@ class ComplementaryFusionProcessor:
         self.diagnostics = diagnostics   # counted here, published by the node
         self._warnings = warnings
         self._logger = logger
+        # The IMU's mount (orientation and rate sources), resolved per Imu frame id, again
+        # after /tf_static changes: (frame id, rotation into base_link)
+        self._imu_mount = imu_mount
+        self._imu_mount_for: tuple[str, np.ndarray] | None = None
+        self._imu_read = False   # an Imu has been read: a new mount from now on restarts it
 
     def inputs(self) -> list[Input]:
         imu_qos = SENSOR_QOS if self._imu_source != 'integrated' else ESTIMATE_QOS
@@ -276,6 +293,31 @@ class ComplementaryFusionProcessor:
     def outputs(self) -> list[Output]:
         return [Output('/odometry/filtered', Odometry, ESTIMATE_QOS)] + \
             ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
+
+    def imu_mount_changed(self) -> None:
+        """/tf_static changed: resolve the IMU mount again at the next IMU message."""
+        self._imu_mount_for = None
+
+    def _apply_imu_mount(self, frame: str, stamp: int) -> None:
+        """The mount of the IMU frame (from /tf_static, else the parameters) into the reading
+        converter. A mount that changes once the IMU has been read (a late /tf_static) applies
+        from this message on, and the IMU input restarts there in stamp order (its increments
+        and relative origin were measured with the old mount): counted as imu_mount_changes."""
+        if self._imu_mount_for is not None and self._imu_mount_for[0] == frame:
+            return
+        rotation, _ = self._imu_mount.resolve(frame)
+        rotation = np.eye(3) if rotation is None else rotation
+        started, self._imu_read = self._imu_read, True
+        self._imu_mount_for = (frame, rotation)
+        if np.allclose(rotation, self._converter.mount, atol=1e-12):
+            return
+        self._converter.set_mount(rotation)
+        if started:
+            self.diagnostics.count('imu_mount_changes')
+            self._logger.warn(f'IMU mount of {frame!r} changed (/tf_static): applied from the Imu '
+                              f'at {stamp * 1e-9:.3f} s on, where the IMU input restarts')
+            self._records[IMU].origin = None
+            self._buffer.push(stamp, RANK[IMU], (IMU, RESTART))
 
     def held(self) -> int:
         """How many inputs the reorder buffer holds."""
@@ -302,6 +344,8 @@ class ComplementaryFusionProcessor:
             self._reset()
         else:
             out = []
+        if source == IMU and self._imu_mount is not None:
+            self._apply_imu_mount(msg.header.frame_id, stamp)
         reading, problem = self._converter.reading(source, msg, stamp, record)
         if reading is None:
             self.diagnostics.count(f'{source}_rejected')
@@ -348,12 +392,18 @@ class ComplementaryFusionProcessor:
         self._start_ns = None
         self._tf_stamp = None
         self._converter.reset()
+        # /diagnostics carries the newest stamp of the new timeline (sensing_replay's warm-up
+        # plays stamps after the bag's end: every status of the pass carried them)
+        self.diagnostics.last_stamp_ns = 0
 
     # -- fusion and output ---------------------------------------------------------------------
     def _process(self, ready) -> Outputs:
         out: Outputs = []
         held = None   # (stamp, pose) of the newest output not yet on /tf
         for stamp, (source, reading) in ready:
+            if reading is RESTART:
+                self._fusion.restart(source)
+                continue
             self._records[source].processed_at(stamp)
             self._fusion.update(source, reading)
             if source == IMU and (self._records[WHEEL].enabled or self._records[SCAN].enabled):

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from nav_msgs.msg import Odometry
@@ -15,9 +13,8 @@ from std_srvs.srv import Trigger
 
 from sensing_nodes.core import quaternion
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
-from sensing_nodes.core.imu_mount import is_identity, mount_rotation, to_base
+from sensing_nodes.core.imu_mount import to_base
 from sensing_nodes.core.timing import StampStep
-from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.cdr import imu_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
@@ -27,7 +24,7 @@ from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
-from sensing_nodes.ros.tf import SensorMount, StaticTransformBuffer
+from sensing_nodes.ros.tf import ImuMount, imu_mount
 
 _HEADING_ONLY = (0.0,) * 8   # orientation covariance: only yaw's variance (last) is known
 
@@ -98,16 +95,14 @@ class GyroIntegratorNode(Node):
                            'the mount rotates: the output is about its axes)')
         # A rotated IMU: rates and accelerations are turned into base_link's axes before
         # anything else, so stillness, bias and heading are about base_link's z.
-        mount_from_tf = SensorMount(
-            self, StaticTransformBuffer(self, on_update=lambda: self.processor.mount_changed()),
-            base_frame, Transform(rotation=quaternion.from_rpy(*mount)), 'IMU',
-            compare_translation=False)   # the mount parameters are a rotation only
+        mount_source = imu_mount(self, base_frame, tuple(mount), frame_id,
+                                 on_update=lambda: self.processor.mount_changed())
         for name, problem, value in config.problems():
             require(False, {'noise_density': 'gyro_noise_density'}.get(name, name), problem, value)
 
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self.processor = GyroIntegratorProcessor(
-            config, ImuMount(mount_rotation(*mount), base_frame, frame_id, mount_from_tf.from_tf),
+            config, mount_source,
             scale_error, self._restart_on_backwards, use_wheels, self.diagnostics, ThrottledWarnings(self),
             self.get_logger())
         wire(self, self.processor.inputs(), self.processor.outputs())
@@ -135,28 +130,6 @@ class GyroIntegratorNode(Node):
                             f'{gi.config.stillness_window_s} s')
         self.get_logger().info(response.message)
         return response
-
-
-@dataclass
-class ImuMount:
-    """Which rotation turns an IMU frame's readings into base_frame's axes, and the frame the
-    output is in: /tf_static's mount of the message's frame where `from_tf` gives one, else the
-    mount parameters' rotation."""
-
-    parameters: np.ndarray          # 3x3, from mount_*_rad
-    base_frame: str
-    output_frame: str               # frame_id parameter; '' = decided by the rotation
-    from_tf: Callable[[str], Transform | None] | None = None
-
-    def resolve(self, imu_frame: str) -> tuple[np.ndarray | None, str]:
-        """(rotation into base_frame or None for none, output frame) for messages in imu_frame."""
-        found = self.from_tf(imu_frame) if self.from_tf is not None else None
-        rotation = self.parameters if found is None else \
-            mount_rotation(*quaternion.to_rpy(found.rotation))
-        if is_identity(rotation):
-            rotation = None
-        return rotation, self.output_frame or (self.base_frame if rotation is not None
-                                               else imu_frame)
 
 
 class GyroIntegratorProcessor:

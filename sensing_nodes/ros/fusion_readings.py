@@ -53,6 +53,11 @@ class ReadingConverter:
         self.previous_scan_ns = None
         self.tilt = np.eye(3)
 
+    def set_mount(self, rotation: NDArray[np.float64]) -> None:
+        """The IMU frame's rotation in base_link from now on (a mount from /tf_static)."""
+        self.mount = rotation
+        self._identity_mount = None
+
     def _level(self, vx: float, vy: float, wz: float) -> tuple[float, float, float]:
         """Body twist -> its horizontal part (in the yaw-only frame) and vertical rotation."""
         if not self.level_with_imu_tilt:

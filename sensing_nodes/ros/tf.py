@@ -8,12 +8,15 @@ are static.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
 from rclpy.node import Node
 from tf2_msgs.msg import TFMessage
 
 from sensing_nodes.core import quaternion as quat
+from sensing_nodes.core.imu_mount import is_identity, mount_rotation
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.conversions import make_transform_stamped, transform_of
 from sensing_nodes.ros.graph import TF, TF_STATIC
@@ -69,9 +72,11 @@ class StaticTransformBuffer:
     the tree they form. A transform with a non-finite value or a quaternion that is not unit is
     refused with a warning and counted (`rejected`); one close to unit is normalised."""
 
-    def __init__(self, node: Node, on_update: Callable[[], None] | None = None) -> None:
+    def __init__(self, node: Node, on_update: Callable[[], None] | None = None,
+                 diagnostics=None) -> None:
         self._node = node
         self._on_update = on_update
+        self._diagnostics = diagnostics   # ros.diagnostics.Diagnostics: counts tf_static_rejected
         self._parents: dict[str, tuple[str, Transform]] = {}
         self.rejected = 0
         self._warnings = ThrottledWarnings(node, period_s=5.0)   # node clock: follows /clock
@@ -87,6 +92,8 @@ class StaticTransformBuffer:
             problem = _problem(parent, child, transform)
             if problem:
                 self.rejected += 1
+                if self._diagnostics is not None:
+                    self._diagnostics.count('tf_static_rejected')
                 self._warnings.warn(f'{parent} -> {child}',
                                     f'ignoring /tf_static {parent!r} -> {child!r}: {problem}')
                 continue
@@ -178,3 +185,37 @@ class SensorMount:
                 f'{math.degrees(angle):.2f} deg apart): using /tf_static')
         else:
             self._node.get_logger().info(text)
+
+
+@dataclass
+class ImuMount:
+    """Which rotation turns an IMU frame's readings into base_frame's axes, and the frame the
+    output is in: /tf_static's mount of the message's frame where `from_tf` gives one, else the
+    mount parameters' rotation."""
+
+    parameters: np.ndarray          # 3x3, from mount_*_rad
+    base_frame: str
+    output_frame: str               # frame_id parameter; '' = decided by the rotation
+    from_tf: Callable[[str], Transform | None] | None = None
+
+    def resolve(self, imu_frame: str) -> tuple[np.ndarray | None, str]:
+        """(rotation into base_frame or None for none, output frame) for messages in imu_frame."""
+        found = self.from_tf(imu_frame) if self.from_tf is not None else None
+        rotation = self.parameters if found is None else \
+            mount_rotation(*quat.to_rpy(found.rotation))
+        if is_identity(rotation):
+            rotation = None
+        return rotation, self.output_frame or (self.base_frame if rotation is not None
+                                               else imu_frame)
+
+
+def imu_mount(node: Node, base_frame: str, roll_pitch_yaw: tuple[float, float, float],
+              output_frame: str = '', on_update: Callable[[], None] | None = None,
+              diagnostics=None) -> ImuMount:
+    """A node's IMU mount: /tf_static's base_frame -> the Imu's frame_id where published (read
+    by a StaticTransformBuffer of the node's own; on_update is called when it changes), else
+    the mount_*_rad parameters' rotation; a disagreement is warned about once."""
+    sensor = SensorMount(node, StaticTransformBuffer(node, on_update, diagnostics), base_frame,
+                         Transform(rotation=quat.from_rpy(*roll_pitch_yaw)), 'IMU',
+                         compare_translation=False)   # the mount parameters are a rotation only
+    return ImuMount(mount_rotation(*roll_pitch_yaw), base_frame, output_frame, sensor.from_tf)
