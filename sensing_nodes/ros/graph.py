@@ -183,6 +183,17 @@ def new_run_folder(out: Path | None, default_root: str, marker: str, prog: str) 
         return None
     out.mkdir(parents=True, exist_ok=True)
     return out
+def params_file_path(spec: str | Path) -> Path:
+    """A --params-file argument as a path: a file, or the name of a robot preset in
+    config/robots/ (turtlebot3); GraphArgumentError when it is neither."""
+    if Path(spec).is_file():
+        return Path(spec)
+    preset = config_file(f'robots/{spec}.yaml')
+    if not preset.is_file():
+        raise GraphArgumentError(f'--params-file {spec}: no such file, and no preset {preset}')
+    return preset
+
+
 def node_arguments(name: str, params_files: list[Path], extra: list[str]) -> list[str]:
     """The ROS arguments a processing node starts with: its config/<name>.yaml, then
     params_files (a robot preset), then extra (its own -p/-r), as later overrides earlier."""

@@ -21,7 +21,7 @@ from pathlib import Path
 from sensing_nodes.ros.cdr import SEQUENCE_OF_STAMPED, first_element_stamp_ns, leading_stamp_ns
 from sensing_nodes.ros.graph import (
     ANSWERS, CLOCK, DIAGNOSTICS, FUSED, JOINT_STATES, NODES, PROCESSING_NODES, SCAN, SENSOR_TOPICS, TF,
-    WALL_PERIODIC_TOPICS, Graph, GraphArgumentError,
+    WALL_PERIODIC_TOPICS, Graph, GraphArgumentError, params_file_path,
 )
 from sensing_nodes.ros.input_bag import (
     InputBag, InputBagError, PassResult, check_inputs, discard, load_bag, stamped_topics,
@@ -302,14 +302,11 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
     expectations = dict(expectations)
     bag = load_bag(bag_path)
     check_inputs(bag, list(expectations), remaps)
-    if params_file is not None and not Path(params_file).is_file():
-        from sensing_nodes.paths import config_file
-
-        preset = config_file(f'robots/{params_file}.yaml')    # a preset by name: turtlebot3
-        if not preset.is_file():
-            raise ReplayError(f'--params-file {params_file}: no such file, and no preset '
-                              f'{preset}')
-        params_file = preset
+    if params_file is not None:
+        try:
+            params_file = params_file_path(params_file)
+        except GraphArgumentError as exc:
+            raise ReplayError(str(exc)) from None
     published_names = {remaps.get(t, t) for t in expectations}
     outputs = ({o for outs in expectations.values() for o in outs} | set(extra_outputs)) \
         - published_names

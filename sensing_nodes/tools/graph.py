@@ -84,16 +84,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sensing_nodes.ros.graph import GraphArgumentError, parse_node_params, parse_nodes
+    from sensing_nodes.ros.graph import (
+        GraphArgumentError, params_file_path, parse_node_params, parse_nodes,
+    )
 
     args = parse_args(argv)
     try:
         names = parse_nodes(args.nodes)
         params = parse_node_params(args.param)
         remaps = parse_node_params(args.remap, flag='-r', option='--remap')
-        missing = [str(f) for f in args.params_file if not f.is_file()]
-        if missing:
-            raise GraphArgumentError(f'--params-file {", ".join(missing)}: no such file')
+        args.params_file = [params_file_path(f) for f in args.params_file]
         if args.threads is not None and args.threads < 1:
             raise GraphArgumentError('--threads must be >= 1')
     except GraphArgumentError as exc:

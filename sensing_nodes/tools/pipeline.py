@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     args = parse_args(argv)
     from sensing_nodes.ros.graph import (
-        GraphArgumentError, parse_node_params, parse_nodes, parse_remaps,
+        GraphArgumentError, params_file_path, parse_node_params, parse_nodes, parse_remaps,
     )
 
     try:
@@ -240,12 +240,10 @@ def main(argv: list[str] | None = None) -> int:
             nodes = parse_nodes(args.nodes)
             node_params = parse_node_params(args.param)   # node -> ['-p', 'NAME:=VALUE', ...]
             remaps = parse_remaps(args.remap)
+            params_files = [params_file_path(f) for f in args.params_file]
         except GraphArgumentError as exc:
             raise PipelineError(str(exc)) from None
-        for f in args.params_file:
-            if not f.is_file():
-                raise PipelineError(f'--params-file {f}: no such file')
-        counts = run(args.bag, args.out, nodes, params_files=args.params_file,
+        counts = run(args.bag, args.out, nodes, params_files=params_files,
                      node_params=node_params, remaps=remaps, progress=not args.no_progress,
                      compress=args.compress)
     except PipelineError as exc:
