@@ -256,6 +256,8 @@ def test_imu_rate_mount_from_parameters_or_tf_static(probe, mount_from):
         if mount_from != 'parameters':
             assert spin_until(probe, lambda: int(counts(diagnostics).get(
                 'tf_static_rejected', 0)) >= 2, 5), counts(diagnostics)
+        if mount_from == 'late_tf_static':   # the 1 Hz status after the change
+            spin_until(probe, lambda: 'imu_mount_changes' in counts(diagnostics), 5)
         assert node.alive()
         log = node.output()
         values = counts(diagnostics)
@@ -265,8 +267,16 @@ def test_imu_rate_mount_from_parameters_or_tf_static(probe, mount_from):
     for p in pubs.values():
         probe.destroy_publisher(p)
     yaw = {stamp_to_ns(m.header.stamp): odometry_pose(m)[0][2] for m in out.messages}
+
+    def yaw_near(t):
+        """The fused heading at the output nearest t (an Imu sent best effort can be lost under
+        load, and with it the output at its stamp)."""
+        nearest = min(yaw, key=lambda s: abs(s - t))
+        assert abs(nearest - t) <= 5 * STEP, (t, nearest)
+        return yaw[nearest] + YAW_RATE * (t - nearest) * 1e-9
+
     # the heading over the last 100 steps (2 s): +YAW_RATE * 2 s = +0.4 rad
-    turned = yaw[last] - yaw[last - 100 * STEP]
+    turned = yaw[last] - yaw_near(last - 100 * STEP)
     assert turned == pytest.approx(YAW_RATE * 100 * STEP * 1e-9, abs=0.01), (turned, log)
     if mount_from == 'parameters':
         assert 'IMU mount from /tf_static' not in log
@@ -277,7 +287,7 @@ def test_imu_rate_mount_from_parameters_or_tf_static(probe, mount_from):
         assert 'changed (/tf_static)' in log and values.get('imu_mount_changes') == '1', values
         # before the mount arrived the heading turned the wrong way (no mount: -YAW_RATE)
         first = min(yaw)
-        assert yaw[first + 50 * STEP] - yaw[first] < 0.0
+        assert yaw_near(first + 50 * STEP) - yaw[first] < 0.0
 
 
 def test_a_reset_restarts_the_diagnostics_stamp():
