@@ -18,6 +18,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
 from tf2_msgs.msg import TFMessage
@@ -162,7 +163,10 @@ class ComplementaryFusionNode(Node):
         # robot_localization's set_pose as a topic: a service would need an interface package
         # of our own, which the PyPI-wheel setup cannot build.
         self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose, 10)
-        self.create_timer(self._flush_after_s / 2.0, self._flush_if_idle)
+        # Wall time (steady): held inputs are processed when the bag has paused or ended, when
+        # /clock (use_sim_time) has stopped too.
+        self.create_timer(self._flush_after_s / 2.0, self._flush_if_idle,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f'method {method}; inputs: ' + ', '.join(
             f'{name} ({topics[name]})' for name, r in records.items() if r.enabled))
 
