@@ -174,3 +174,29 @@ def test_input_config_from_parameters_and_its_problems():
         input_config('wheel_odom', {'mask': ['z']})
     bad = input_config('imu', {'pose_mode': 'sideways', 'covariance': 'guess', 'mask': []})
     assert {field for field, _, _ in bad.problems()} == {'pose_mode', 'covariance', 'mask'}
+
+
+def test_a_match_moves_the_pose_not_its_already_published_keyframe():
+    """Wheels (differential, 1 cm per 0.1 m) and a keyframe between two wheel messages: a tight
+    match 5 cm off the wheels' motion puts the pose at keyframe ⊕ match, and the keyframe stays
+    the pose published at its scan (the optimal update would move it too: the wheels' increment
+    across its stamp ties it to the motion after it)."""
+    wheel = InputConfig('wheel_odom', mask=(True, True, True, False, False, False),
+                        covariance='model', noise=NoiseModel(1e-3, 1e-3, 1e-3))
+    scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
+                       keyframes=True, covariance='message')
+    ekf = EkfFusion((wheel, scan))
+    ms = 1_000_000
+    for k in range(3):   # 0.1 m per 100 ms along x
+        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
+    ekf.update('scan_match', Reading(T0 + 250 * ms, new_keyframe=True))
+    published = ekf.state.pose
+    for k in range(3, 6):
+        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
+    match = (0.30, 0.05, 0.02)       # the wheels say about (0.25, 0, 0)
+    outcome = ekf.update('scan_match', Reading(T0 + 500 * ms, match, np.diag([1e-6] * 3),
+                                               keyframe_ns=T0 + 250 * ms))
+    assert outcome.fused
+    slot = ekf._slots['scan_match']
+    assert tuple(ekf.x[slot.offset:slot.offset + 3]) == pytest.approx(published, abs=1e-12)
+    assert se2.between(published, ekf.state.pose) == pytest.approx(match, abs=2e-3)
