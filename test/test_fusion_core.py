@@ -13,7 +13,7 @@ from sensing_nodes.core.fusion import (
     auto_alpha,
     complementary_heading,
     fuse_information,
-    increment_covariance,
+    compounded_increment_covariance, increment_covariance,
     inverse_variance,
 )
 
@@ -53,6 +53,21 @@ def test_increment_covariance_recovers_the_added_noise():
     step, step_cov = (0.3, 0.05, 0.1), np.diag([1e-4, 4e-4, 9e-4])
     pose_now, cov_now = se2.compose_with_covariance(pose_prev, cov_prev, step, step_cov)
     assert increment_covariance(pose_prev, cov_prev, pose_now, cov_now) == pytest.approx(step_cov, abs=1e-12)
+
+
+def test_a_covariance_that_grows_with_distance_alone_does_not_compound():
+    """carmen_to_bag's odometry covariance (diagonal, growing with distance): what compounding
+    would carry of the earlier heading variance is missing, the recovered increment covariance
+    is mostly negative: None (the EKF then uses its noise model). A compounded one is kept."""
+    pose_prev, pose_now = (10.0, 5.0, 0.3), se2.compose((10.0, 5.0, 0.3), (0.2, 0.0, 0.05))
+    cov_prev, cov_now = np.diag([0.5, 0.5, 0.05]), np.diag([0.502, 0.502, 0.0502])
+    assert compounded_increment_covariance(pose_prev, cov_prev, pose_now, cov_now) is None
+    assert np.linalg.eigvalsh(increment_covariance(pose_prev, cov_prev, pose_now, cov_now)
+                              ).min() == pytest.approx(0.0, abs=1e-12)   # clipped: "exact"
+    step_cov = np.diag([1e-4, 4e-4, 9e-4])
+    _, compounded = se2.compose_with_covariance(pose_prev, cov_prev, (0.2, 0.0, 0.05), step_cov)
+    assert compounded_increment_covariance(pose_prev, cov_prev, pose_now, compounded) == \
+        pytest.approx(step_cov, abs=1e-12)
 
 
 def test_buffer_releases_in_stamp_order_whatever_the_arrival_order():

@@ -8,7 +8,7 @@ import pytest
 from sensing_nodes.core import se2
 from sensing_nodes.core.ekf_fusion import (
     EkfFusion, EkfSettings, InputConfig, NoiseModel, Reading, input_config, mask_from_names,
-    relative_jacobian,
+    adjoint, relative_jacobian,
 )
 
 # Nearly no process noise and exactly known velocities: the numbers are the measurements'.
@@ -35,18 +35,28 @@ def test_two_absolute_readings_fuse_by_inverse_variance():
 
 
 def test_relative_jacobian_matches_finite_differences():
+    """Jacobians with respect to body-frame errors: pose ⊕ e (right perturbation)."""
     clone, pose = (1.0, -2.0, 0.7), (1.8, -1.1, 1.9)
     h, j_pose, j_clone = relative_jacobian(clone, pose)
     assert h == pytest.approx(se2.between(clone, pose), abs=1e-12)
     eps = 1e-7
     for i in range(3):
-        for base, jac, other in ((pose, j_pose, clone), (clone, j_clone, pose)):
-            moved = list(base)
-            moved[i] += eps
-            moved_h = relative_jacobian(other, tuple(moved))[0] if base is pose else \
-                relative_jacobian(tuple(moved), other)[0]
+        error = [0.0, 0.0, 0.0]
+        error[i] = eps
+        moved_pose = se2.compose(pose, tuple(error))
+        moved_clone = se2.compose(clone, tuple(error))
+        for jac, moved_h in ((j_pose, relative_jacobian(clone, moved_pose)[0]),
+                             (j_clone, relative_jacobian(moved_clone, pose)[0])):
             numeric = (np.array(moved_h) - np.array(h)) / eps
             assert jac[:, i] == pytest.approx(numeric, abs=1e-5)
+
+
+def test_adjoint_carries_a_body_error_across_a_motion():
+    """motion ⊕ e = (adjoint(motion) e) ⊕ motion, to first order."""
+    motion, error = (0.8, -0.3, 0.6), np.array([1e-7, -2e-7, 3e-7])
+    left = se2.compose(motion, tuple(error))
+    right = se2.compose(tuple(adjoint(motion) @ error), motion)
+    assert left == pytest.approx(right, abs=1e-12)
 
 
 def test_matches_against_one_keyframe_do_not_shrink_its_own_error():
@@ -164,3 +174,29 @@ def test_input_config_from_parameters_and_its_problems():
         input_config('wheel_odom', {'mask': ['z']})
     bad = input_config('imu', {'pose_mode': 'sideways', 'covariance': 'guess', 'mask': []})
     assert {field for field, _, _ in bad.problems()} == {'pose_mode', 'covariance', 'mask'}
+
+
+def test_a_match_moves_the_pose_not_its_already_published_keyframe():
+    """Wheels (differential, 1 cm per 0.1 m) and a keyframe between two wheel messages: a tight
+    match 5 cm off the wheels' motion puts the pose at keyframe ⊕ match, and the keyframe stays
+    the pose published at its scan (the optimal update would move it too: the wheels' increment
+    across its stamp ties it to the motion after it)."""
+    wheel = InputConfig('wheel_odom', mask=(True, True, True, False, False, False),
+                        covariance='model', noise=NoiseModel(1e-3, 1e-3, 1e-3))
+    scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
+                       keyframes=True, covariance='message')
+    ekf = EkfFusion((wheel, scan))
+    ms = 1_000_000
+    for k in range(3):   # 0.1 m per 100 ms along x
+        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
+    ekf.update('scan_match', Reading(T0 + 250 * ms, new_keyframe=True))
+    published = ekf.state.pose
+    for k in range(3, 6):
+        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
+    match = (0.30, 0.05, 0.02)       # the wheels say about (0.25, 0, 0)
+    outcome = ekf.update('scan_match', Reading(T0 + 500 * ms, match, np.diag([1e-6] * 3),
+                                               keyframe_ns=T0 + 250 * ms))
+    assert outcome.fused
+    slot = ekf._slots['scan_match']
+    assert tuple(ekf.x[slot.offset:slot.offset + 3]) == pytest.approx(published, abs=1e-12)
+    assert se2.between(published, ekf.state.pose) == pytest.approx(match, abs=2e-3)

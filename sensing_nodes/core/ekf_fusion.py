@@ -9,6 +9,15 @@ turned into a velocity or counted again at every scan (the keyframe's error is s
 match against it).
 
 Process model: constant body velocity (white acceleration noise), random-walk gyro bias.
+
+Errors of the pose and of every clone are kept in that pose's own body frame (true pose =
+estimate ⊕ error, a right perturbation on SE(2)); velocities and bias are additive. Then the
+Jacobians of motion and of every relative measurement depend on relative quantities only, never
+on the absolute heading: with no absolute input, the odom-frame uncertainty grows without bound
+and, with errors in the odom frame, first-order errors of the lever arms times that large
+uncertainty corrupted the cross-covariances (a match against a keyframe then moved the keyframe
+and the pose by decimetres on the CARMEN logs, docs/fusion.md). The published covariance is
+turned into the odom frame.
 Measurement kinds, each with a per-input mask over (x, y, yaw, vx, vy, vyaw):
   - pose, absolute (in the source's frame, which is the fused frame), relative to the source's
     first message, or differential (the motion between consecutive messages, via a clone);
@@ -27,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core import se2
-from sensing_nodes.core.fusion import increment_covariance
+from sensing_nodes.core.fusion import compounded_increment_covariance, increment_covariance
 from sensing_nodes.core.se2 import Pose2
 
 QUANTITIES = ('x', 'y', 'yaw', 'vx', 'vy', 'vyaw')
@@ -66,7 +75,8 @@ class InputConfig:
     """What one input contributes: mask over QUANTITIES, how its pose is read, its gate.
 
     covariance 'auto' uses the message's covariance unless it is static (does not change
-    between messages) or zero, then the noise model; 'message' and 'model' force one of them.
+    between messages), zero, or (differential) does not grow by compounding, then the noise
+    model; 'message' and 'model' force one of them.
     """
 
     name: str
@@ -173,14 +183,28 @@ def _wrap(angle: float) -> float:
     return math.remainder(angle, 2.0 * math.pi)
 
 
+def body_to_odom(yaw: float) -> NDArray[np.float64]:
+    """3x3 map of a body-frame pose error (x, y, yaw) to the odom frame at heading yaw (rad)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def adjoint(motion: Pose2) -> NDArray[np.float64]:
+    """3x3 adjoint of an SE(2) motion (m, rad): a body-frame error e at its end is the error
+    adjoint(motion) @ e at its start (motion ⊕ e = e' ⊕ motion)."""
+    c, s = math.cos(motion[2]), math.sin(motion[2])
+    return np.array([[c, -s, motion[1]], [s, c, -motion[0]], [0.0, 0.0, 1.0]])
+
+
 def relative_jacobian(clone: Pose2, pose: Pose2) -> tuple[Pose2, NDArray[np.float64],
                                                           NDArray[np.float64]]:
-    """between(clone, pose) and its Jacobians with respect to pose and to clone (3x3 each)."""
+    """between(clone, pose) and its Jacobians with respect to the body-frame errors of pose and
+    of clone (3x3 each; true = estimate ⊕ error): functions of the relative pose only."""
     c, s = math.cos(clone[2]), math.sin(clone[2])
     dx, dy = pose[0] - clone[0], pose[1] - clone[1]
     h = (c * dx + s * dy, -s * dx + c * dy, _wrap(pose[2] - clone[2]))
-    j_pose = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    j_clone = np.array([[-c, -s, -s * dx + c * dy], [s, -c, -c * dx - s * dy], [0.0, 0.0, -1.0]])
+    j_pose = body_to_odom(h[2])
+    j_clone = np.array([[-1.0, 0.0, h[1]], [0.0, -1.0, -h[0]], [0.0, 0.0, -1.0]])
     return h, j_pose, j_clone
 
 
@@ -217,7 +241,6 @@ class EkfFusion:
                 self._slots[cfg.name] = _Clone(offset)
                 offset += 3
         self._size = offset
-        self._angle_rows = [YAW] + [slot.offset + 2 for slot in self._slots.values()]
         self._q_diagonal = np.array([self.settings.pose_noise_density ** 2] * 3
                                     + [self.settings.accel_noise_density ** 2] * 2
                                     + [self.settings.angular_accel_noise_density ** 2,
@@ -232,7 +255,8 @@ class EkfFusion:
         self.x[:3] = pose
         self.p = np.zeros((self._size, self._size))
         if covariance is not None:
-            self.p[:3, :3] = np.asarray(covariance, dtype=float)
+            to_body = body_to_odom(pose[2]).T
+            self.p[:3, :3] = to_body @ np.asarray(covariance, dtype=float) @ to_body.T
         self.p[VX, VX] = self.p[VY, VY] = self.p[WZ, WZ] = s.initial_velocity_std ** 2
         self.p[BG, BG] = s.initial_bias_std ** 2
         self.stamp_ns: int | None = None
@@ -291,7 +315,8 @@ class EkfFusion:
         if self.stamp_ns is None:
             return None
         p = self.p
-        return FusedState(self.stamp_ns, self.pose, _symmetric(p[:3, :3]),
+        to_odom = body_to_odom(float(self.x[YAW]))
+        return FusedState(self.stamp_ns, self.pose, _symmetric(to_odom @ p[:3, :3] @ to_odom.T),
                           (float(self.x[VX]), float(self.x[VY]), float(self.x[WZ])),
                           _symmetric(p[3:6, 3:6]), float(self.x[BG]), float(p[BG, BG]))
 
@@ -307,9 +332,14 @@ class EkfFusion:
         yaw, vx, vy, wz = float(self.x[YAW]), float(self.x[VX]), float(self.x[VY]), \
             float(self.x[WZ])
         c, si = math.cos(yaw), math.sin(yaw)
+        # The pose moves by the body motion u = (vx, vy, wz) dt; its body-frame error is carried
+        # to the new pose by adjoint(u)⁻¹, a velocity error adds (u's end frame) dt.
+        a, b, turn = vx * dt, vy * dt, wz * dt
+        ct, st = math.cos(turn), math.sin(turn)
         f = np.eye(BASE)
-        f[X, YAW], f[X, VX], f[X, VY] = (-vx * si - vy * c) * dt, c * dt, -si * dt
-        f[Y, YAW], f[Y, VX], f[Y, VY] = (vx * c - vy * si) * dt, si * dt, c * dt
+        f[X, X], f[X, Y], f[Y, X], f[Y, Y] = ct, st, -st, ct
+        f[X, YAW], f[Y, YAW] = -ct * b + st * a, st * b + ct * a
+        f[X, VX], f[X, VY], f[Y, VX], f[Y, VY] = ct * dt, st * dt, -st * dt, ct * dt
         f[YAW, WZ] = dt
         self.x[X] += (vx * c - vy * si) * dt
         self.x[Y] += (vx * si + vy * c) * dt
@@ -335,13 +365,40 @@ class EkfFusion:
             return Outcome(gated=True, distance2=d2,
                            note=f'squared Mahalanobis distance {d2:.1f} > {gate_chi2:g}')
         k = ph @ s_inv
-        self.x += k @ residual
-        for i in self._angle_rows:
-            self.x[i] = _wrap(float(self.x[i]))
-        self.p -= k @ ph.T
-        self.p = 0.5 * (self.p + self.p.T)
+        self._keep_keyframes(k)
+        self._inject(k @ residual)
+        # P - K H P - (K H P)' + K S K': the covariance of any gain, not only the optimal one.
+        khp = k @ ph.T
+        self.p = _symmetric(self.p - khp - khp.T + k @ s @ k.T)
         self.updates += 1
         return Outcome(fused=True, distance2=d2)
+
+    def _keep_keyframes(self, gain: NDArray[np.float64]) -> None:
+        """A keyframe's clone is not revised: it is the pose published at the keyframe's scan,
+        onto which every later match is composed. The correction the optimal gain gives it goes
+        to the pose through the motion since it (pose = keyframe ⊕ motion: the motion keeps
+        its optimal correction), so the published motion from scan to scan is the fused one.
+        Revising the keyframe instead moved the whole chain on the real logs: the wheels'
+        increment across a keyframe and the velocities tie it to the motion after it."""
+        for slot in self._slots.values():
+            if slot.key is None or slot.stamp_ns is None:
+                continue
+            at = slot.offset
+            keyframe = (float(self.x[at]), float(self.x[at + 1]), float(self.x[at + 2]))
+            motion = se2.between(keyframe, self.pose)
+            gain[:3] -= adjoint(se2.inverse(motion)) @ gain[at:at + 3]
+            gain[at:at + 3] = 0.0
+
+    def _inject(self, error: NDArray[np.float64]) -> None:
+        """Apply a correction: pose and clones composed with their body-frame errors, the
+        rest added."""
+        for at in [0] + [slot.offset for slot in self._slots.values()
+                         if slot.stamp_ns is not None]:
+            pose = (float(self.x[at]), float(self.x[at + 1]), float(self.x[at + 2]))
+            moved = se2.compose(pose, (float(error[at]), float(error[at + 1]),
+                                       float(error[at + 2])))
+            self.x[at:at + 3] = (moved[0], moved[1], _wrap(moved[2]))
+        self.x[3:BASE] += error[3:BASE]
 
     # -- measurements --------------------------------------------------------------------------
     def _coalesced(self, cfg: InputConfig) -> bool:
@@ -431,18 +488,25 @@ class EkfFusion:
         if cfg.pose_mode == 'absolute' and not self._initialized:
             # As robot_localization: the filter's first absolute reading sets what it measures
             # (an IMU's heading in its world frame is where the fused frame's heading starts).
+            # Done in the odom frame, where the reading's quantities are.
             self._initialized = True
             rows = [i for i in range(3) if cfg.mask[i]]
+            to_odom = np.eye(self._size)
+            to_odom[:3, :3] = body_to_odom(float(self.x[YAW]))
+            p = to_odom @ self.p @ to_odom.T
             for i in rows:
                 self.x[i] = pose[i]
-                self.p[i, :] = 0.0
-                self.p[:, i] = 0.0
-            self.p[np.ix_(rows, rows)] = cov[np.ix_(rows, rows)]
+                p[i, :] = 0.0
+                p[:, i] = 0.0
+            p[np.ix_(rows, rows)] = cov[np.ix_(rows, rows)]
+            to_body = np.eye(self._size)
+            to_body[:3, :3] = body_to_odom(float(self.x[YAW])).T
+            self.p = _symmetric(to_body @ p @ to_body.T)
             return Outcome(note='first absolute reading: state set to it')
         residual = np.array([pose[0] - self.x[X], pose[1] - self.x[Y],
                              _wrap(pose[2] - float(self.x[YAW]))])
         h = np.zeros((3, self._size))
-        h[0, X] = h[1, Y] = h[2, YAW] = 1.0
+        h[:, :3] = body_to_odom(float(self.x[YAW]))
         return self._correct(*self._masked(cfg.mask[:3], residual, h, cov), cfg.gate_chi2)
 
     def _differential(self, cfg: InputConfig, reading: Reading) -> Outcome:
@@ -459,7 +523,12 @@ class EkfFusion:
         if cfg.covariance != 'model' and reading.pose_covariance is not None \
                 and previous.pose_covariance is not None:
             static = bool(np.array_equal(reading.pose_covariance, previous.pose_covariance))
-            if not static:
+            if not static and cfg.covariance == 'auto':
+                # None (then the noise model) when the source's covariance does not compound.
+                cov = compounded_increment_covariance(
+                    previous.pose, previous.pose_covariance, reading.pose,
+                    reading.pose_covariance)
+            elif not static:
                 cov = increment_covariance(previous.pose, previous.pose_covariance,
                                            reading.pose, reading.pose_covariance)
         dt = (reading.stamp_ns - previous.stamp_ns) * 1e-9
@@ -507,22 +576,19 @@ class EkfFusion:
         against it (pose ⊕ match⁻¹), its covariance and correlations carried from the pose
         plus the match's noise: that match then tells nothing about the current pose, and
         only the motion between later matches and it is fused."""
-        x, y, yaw = match
-        c, s = math.cos(yaw), math.sin(yaw)
-        inverse = se2.inverse(match)
-        j_inverse = np.array([[-c, -s, x * s - y * c], [s, -c, x * c + y * s],
-                              [0.0, 0.0, -1.0]])
-        j_pose, j_match = se2.compose_jacobians(self.pose, inverse)
-        j_match = j_match @ j_inverse
+        # keyframe ⊕ e_k = pose ⊕ e_p ⊕ (match ⊕ e_m)⁻¹  gives  e_k = adjoint(match)(e_p - e_m),
+        # with e_m the match's coordinate noise turned into its body frame.
+        j = adjoint(match)
+        to_body = body_to_odom(match[2]).T
+        match_noise = to_body @ noise @ to_body.T
         self._empty(slot)
         at = slot.offset
-        self.x[at:at + 3] = se2.compose(self.pose, inverse)
-        self.x[at + 2] = _wrap(float(self.x[at + 2]))
-        row = j_pose @ self.p[:3, :]
+        keyframe = se2.compose(self.pose, se2.inverse(match))
+        self.x[at:at + 3] = (keyframe[0], keyframe[1], _wrap(keyframe[2]))
+        row = j @ self.p[:3, :]
         self.p[at:at + 3, :] = row
         self.p[:, at:at + 3] = row.T
-        self.p[at:at + 3, at:at + 3] = (j_pose @ self.p[:3, :3] @ j_pose.T
-                                        + j_match @ noise @ j_match.T)
+        self.p[at:at + 3, at:at + 3] = j @ (self.p[:3, :3] + match_noise) @ j.T
         slot.stamp_ns, slot.key, slot.reading = self.stamp_ns, key, None
 
     def _twist(self, cfg: InputConfig, reading: Reading) -> Outcome:

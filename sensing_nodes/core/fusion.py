@@ -53,19 +53,39 @@ def auto_alpha(var_predicted: float, var_absolute: float) -> float:
     return var_absolute / (var_predicted + var_absolute)
 
 
+def _added_covariance(
+    pose_prev: Pose2, cov_prev: NDArray[np.float64], pose_now: Pose2, cov_now: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """cov_now minus cov_prev compounded to pose_now, in the increment's frame (unclipped)."""
+    increment = se2.between(pose_prev, pose_now)
+    j_a, j_b = se2.compose_jacobians(pose_prev, increment)
+    added = cov_now - j_a @ cov_prev @ j_a.T
+    j_b_inv = j_b.T  # j_b is a rotation about z
+    q = j_b_inv @ added @ j_b_inv.T
+    return 0.5 * (q + q.T)
+
+
 def increment_covariance(
     pose_prev: Pose2, cov_prev: NDArray[np.float64], pose_now: Pose2, cov_now: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     """Covariance of the body-frame increment between two cumulative odometry poses, recovered
     from their covariances under first-order compounding (cov_now = Ja·cov_prev·Jaᵀ + Jb·Q·Jbᵀ).
     Negative parts (a source that does not propagate this way) are clipped to zero."""
-    increment = se2.between(pose_prev, pose_now)
-    j_a, j_b = se2.compose_jacobians(pose_prev, increment)
-    added = cov_now - j_a @ cov_prev @ j_a.T
-    j_b_inv = j_b.T  # j_b is a rotation about z
-    q = j_b_inv @ added @ j_b_inv.T
-    q = 0.5 * (q + q.T)
-    values, vectors = np.linalg.eigh(q)
+    values, vectors = np.linalg.eigh(_added_covariance(pose_prev, cov_prev, pose_now, cov_now))
+    return (vectors * np.clip(values, 0.0, None)) @ vectors.T
+
+
+def compounded_increment_covariance(
+    pose_prev: Pose2, cov_prev: NDArray[np.float64], pose_now: Pose2, cov_now: NDArray[np.float64],
+    tolerance: float = 0.1,
+) -> NDArray[np.float64] | None:
+    """increment_covariance, or None when the source's covariance does not grow by compounding:
+    the negative part the clip would remove exceeds `tolerance` times the positive part kept.
+    A covariance that grows with distance alone (carmen_to_bag's) is such a source: the clip
+    leaves directions of zero variance, which a filter would take as exact."""
+    values, vectors = np.linalg.eigh(_added_covariance(pose_prev, cov_prev, pose_now, cov_now))
+    if -values[values < 0.0].sum() > tolerance * values[values > 0.0].sum():
+        return None
     return (vectors * np.clip(values, 0.0, None)) @ vectors.T
 
 
