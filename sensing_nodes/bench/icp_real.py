@@ -102,7 +102,8 @@ Matcher = Callable[[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64
 def ours(options: dict | None = None) -> Matcher:
     """core.icp.match with the given options, as a matcher function."""
     opts = {**OURS_OPTIONS, **(options or {})}
-    target_keys = {'normal_neighbours', 'normal_radius', 'min_planarity', 'tangent_weight'}
+    target_keys = {'normal_neighbours', 'normal_radius', 'min_planarity', 'tangent_weight',
+                   'search'}
     target_opts = {k: opts.pop(k) for k in list(opts) if k in target_keys}
 
     def run(source, target, guess):

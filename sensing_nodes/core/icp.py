@@ -27,6 +27,12 @@ DEGENERATE_VARIANCE = 100.0
 # Target points each side of a query's bearing among which its nearest neighbour is sought first
 # (a scan's points are ordered by bearing, so the nearest one is almost always among them).
 ANGULAR_WINDOW = 10
+# Once the pose moves by less than LOCAL_STEP (m, yaw as arc length at the source's RMS radius)
+# per iteration, the nearest point is sought among the LOCAL_WINDOW points each side of the
+# previous one: correspondences move along the scan by a beam or two at most.
+LOCAL_WINDOW = 3
+LOCAL_STEP = 0.05
+_LOCAL_OFFSETS = np.arange(-LOCAL_WINDOW, LOCAL_WINDOW + 1)
 # Neighbouring points each side of a target point among which its normal_neighbours nearest are
 # taken (a scan's neighbouring beams).
 NORMAL_WINDOW = 8
@@ -52,7 +58,7 @@ class Convergence:
     flipping back and forth). Not converged: `max_iterations` reached."""
 
     max_iterations: int = 50
-    tolerance: float = 1e-3
+    tolerance: float = 1e-4
     error_tolerance: float = 0.001
     stall_iterations: int = 5
 
@@ -417,31 +423,40 @@ def _complex(points: NDArray[np.float64]) -> NDArray[np.complex128]:
     return np.ascontiguousarray(points, dtype=np.float64).view(np.complex128).ravel()
 
 
-def _nearest(target: Target, points: NDArray[np.complex128],
-             gate: float) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
+def _nearest(target: Target, points: NDArray[np.complex128], gate: float,
+             previous: NDArray[np.intp] | None = None
+             ) -> tuple[NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp] | None]:
     """For each query point (x + iy, target frame, m): whether a target point lies closer than
-    gate, and the index of the nearest one (any index when none). With the target's `search`
-    'bearing', the nearest among the ANGULAR_WINDOW points each side of the query's bearing (a
-    scan is ordered by bearing); with 'kd_tree', the exact nearest point."""
+    gate, the index of the nearest one (any index when none), and where the search found it
+    (for the next call's `previous`; None with a k-d tree). With the target's `search`
+    'bearing', see _bearing_nearest; with 'kd_tree', the exact nearest point."""
     bearing_index = target.bearing_index
     if bearing_index is None:
         distance, index = target.tree.query(np.column_stack((points.real, points.imag)), k=1,
                                             distance_upper_bound=gate)
-        return distance < gate, index
-    distance, position = _bearing_nearest(bearing_index, points)
-    return distance < gate, bearing_index.index.take(position)
+        return distance < gate, index, None
+    distance, position = _bearing_nearest(bearing_index, points, previous)
+    return distance < gate, bearing_index.index.take(position), position
 
 
-def _bearing_nearest(bearing_index: BearingIndex,
-                     points: NDArray[np.complex128]) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-    """Distance (m) to and position (in the padded arrays) of the nearest of the pad target
-    points each side of each query point's bearing (x + iy, target frame)."""
-    # Every bearing in [-π, π] lands between the pads, so the window stays inside the arrays.
-    bearing = np.arctan2(points.imag, points.real)
-    window = np.searchsorted(bearing_index.bearings, bearing)[:, None] + bearing_index.offsets
+def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128],
+                     previous: NDArray[np.intp] | None
+                     ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Distance (m) to and position (in the padded arrays) of a near target point of each query
+    point (x + iy, target frame): the nearest of the pad points each side of its bearing, or,
+    given the previous positions (the points moved little since), the nearest of the
+    LOCAL_WINDOW points each side of its previous one."""
+    if previous is None:
+        bearing = np.arctan2(points.imag, points.real)
+        window = np.searchsorted(bearing_index.bearings, bearing)[:, None] + bearing_index.offsets
+    else:
+        window = previous[:, None] + _LOCAL_OFFSETS
+    # A finite bearing's window lies between the pads; clipping keeps the rest in the arrays
+    # (a non-finite query gets a NaN distance, so no correspondence).
+    np.clip(window, 0, bearing_index.points.shape[0] - 1, out=window)
     distance = bearing_index.points.take(window)
     distance -= points[:, None]
-    distance = np.abs(distance)                          # (count, 2·pad)
+    distance = np.abs(distance)                          # (count, window)
     best = distance.argmin(axis=1)
     best += np.arange(0, distance.size, distance.shape[1])
     return distance.take(best), window.take(best)
@@ -610,11 +625,13 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
     stop = _Stop(options.convergence)
     u0_rows, u1_rows, uq_rows = rows
     n = src.shape[0]
+    step, position = math.inf, None
     for iteration in range(1, max_iterations + 1):
         state.iterations = iteration
         lever = src * complex(math.cos(yaw), math.sin(yaw))      # R·s
         moved = lever + complex(x, y)
-        keep, index = _nearest(tgt, moved, gate)
+        keep, index, position = _nearest(tgt, moved, gate,
+                                         position if step < LOCAL_STEP else None)
         count = int(np.count_nonzero(keep))
         if count < min_inliers:
             state.reason = f'too few correspondences ({count} < {min_inliers}) within {gate:.3f} m'
@@ -666,7 +683,7 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
 def _score(src, tgt: Target, pose, inlier_distance: float) -> float:
     """Fraction of source points within inlier_distance (m) of a target point at pose."""
     moved = _complex(src) * complex(math.cos(pose[2]), math.sin(pose[2])) + complex(*pose[:2])
-    keep, _ = _nearest(tgt, moved, inlier_distance)
+    keep, _, _ = _nearest(tgt, moved, inlier_distance)
     return float(keep.mean())
 
 
