@@ -36,9 +36,6 @@ _LOCAL_OFFSETS = np.arange(-LOCAL_WINDOW, LOCAL_WINDOW + 1)
 # Neighbouring points each side of a target point among which its normal_neighbours nearest are
 # taken (a scan's neighbouring beams).
 NORMAL_WINDOW = 8
-# Above this many (query, target) distances the queries the window could not settle go to a
-# k-d tree instead of a brute-force distance matrix.
-_BRUTE_FORCE_PAIRS = 40_000
 
 _METHODS = ('point_to_line', 'point_to_point')
 _SEARCHES = ('bearing', 'kd_tree')
@@ -160,9 +157,10 @@ class BearingIndex:
 
 @dataclass(frozen=True)
 class Target:
-    """A target scan prepared once for many matches: points (N, 2) in its frame (m), its points
-    sorted by bearing (`bearing_index`, None when there are too few) and a k-d tree (built when
-    first needed) for nearest-neighbour queries, unit normals (N, 2) from the neighbouring points,
+    """A target scan prepared once for many matches: points (N, 2) in its frame (m), how its
+    neighbours are found (`search`: 'bearing' = `bearing_index`, its points sorted by bearing,
+    None below 2·ANGULAR_WINDOW + 1 points; else `tree`, a k-d tree built when first needed),
+    unit normals (N, 2) from the neighbouring points,
     how line-like each neighbourhood is (`planarity` in [0, 1]: 1 = points exactly on a line),
     and the 2x2 information matrix each point gives a residual, as (N, 3) rows (m00, m01, m11):
     n·nᵀ + tangent_weight·I on a line (point-to-line), I elsewhere (corners and isolated points
@@ -182,7 +180,8 @@ class Target:
 
     @cached_property
     def tree(self) -> cKDTree:
-        """k-d tree over the points, for the queries the bearing window cannot settle."""
+        """k-d tree over the points: the neighbour search with search='kd_tree' or without a
+        bearing index."""
         return cKDTree(self.points)
 
 
@@ -557,7 +556,7 @@ def _choose_pairs(size_sq, keep, count: int, corr: Correspondences, min_inliers:
     and the median squared residual. size_sq is infinite for pairs outside the gate."""
     k = count // 2
     median_sq = float(np.partition(size_sq, k)[k])
-    gated = count < keep.size
+    gated = count < keep.size and corr.robust != 'adaptive'      # adaptive chooses its own
     chosen: NDArray[np.intp] | None = np.flatnonzero(keep) if gated else None
     if corr.robust == 'trim' and count > min_inliers:
         n_keep = max(min_inliers, int(corr.trim_fraction * count))
