@@ -315,3 +315,49 @@ def test_nan_points_are_dropped_and_counted():
     assert result.dropped_points == len(source[::10]) + len(target[5::20])
     assert result.converged
     assert pose_error(result, MOTION_10)[0] < 1e-3
+
+
+# --- nearest neighbours from the scan's bearing order ------------------------------------------
+
+def test_bearing_window_finds_the_exact_nearest_across_the_plus_minus_pi_seam():
+    # A full-circle scan (beams from -π): queries near bearing ±π must see the points on both
+    # sides of the seam (the padded ends), as a k-d tree does.
+    target = room_scan(TARGET_POSE)
+    prepared = icp.prepare_target(target)
+    assert prepared.bearing_index is not None
+    rng = np.random.default_rng(3)
+    bearing = np.arctan2(target[:, 1], target[:, 0])
+    near_seam = target[np.abs(bearing) > math.pi - 0.1]
+    queries = np.vstack([near_seam + rng.normal(0.0, 0.02, near_seam.shape),
+                         target + rng.normal(0.0, 0.02, target.shape)])
+    keep, index, _ = icp._nearest(prepared, icp._complex(queries), 0.5)
+    distance, expected = icp.prepare_target(target, search='kd_tree').tree.query(
+        queries, distance_upper_bound=0.5)
+    np.testing.assert_array_equal(keep, np.isfinite(distance))
+    np.testing.assert_array_equal(index[keep], expected[keep])
+
+
+def test_bearing_and_kd_tree_search_agree_on_a_noisy_room_scan():
+    rng = np.random.default_rng(5)
+    target = room_scan(TARGET_POSE, 0.01, rng)
+    source = room_scan(compose(TARGET_POSE, MOTION_10), 0.01, rng)
+    guess = (0.15, -0.05, math.radians(6.0))
+    bearing = icp.match(source, icp.prepare_target(target), guess)
+    tree = icp.match(source, icp.prepare_target(target, search='kd_tree'), guess)
+    assert bearing.converged and tree.converged
+    assert math.hypot(bearing.x - tree.x, bearing.y - tree.y) < 2e-3
+    assert abs(wrap_angle(bearing.yaw - tree.yaw)) < math.radians(0.05)
+    assert pose_error(bearing, MOTION_10)[0] < 0.01
+
+
+def test_unknown_search_is_rejected():
+    with pytest.raises(ValueError, match='search'):
+        icp.prepare_target(room_scan(TARGET_POSE), search='octree')
+
+
+def test_a_target_too_small_for_the_bearing_window_falls_back_to_the_tree():
+    target = room_scan(TARGET_POSE)[::20]          # 18 points < 2 * ANGULAR_WINDOW + 1
+    prepared = icp.prepare_target(target)
+    assert prepared.bearing_index is None
+    result = icp.match(target, prepared, (0.01, 0.0, 0.0))
+    assert result.converged and math.hypot(result.x, result.y) < 1e-6

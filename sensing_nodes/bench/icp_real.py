@@ -102,7 +102,8 @@ Matcher = Callable[[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64
 def ours(options: dict | None = None) -> Matcher:
     """core.icp.match with the given options, as a matcher function."""
     opts = {**OURS_OPTIONS, **(options or {})}
-    target_keys = {'normal_neighbours', 'normal_radius', 'min_planarity', 'tangent_weight'}
+    target_keys = {'normal_neighbours', 'normal_radius', 'min_planarity', 'tangent_weight',
+                   'search'}
     target_opts = {k: opts.pop(k) for k in list(opts) if k in target_keys}
 
     def run(source, target, guess):
@@ -165,8 +166,11 @@ def summary(trans: NDArray[np.float64], rot: NDArray[np.float64]) -> dict:
 
 
 def matchers(include_small_gicp: bool = True) -> dict[str, Matcher]:
-    """The methods compared: ours, and small_gicp's ICP, plane-ICP and GICP."""
-    out = {'ours': ours(), 'ours_local': ours({'yaw_hypotheses': ()})}
+    """The methods compared: ours, ours without yaw hypotheses (the node's setting) with
+    correspondences from the scans' bearing order (the default) and from a k-d tree, and
+    small_gicp's ICP, plane-ICP and GICP."""
+    out = {'ours': ours(), 'ours_local': ours({'yaw_hypotheses': ()}),
+           'ours_local_kd_tree': ours({'yaw_hypotheses': (), 'search': 'kd_tree'})}
     if include_small_gicp:
         out.update({name: small_gicp_matcher(kind) for name, kind in SMALL_GICP_TYPES.items()})
     return out

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields, replace
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -23,7 +24,21 @@ FAILED_VARIANCE = 1.0e6
 # does not leak into the constrained ones.
 DEGENERATE_VARIANCE = 100.0
 
+# Target points each side of a query's bearing among which its nearest neighbour is sought first
+# (a scan's points are ordered by bearing, so the nearest one is almost always among them).
+ANGULAR_WINDOW = 10
+# Once the pose moves by less than LOCAL_STEP (m, yaw as arc length at the source's RMS radius)
+# per iteration, the nearest point is sought among the LOCAL_WINDOW points each side of the
+# previous one: correspondences move along the scan by a beam or two at most.
+LOCAL_WINDOW = 3
+LOCAL_STEP = 0.05
+_LOCAL_OFFSETS = np.arange(-LOCAL_WINDOW, LOCAL_WINDOW + 1)
+# Neighbouring points each side of a target point among which its normal_neighbours nearest are
+# taken (a scan's neighbouring beams).
+NORMAL_WINDOW = 8
+
 _METHODS = ('point_to_line', 'point_to_point')
+_SEARCHES = ('bearing', 'kd_tree')
 _ROBUST = ('trim', 'adaptive', 'none')
 
 
@@ -127,22 +142,47 @@ _DEFAULT_OPTIONS = IcpOptions()
 
 
 @dataclass(frozen=True)
+class BearingIndex:
+    """A target's points sorted by bearing from its origin (rad), padded circularly by `pad`
+    entries at each end (bearings shifted by ∓2π) so that a window of `pad` entries each side of
+    any bearing in [-π, π] stays inside the arrays: bearing, point as x + iy (m) and point index
+    per entry."""
+
+    bearings: NDArray[np.float64]
+    points: NDArray[np.complex128]
+    index: NDArray[np.intp]
+    pad: int
+    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -pad .. pad-1
+
+
+@dataclass(frozen=True)
 class Target:
-    """A target scan prepared once for many matches: points (N, 2) in its frame (m), a k-d tree,
-    unit normals (N, 2) from the neighbouring points, how line-like each neighbourhood is
-    (`planarity` in [0, 1]: 1 = points exactly on a line), and the 2x2 information matrix each
-    point gives a residual, as (N, 3) rows (m00, m01, m11): n·nᵀ + tangent_weight·I on a line
-    (point-to-line), I elsewhere (corners and isolated points act point-to-point)."""
+    """A target scan prepared once for many matches: points (N, 2) in its frame (m), how its
+    neighbours are found (`search`: 'bearing' = `bearing_index`, its points sorted by bearing,
+    None below 2·ANGULAR_WINDOW + 1 points; else `tree`, a k-d tree built when first needed),
+    unit normals (N, 2) from the neighbouring points,
+    how line-like each neighbourhood is (`planarity` in [0, 1]: 1 = points exactly on a line),
+    and the 2x2 information matrix each point gives a residual, as (N, 3) rows (m00, m01, m11):
+    n·nᵀ + tangent_weight·I on a line (point-to-line), I elsewhere (corners and isolated points
+    act point-to-point)."""
 
     points: NDArray[np.float64]
-    tree: cKDTree
     normals: NDArray[np.float64]
     planarity: NDArray[np.float64]
     information: NDArray[np.float64]
     dropped: int = 0          # non-finite rows removed from the input
-    # (N, 2, 3) residual rows [U | U·q] per point q with UᵀU = its information: the residual of a
-    # pair is U·(p - q) and its Jacobian rows follow from U; None = derived when first matched.
+    # Residual rows [U | U·q] per point q with UᵀU = its information (2x2 U: the residual of a
+    # pair is U·(p - q), its Jacobian rows follow from U) as (3, N, 2): U's first column, its
+    # second column and U·q, each over U's two rows; None = derived when first matched.
     rows: NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
+    bearing_index: BearingIndex | None = field(default=None, repr=False, compare=False)
+    search: str = 'bearing'
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """k-d tree over the points: the neighbour search with search='kd_tree' or without a
+        bearing index."""
+        return cKDTree(self.points)
 
 
 @dataclass
@@ -230,23 +270,49 @@ def align_paired(
     return r, q_mean - r @ p_mean
 
 
-def _line_normals(points: NDArray[np.float64], tree: cKDTree, neighbours: int,
-                  radius: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Unit normal and planarity (1 - λmin/λmax of the neighbourhood scatter) per point."""
+def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | None,
+                    tree: cKDTree | None, neighbours: int,
+                    radius: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
+                                            NDArray[np.bool_]]:
+    """Offsets dx, dy (n, k), m, from each point to its k nearest points (itself included) and
+    which of them are present (closer than radius, m; an absent one has offset 0). With a
+    bearing index, the k nearest among the pad points each side of the point's bearing (its
+    neighbouring beams in a scan); else a k-d tree's k nearest."""
     n = points.shape[0]
     k = min(neighbours, n)
+    half = min(NORMAL_WINDOW, bearing_index.pad) if bearing_index is not None else 0
+    if bearing_index is not None and k <= 2 * half + 1:
+        pad = bearing_index.pad
+        position = np.empty(n, dtype=np.intp)
+        position[bearing_index.index[pad:n + pad]] = np.arange(pad, n + pad)
+        offset = bearing_index.points.take(position[:, None] + np.arange(-half, half + 1))
+        offset -= _complex(points)[:, None]
+        size = np.abs(offset)                           # distances (n, 2·half + 1)
+        present = size < radius
+        if k < size.shape[1]:                           # the k nearest: at most the k-th size
+            present &= size <= np.partition(size, k - 1, axis=1)[:, k - 1, None]
+        offset[~present] = 0.0
+        return offset.real, offset.imag, present
+    tree = tree if tree is not None else cKDTree(points)
     distance, index = tree.query(points, k=k, distance_upper_bound=radius)
     if k == 1:
         distance, index = distance[:, None], index[:, None]
     present = distance <= radius
-    index = np.where(present, index, np.arange(n)[:, None])
-    # Offsets from each point to its neighbours: small numbers, so the one-pass scatter
-    # Σ d·dᵀ - (Σ d)(Σ d)ᵀ / count loses no precision; an absent neighbour is the point itself.
-    px, py = points[:, 0], points[:, 1]
-    dx = px.take(index)
-    dx -= px[:, None]
-    dy = py.take(index)
-    dy -= py[:, None]
+    index = np.where(present, index, np.arange(n)[:, None])      # absent: the point itself
+    dx = points[:, 0].take(index)
+    dx -= points[:, 0, None]
+    dy = points[:, 1].take(index)
+    dy -= points[:, 1, None]
+    return dx, dy, present
+
+
+def _line_normals(dx: NDArray[np.float64], dy: NDArray[np.float64],
+                  present: NDArray[np.bool_]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Unit normal and planarity (1 - λmin/λmax of the neighbourhood scatter) per point, from
+    the offsets (n, k), m, to its neighbours and which of them are present (absent: offset 0).
+    The offsets are small numbers, so the one-pass scatter Σ d·dᵀ - (Σ d)(Σ d)ᵀ / count loses
+    no precision."""
+    n, k = dx.shape
     count = present.astype(float) @ np.ones(k)                    # exact: a sum of 0s and 1s
     sx, sy = dx.sum(axis=1), dy.sum(axis=1)
     sxx = np.einsum('ij,ij->i', dx, dx) - sx * sx / count
@@ -269,35 +335,41 @@ def _line_normals(points: NDArray[np.float64], tree: cKDTree, neighbours: int,
 
 def _residual_rows(points: NDArray[np.float64],
                    information: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(N, 2, 3) rows [U | U·q] with UᵀU = M for each point q and information M (rows m00, m01,
-    m11): U = diag(√λ)·Vᵀ from M's eigen-decomposition."""
+    """Residual rows [U | U·q] with UᵀU = M for each point q and information M (rows m00, m01,
+    m11), as Target.rows lays them out: U = diag(√λ)·Vᵀ from M's eigen-decomposition."""
     n = points.shape[0]
     m = np.empty((n, 2, 2))
     m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1] = (information[:, 0], information[:, 1],
                                                       information[:, 1], information[:, 2])
     values, vectors = np.linalg.eigh(m)
-    rows = np.empty((n, 2, 3))
-    rows[:, :, :2] = np.sqrt(np.clip(values, 0.0, None))[:, :, None] * vectors.transpose(0, 2, 1)
-    rows[:, :, 2] = np.einsum('nij,nj->ni', rows[:, :, :2], points)
+    u = np.sqrt(np.clip(values, 0.0, None))[:, :, None] * vectors.transpose(0, 2, 1)
+    rows = np.empty((3, n, 2))
+    rows[0], rows[1] = u[:, :, 0], u[:, :, 1]
+    rows[2] = np.einsum('nij,nj->ni', u, points)
     return rows
 
 
 def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius: float = 1.0,
-                   min_planarity: float = 0.5, tangent_weight: float = 0.0) -> Target:
-    """Build the k-d tree, normals and per-point information of a target point set (N, 2), m,
-    in its own frame; a point is line-like when its planarity >= min_planarity. Non-finite rows
-    are dropped (counted in `dropped`); ValueError on a wrong shape or bad settings."""
+                   min_planarity: float = 0.5, tangent_weight: float = 0.0,
+                   search: str = 'bearing') -> Target:
+    """Normals and per-point information of a target point set (N, 2), m, in its own frame,
+    and the index its neighbours are found with (`search`: 'bearing' for a scan seen from
+    the origin, 'kd_tree' for any point set); a point is line-like when its planarity >=
+    min_planarity. Non-finite rows are dropped (counted in `dropped`); ValueError on a wrong
+    shape or bad settings."""
     if not (normal_neighbours >= 2 and normal_radius > 0 and 0 <= min_planarity <= 1
-            and 0 <= tangent_weight <= 1):
-        raise ValueError('normal_neighbours >= 2, normal_radius > 0, 0 <= min_planarity <= 1 and '
-                         '0 <= tangent_weight <= 1 required')
+            and 0 <= tangent_weight <= 1 and search in _SEARCHES):
+        raise ValueError('normal_neighbours >= 2, normal_radius > 0, 0 <= min_planarity <= 1, '
+                         f'0 <= tangent_weight <= 1 and search in {_SEARCHES} required')
     array, dropped = _as_points(points, 'target')
     if array.shape[0] == 0:
-        return Target(array, cKDTree(np.zeros((0, 2))), np.zeros((0, 2)), np.zeros(0),
-                      np.zeros((0, 3)), dropped)
+        return Target(array, np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)), dropped,
+                      search=search)
     array = np.ascontiguousarray(array)
-    tree = cKDTree(array)
-    normals, planarity = _line_normals(array, tree, normal_neighbours, normal_radius)
+    bearing_index = _bearing_index(array, ANGULAR_WINDOW) if search == 'bearing' else None
+    tree = cKDTree(array) if bearing_index is None else None
+    normals, planarity = _line_normals(
+        *_neighbourhoods(array, bearing_index, tree, normal_neighbours, normal_radius))
     corner = planarity < min_planarity
     n = array.shape[0]
     # Information n·nᵀ + w·I on a line, I elsewhere, as rows (m00, m01, m11).
@@ -311,16 +383,82 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     information[corner] = (1.0, 0.0, 1.0)
     # Residual rows [U | U·q] with UᵀU = information: √(1+w)·n and √w·tangent on a line, the
     # unit axes elsewhere.
-    rows = np.zeros((n, 2, 3))
+    rows = np.zeros((3, n, 2))
     if tangent_weight:
-        rows[:, 0, :2] = math.sqrt(1.0 + tangent_weight) * normals
-        rows[:, 1, 0] = math.sqrt(tangent_weight) * normals[:, 1]
-        rows[:, 1, 1] = -math.sqrt(tangent_weight) * normals[:, 0]
+        rows[0, :, 0] = math.sqrt(1.0 + tangent_weight) * nx
+        rows[1, :, 0] = math.sqrt(1.0 + tangent_weight) * ny
+        rows[0, :, 1] = math.sqrt(tangent_weight) * ny
+        rows[1, :, 1] = -math.sqrt(tangent_weight) * nx
     else:
-        rows[:, 0, :2] = normals
-    rows[corner, :, :2] = ((1.0, 0.0), (0.0, 1.0))
-    rows[:, :, 2] = np.matmul(rows[:, :, :2], array[:, :, None])[:, :, 0]
-    return Target(array, tree, normals, planarity, information, dropped, rows)
+        rows[0, :, 0] = nx
+        rows[1, :, 0] = ny
+    rows[0, corner] = (1.0, 0.0)
+    rows[1, corner] = (0.0, 1.0)
+    np.multiply(rows[0], array[:, 0, None], out=rows[2])
+    rows[2] += rows[1] * array[:, 1, None]
+    target = Target(array, normals, planarity, information, dropped, rows, bearing_index, search)
+    if tree is not None:
+        target.__dict__['tree'] = tree        # the cached_property's slot: built once
+    return target
+
+
+def _bearing_index(points: NDArray[np.float64], pad: int) -> BearingIndex | None:
+    """The BearingIndex of points (N, 2) in their own frame (m); None below 2·pad + 1 points."""
+    n = points.shape[0]
+    if n < 2 * pad + 1:
+        return None
+    bearing = np.arctan2(points[:, 1], points[:, 0])
+    order = np.argsort(bearing, kind='stable')
+    extended = np.concatenate((order[n - pad:], order, order[:pad]))
+    bearings = bearing.take(extended)
+    bearings[:pad] -= 2.0 * math.pi
+    bearings[n + pad:] += 2.0 * math.pi
+    return BearingIndex(bearings, _complex(points).take(extended), extended, pad,
+                        np.arange(-pad, pad))
+
+
+def _complex(points: NDArray[np.float64]) -> NDArray[np.complex128]:
+    """(N,) x + iy of points (N, 2), m."""
+    return np.ascontiguousarray(points, dtype=np.float64).view(np.complex128).ravel()
+
+
+def _nearest(target: Target, points: NDArray[np.complex128], gate: float,
+             previous: NDArray[np.intp] | None = None
+             ) -> tuple[NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp] | None]:
+    """For each query point (x + iy, target frame, m): whether a target point lies closer than
+    gate, the index of the nearest one (any index when none), and where the search found it
+    (for the next call's `previous`; None with a k-d tree). With the target's `search`
+    'bearing', see _bearing_nearest; with 'kd_tree', the exact nearest point."""
+    bearing_index = target.bearing_index
+    if bearing_index is None:
+        distance, index = target.tree.query(np.column_stack((points.real, points.imag)), k=1,
+                                            distance_upper_bound=gate)
+        return distance < gate, index, None
+    distance, position = _bearing_nearest(bearing_index, points, previous)
+    return distance < gate, bearing_index.index.take(position), position
+
+
+def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128],
+                     previous: NDArray[np.intp] | None
+                     ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Distance (m) to and position (in the padded arrays) of a near target point of each query
+    point (x + iy, target frame): the nearest of the pad points each side of its bearing, or,
+    given the previous positions (the points moved little since), the nearest of the
+    LOCAL_WINDOW points each side of its previous one."""
+    if previous is None:
+        bearing = np.arctan2(points.imag, points.real)
+        window = np.searchsorted(bearing_index.bearings, bearing)[:, None] + bearing_index.offsets
+    else:
+        window = previous[:, None] + _LOCAL_OFFSETS
+    # A finite bearing's window lies between the pads; clipping keeps the rest in the arrays
+    # (a non-finite query gets a NaN distance, so no correspondence).
+    np.clip(window, 0, bearing_index.points.shape[0] - 1, out=window)
+    distance = bearing_index.points.take(window)
+    distance -= points[:, None]
+    distance = np.abs(distance)                          # (count, window)
+    best = distance.argmin(axis=1)
+    best += np.arange(0, distance.size, distance.shape[1])
+    return distance.take(best), window.take(best)
 
 
 def voxel_downsample(points: ArrayLike, voxel_size: float) -> NDArray[np.float64]:
@@ -362,22 +500,11 @@ class _Loop:
     origin: tuple[float, float] = (0.0, 0.0)
 
 
-def _design_map(c: float, s: float, x: float, y: float) -> NDArray[np.float64]:
-    """(3, 12) map taking a source point [sx, sy, 1] to its design block B (3x4, row-major) =
-    [[1, 0, -ly, px], [0, 1, lx, py], [0, 0, 0, -1]], with p = R·s + (x, y) the moved point and
-    l = p - (x, y) its lever: for target rows W = [U | U·q], W·B = [U | U·J·l | U·(p - q)] are the
-    whitened Jacobian over (x, y, yaw) (J = 90° rotation) and the whitened residual."""
-    return np.array([
-        [0.0, 0.0, -s, c, 0.0, 0.0, c, s, 0.0, 0.0, 0.0, 0.0],
-        [0.0, 0.0, -c, -s, 0.0, 0.0, -s, c, 0.0, 0.0, 0.0, 0.0],
-        [1.0, 0.0, 0.0, x, 0.0, 1.0, 0.0, y, 0.0, 0.0, 0.0, -1.0]])
-
-
 def _identity_rows(points: NDArray[np.float64]) -> NDArray[np.float64]:
     """Residual rows of plain point-to-point pairs (information I): [[1, 0, qx], [0, 1, qy]]."""
-    rows = np.zeros((points.shape[0], 2, 3))
-    rows[:, 0, 0] = rows[:, 1, 1] = 1.0
-    rows[:, :, 2] = points
+    rows = np.zeros((3, points.shape[0], 2))
+    rows[0, :, 0] = rows[1, :, 1] = 1.0
+    rows[2] = points
     return rows
 
 
@@ -429,7 +556,7 @@ def _choose_pairs(size_sq, keep, count: int, corr: Correspondences, min_inliers:
     and the median squared residual. size_sq is infinite for pairs outside the gate."""
     k = count // 2
     median_sq = float(np.partition(size_sq, k)[k])
-    gated = count < keep.size
+    gated = count < keep.size and corr.robust != 'adaptive'      # adaptive chooses its own
     chosen: NDArray[np.intp] | None = np.flatnonzero(keep) if gated else None
     if corr.robust == 'trim' and count > min_inliers:
         n_keep = max(min_inliers, int(corr.trim_fraction * count))
@@ -444,10 +571,11 @@ def _choose_pairs(size_sq, keep, count: int, corr: Correspondences, min_inliers:
     return chosen, median_sq
 
 
-def _point_to_point_step(design, index, chosen, tgt: Target, x: float, y: float):
-    """Closed-form (SVD) increment (dx, dy, dyaw) for the chosen pairs at translation (x, y)."""
+def _point_to_point_step(moved, index, chosen, tgt: Target, x: float, y: float):
+    """Closed-form (SVD) increment (dx, dy, dyaw) for the chosen pairs of moved source points
+    (N, 2) at translation (x, y)."""
     matched = index if chosen is None else index[chosen]
-    p = (design if chosen is None else design[chosen])[:, 0:2, 3]
+    p = moved if chosen is None else moved[chosen]
     r_step, t_step = align_paired(p, tgt.points.take(matched, axis=0))
     dyaw = math.atan2(r_step[1, 0], r_step[0, 0])
     # The SVD step is exact for these pairs; compose it with the current transform.
@@ -482,10 +610,10 @@ class _Stop:
             or self.stalled >= rules.stall_iterations
 
 
-def _icp_loop(src_h, rows, tgt: Target, pose, options: IcpOptions, max_iterations: int,
+def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations: int,
               min_inliers: int, radius: float) -> _Loop:
     """Iterate correspondences and closed-form / Gauss-Newton steps from pose (x, y, yaw);
-    src_h = source points as (N, 3) rows [x, y, 1], rows = the target's residual rows."""
+    src = source points as x + iy (N,), rows = the target's residual rows (Target.rows)."""
     state = _Loop(*pose, reason=f'max_iterations ({max_iterations}) reached')
     x, y, yaw = pose
     corr = options.correspondences
@@ -494,39 +622,49 @@ def _icp_loop(src_h, rows, tgt: Target, pose, options: IcpOptions, max_iteration
     floor_sq = (0.25 * min_gate) ** 2
     point_to_line = options.method == 'point_to_line'
     stop = _Stop(options.convergence)
+    u0_rows, u1_rows, uq_rows = rows
+    n = src.shape[0]
+    step, position = math.inf, None
     for iteration in range(1, max_iterations + 1):
         state.iterations = iteration
-        # One product gives every source point's moved position and design block.
-        blocks = src_h @ _design_map(math.cos(yaw), math.sin(yaw), x, y)
-        distance, index = tgt.tree.query(blocks[:, 3:8:4], k=1, distance_upper_bound=gate)
-        keep = distance < gate
+        lever = src * complex(math.cos(yaw), math.sin(yaw))      # R·s
+        moved = lever + complex(x, y)
+        keep, index, position = _nearest(tgt, moved, gate,
+                                         position if step < LOCAL_STEP else None)
         count = int(np.count_nonzero(keep))
         if count < min_inliers:
             state.reason = f'too few correspondences ({count} < {min_inliers}) within {gate:.3f} m'
             state.converged = False
             state.inliers = count
             break
-        design = blocks.reshape(-1, 3, 4)
-        # Pairs beyond the gate get a clipped (wrong but finite) target row and an infinite size,
-        # which keeps them out of the median and of every rule below without copying the rest.
-        pair_rows = rows.take(index, axis=0, mode='clip')
-        whitened = np.matmul(pair_rows, design)       # (N, 2, 4): Jacobian rows | residual
-        r0, r1 = whitened[:, 0, 3], whitened[:, 1, 3]
-        size_sq = r0 * r0 + r1 * r1                   # squared Mahalanobis-like residual (m²)
-        if count < keep.size:
+        # Whitened Jacobian columns over (x, y, yaw) and residual of each pair's two rows:
+        # [U | U·J·l | U·(p - q)], J = 90° rotation. Pairs beyond the gate get a clipped (wrong
+        # but finite) target row and an infinite size, which keeps them out of the median and
+        # of every rule below without copying the rest.
+        whitened = np.empty((4, n, 2))
+        u0 = u0_rows.take(index, axis=0, mode='clip', out=whitened[0])
+        u1 = u1_rows.take(index, axis=0, mode='clip', out=whitened[1])
+        np.multiply(u1, lever.real[:, None], out=whitened[2])
+        whitened[2] -= u0 * lever.imag[:, None]
+        residual = np.multiply(u0, moved.real[:, None], out=whitened[3])
+        residual += u1 * moved.imag[:, None]
+        residual -= uq_rows.take(index, axis=0, mode='clip')
+        size_sq = np.einsum('ij,ij->i', residual, residual)   # squared Mahalanobis-like (m²)
+        if count < n:
             size_sq[~keep] = math.inf
         chosen, median_sq = _choose_pairs(size_sq, keep, count, corr, min_inliers, floor_sq)
         if chosen is not None:
-            whitened, size_sq = whitened.take(chosen, axis=0), size_sq.take(chosen)
+            whitened, size_sq = whitened.take(chosen, axis=1), size_sq.take(chosen)
         state.inliers = size_sq.size
         state.error = float(np.sqrt(size_sq).sum()) / size_sq.size
         state.history.append(state.error)
-        flat = whitened.reshape(-1, 4)
-        state.normal, state.origin = flat.T @ flat, (x, y)
+        flat = whitened.reshape(4, -1)
+        state.normal, state.origin = flat @ flat.T, (x, y)
         if point_to_line:
             dx, dy, dyaw = _solve_step(state.normal, radius, options.degeneracy_ratio)
         else:
-            dx, dy, dyaw = _point_to_point_step(design, index, chosen, tgt, x, y)
+            dx, dy, dyaw = _point_to_point_step(np.column_stack((moved.real, moved.imag)), index,
+                                                chosen, tgt, x, y)
         x, y = x + dx, y + dy
         yaw = math.remainder(yaw + dyaw, 2.0 * math.pi)
         state.x, state.y, state.yaw = x, y, yaw
@@ -541,19 +679,11 @@ def _icp_loop(src_h, rows, tgt: Target, pose, options: IcpOptions, max_iteration
     return state
 
 
-def _homogeneous(points: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(N, 3) rows [x, y, 1]."""
-    out = np.ones((points.shape[0], 3))
-    out[:, :2] = points
-    return out
-
-
 def _score(src, tgt: Target, pose, inlier_distance: float) -> float:
     """Fraction of source points within inlier_distance (m) of a target point at pose."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    moved = src @ np.array([[c, s], [-s, c]]) + (pose[0], pose[1])
-    distance, _ = tgt.tree.query(moved, k=1, distance_upper_bound=inlier_distance)
-    return float(np.isfinite(distance).mean())
+    moved = _complex(src) * complex(math.cos(pose[2]), math.sin(pose[2])) + complex(*pose[:2])
+    keep, _, _ = _nearest(tgt, moved, inlier_distance)
+    return float(keep.mean())
 
 
 def _min_inliers(options: IcpOptions, source_count: int) -> int:
@@ -571,7 +701,7 @@ def _search_yaw(src, rows, tgt: Target, start, options: IcpOptions, radius: floa
     best, best_score = start, -1.0
     for offset in (0.0, *search.yaw_hypotheses):
         seed = (start[0], start[1], start[2] + float(offset))
-        state = _icp_loop(_homogeneous(coarse), rows, tgt, seed, options,
+        state = _icp_loop(_complex(coarse), rows, tgt, seed, options,
                           search.coarse_iterations, _min_inliers(options, coarse.shape[0]),
                           radius)
         candidate = (state.x, state.y, state.yaw) if state.normal is not None else seed
@@ -619,8 +749,7 @@ def match(
                        f'{tgt.points.shape[0]}, need {min_points})', src.shape[0], dropped)
     centred = src - src.sum(axis=0) / src.shape[0]
     radius = math.sqrt(float(np.einsum('ij,ij->', centred, centred)) / src.shape[0])
-    # The k-d tree already holds the target's bounding box.
-    if radius < 1e-9 or float((tgt.tree.maxes - tgt.tree.mins).max()) < 1e-9:
+    if radius < 1e-9 or float(np.ptp(tgt.points, axis=0).max()) < 1e-9:
         return _failed(guess, 'all points identical: rotation undefined', src.shape[0], dropped)
 
     if options.method == 'point_to_line':
@@ -631,7 +760,7 @@ def match(
     if options.yaw_search.yaw_hypotheses:
         start = _search_yaw(src, rows, tgt, start, options, radius)
     min_inliers = _min_inliers(options, src.shape[0])
-    state = _icp_loop(_homogeneous(src), rows, tgt, start, options,
+    state = _icp_loop(_complex(src), rows, tgt, start, options,
                       options.convergence.max_iterations, min_inliers, radius)
     if state.normal is None or state.inliers < min_inliers:
         return MatchResult(state.x, state.y, state.yaw, np.eye(3) * FAILED_VARIANCE,
