@@ -315,6 +315,7 @@ def _packed(t0s: list, t1s: list, motions: list, covs: list, step_list: list, st
                      starts, counts, np.array(stills, dtype=bool), rejected)
 
 
+# long: one pass in its order (cut at scans, guess from the encoders, match, refuse or keep).
 def make_intervals(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64],
                    scan_t: NDArray[np.int64], scan_points: Sequence[NDArray[np.float64]],
                    nominal: Geometry, options: IntervalOptions = IntervalOptions(),

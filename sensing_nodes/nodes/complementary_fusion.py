@@ -50,10 +50,73 @@ RANK = {WHEEL: 0, IMU: 1, SCAN: 2}
 RESTART = 'restart'   # in the reorder buffer: the input restarts here (a new IMU mount)
 
 
+@dataclasses.dataclass(frozen=True)
+class _Settings:
+    """The node's own parameters (the inputs' EKF parameters are declared with the filter)."""
+
+    method: str
+    use_wheel: bool
+    use_imu: bool
+    use_scan_position: bool
+    use_scan_heading: bool
+    alpha: float | None          # complementary: None = 'auto'
+    reorder_window_s: float
+    max_gap_s: float
+    publish_tf: bool
+
+
 class ComplementaryFusionNode(Node):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('complementary_fusion', **node_options)
+        settings = self._declare_settings()
+        records = {WHEEL: InputRecord(WHEEL, settings.use_wheel),
+                   IMU: InputRecord(IMU, settings.use_imu),
+                   SCAN: InputRecord(SCAN, settings.use_scan_position
+                                     or settings.use_scan_heading)}
+        topics = {WHEEL: declare(self, 'wheel_odom.topic', '/wheel/odom', 'wheel odometry topic'),
+                  IMU: declare(self, 'imu.topic', '/imu/data', 'IMU topic (sensor_msgs/Imu)')}
+        self._imu_source = 'integrated'
+        self._mount_rpy = (0.0, 0.0, 0.0)
+        fusion, topics[SCAN] = self._make_fusion(settings)
+        level = declare(self, 'level_with_imu_tilt', False,
+                        "ekf, imu.source 'orientation': count only the horizontal part of body "
+                        "velocities (the IMU's roll and pitch), for a robot on slopes")
+        converter = ReadingConverter(
+            settings.method, getattr(fusion, 'inputs', {}), self._imu_source,
+            mount_rotation(*self._mount_rpy), level)
+        self.diagnostics = Diagnostics(self, update=self._update_diagnostics)
+        mount = None
+        if settings.method == 'ekf' and settings.use_imu and self._imu_source != 'integrated':
+            # The IMU's own orientation and rates are about its frame: /tf_static's base_frame
+            # -> the Imu's frame_id gives the mount where published, imu.mount_*_rad otherwise
+            # (gyro_integrator's output is already about base_link).
+            mount = imu_mount(self, self._base_frame, self._mount_rpy,
+                              on_update=lambda: self.processor.imu_mount_changed(),
+                              diagnostics=self.diagnostics)
+        self.processor = ComplementaryFusionProcessor(
+            settings.method, fusion, records, topics, converter,
+            StampOrderedBuffer(int(settings.reorder_window_s * 1e9)), self._imu_source,
+            self._reset_jump_s, self._input_timeout_s, self._odom_frame, self._base_frame,
+            settings.publish_tf, self.diagnostics, ThrottledWarnings(self), self.get_logger(),
+            mount)
+        self._last_arrival = time.monotonic()
+        self._output_publishers = wire(
+            self, [dataclasses.replace(i, handler=self._arrival(i.handler))
+                   for i in self.processor.inputs()], self.processor.outputs())
+        # robot_localization's set_pose as a topic: a service would need an interface package
+        # of our own, which the PyPI-wheel setup cannot build.
+        self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose, 10)
+        # Wall time (steady): held inputs are processed when the bag has paused or ended, when
+        # /clock (use_sim_time) has stopped too.
+        self.create_timer(self._flush_after_s / 2.0, self._flush_if_idle,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(f'method {settings.method}; inputs: ' + ', '.join(
+            f'{name} ({topics[name]})' for name, r in records.items() if r.enabled))
+
+    def _declare_settings(self) -> _Settings:
+        """Declare and validate the node's own parameters (the frames, timeouts and flush on
+        self, the rest returned)."""
         method = declare(self, 'method', 'ekf',
                          "'ekf' (docs/fusion.md) or 'complementary' (the seed's filter)")
         use_wheel = declare(self, 'use_wheel_odom', True, 'fuse /wheel/odom')
@@ -103,72 +166,40 @@ class ComplementaryFusionNode(Node):
                 'at least one input must be enabled')
         require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
                 'must not be empty')
+        return _Settings(method, use_wheel, use_imu, use_scan_pos, use_scan_heading, alpha_value,
+                         window_s, max_gap_s, publish_tf)
 
-        records = {WHEEL: InputRecord(WHEEL, use_wheel), IMU: InputRecord(IMU, use_imu),
-                   SCAN: InputRecord(SCAN, use_scan_pos or use_scan_heading)}
-        topics = {WHEEL: declare(self, 'wheel_odom.topic', '/wheel/odom', 'wheel odometry topic'),
-                  IMU: declare(self, 'imu.topic', '/imu/data', 'IMU topic (sensor_msgs/Imu)')}
-        self._imu_source = 'integrated'
-        self._mount_rpy = (0.0, 0.0, 0.0)
-        if method == 'ekf':
-            configs = self._declare_ekf(use_wheel, use_imu, use_scan_pos, use_scan_heading,
-                                        max_gap_s)
-            settings = EkfSettings(
-                accel_noise_density=declare(
-                    self, 'ekf.accel_noise_density', EkfSettings.accel_noise_density,
-                    'how fast vx, vy may change (m/s^2/sqrt(Hz))', minimum=1e-6),
-                angular_accel_noise_density=declare(
-                    self, 'ekf.angular_accel_noise_density',
-                    EkfSettings.angular_accel_noise_density,
-                    'how fast the yaw rate may change (rad/s^2/sqrt(Hz))', minimum=1e-6),
-                bias_random_walk=declare(self, 'ekf.bias_random_walk',
-                                         EkfSettings.bias_random_walk,
-                                         'gyro bias random walk (rad/s/sqrt(s))', minimum=0.0),
-                initial_bias_std=declare(self, 'ekf.initial_bias_std',
-                                         EkfSettings.initial_bias_std,
-                                         'gyro bias std before any input (rad/s)', minimum=0.0))
-            fusion = EkfFusion(configs, settings)
-            topics[SCAN] = declare(self, 'scan_match.topic', '/scan_match/keyframe_odom',
+    def _make_fusion(self, s: _Settings) -> tuple[Any, str]:
+        """The filter the method names, with its parameters declared, and the scan-match topic
+        it takes (keyframe-relative matches for the EKF)."""
+        if s.method == 'ekf':
+            configs = self._declare_ekf(s.use_wheel, s.use_imu, s.use_scan_position,
+                                        s.use_scan_heading, s.max_gap_s)
+            fusion = EkfFusion(configs, self._declare_ekf_settings())
+            return fusion, declare(self, 'scan_match.topic', '/scan_match/keyframe_odom',
                                    'keyframe-relative scan matches (icp_matcher)')
-        else:
-            fusion = ComplementaryMethod(FusionSettings(
-                use_wheel=use_wheel, use_gyro=use_imu, use_scan_position=use_scan_pos,
-                use_scan_heading=use_scan_heading, alpha=alpha_value, max_gap_s=max_gap_s))
-            topics[SCAN] = declare(self, 'scan_match.topic', '/scan_match/odom',
-                                   'scan matching poses (icp_matcher)')
-        level = declare(self, 'level_with_imu_tilt', False,
-                        "ekf, imu.source 'orientation': count only the horizontal part of body "
-                        "velocities (the IMU's roll and pitch), for a robot on slopes")
-        converter = ReadingConverter(
-            method, getattr(fusion, 'inputs', {}), self._imu_source,
-            mount_rotation(*self._mount_rpy), level)
-        self.diagnostics = Diagnostics(self, update=self._update_diagnostics)
-        mount = None
-        if method == 'ekf' and use_imu and self._imu_source != 'integrated':
-            # The IMU's own orientation and rates are about its frame: /tf_static's base_frame
-            # -> the Imu's frame_id gives the mount where published, imu.mount_*_rad otherwise
-            # (gyro_integrator's output is already about base_link).
-            mount = imu_mount(self, self._base_frame, self._mount_rpy,
-                              on_update=lambda: self.processor.imu_mount_changed(),
-                              diagnostics=self.diagnostics)
-        self.processor = ComplementaryFusionProcessor(
-            method, fusion, records, topics, converter, StampOrderedBuffer(int(window_s * 1e9)),
-            self._imu_source, self._reset_jump_s, self._input_timeout_s, self._odom_frame,
-            self._base_frame, publish_tf, self.diagnostics, ThrottledWarnings(self),
-            self.get_logger(), mount)
-        self._last_arrival = time.monotonic()
-        self._output_publishers = wire(
-            self, [dataclasses.replace(i, handler=self._arrival(i.handler))
-                   for i in self.processor.inputs()], self.processor.outputs())
-        # robot_localization's set_pose as a topic: a service would need an interface package
-        # of our own, which the PyPI-wheel setup cannot build.
-        self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose, 10)
-        # Wall time (steady): held inputs are processed when the bag has paused or ended, when
-        # /clock (use_sim_time) has stopped too.
-        self.create_timer(self._flush_after_s / 2.0, self._flush_if_idle,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.get_logger().info(f'method {method}; inputs: ' + ', '.join(
-            f'{name} ({topics[name]})' for name, r in records.items() if r.enabled))
+        fusion = ComplementaryMethod(FusionSettings(
+            use_wheel=s.use_wheel, use_gyro=s.use_imu, use_scan_position=s.use_scan_position,
+            use_scan_heading=s.use_scan_heading, alpha=s.alpha, max_gap_s=s.max_gap_s))
+        return fusion, declare(self, 'scan_match.topic', '/scan_match/odom',
+                               'scan matching poses (icp_matcher)')
+
+    def _declare_ekf_settings(self) -> EkfSettings:
+        """The EKF's process noise (ekf.*)."""
+        return EkfSettings(
+            accel_noise_density=declare(
+                self, 'ekf.accel_noise_density', EkfSettings.accel_noise_density,
+                'how fast vx, vy may change (m/s^2/sqrt(Hz))', minimum=1e-6),
+            angular_accel_noise_density=declare(
+                self, 'ekf.angular_accel_noise_density',
+                EkfSettings.angular_accel_noise_density,
+                'how fast the yaw rate may change (rad/s^2/sqrt(Hz))', minimum=1e-6),
+            bias_random_walk=declare(self, 'ekf.bias_random_walk',
+                                     EkfSettings.bias_random_walk,
+                                     'gyro bias random walk (rad/s/sqrt(s))', minimum=0.0),
+            initial_bias_std=declare(self, 'ekf.initial_bias_std',
+                                     EkfSettings.initial_bias_std,
+                                     'gyro bias std before any input (rad/s)', minimum=0.0))
 
     def _arrival(self, handler: Callable[[Any], Outputs]) -> Callable[[Any], Outputs]:
         """The handler, noting the wall time of each input (the idle flush's clock)."""
