@@ -11,7 +11,7 @@ import pytest
 import yaml
 from harness import NodeProcess
 
-from sensing_nodes.bag import BagWriter, read_messages
+from sensing_nodes.ros.bag import BagWriter, read_messages
 from sensing_nodes.core import sim
 from sensing_nodes.core.wheel_odometry import integrate_path
 from sensing_nodes.core.world import load_world

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from harness import run_to_exit
 
-from sensing_nodes.bag import read_messages, topic_counts
+from sensing_nodes.ros.bag import read_messages, topic_counts
 from sensing_nodes.core.carmen import read_carmen
 from sensing_nodes.ros.conversions import odometry_pose, scan_arrays
 from sensing_nodes.tools.carmen_to_bag import convert

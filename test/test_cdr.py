@@ -9,7 +9,7 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Imu, JointState
 
-from sensing_nodes.bag import canonical_cdr
+from sensing_nodes.ros.bag import canonical_cdr
 from sensing_nodes.ros.cdr import cdr_decoder, imu_cdr, odometry_cdr
 from sensing_nodes.ros.conversions import make_odometry, ros_covariance_to_planar
 
@@ -74,7 +74,7 @@ def test_decoder_big_endian_and_bad_bytes():
     raw = serialize_message(msg)
     decode = cdr_decoder(Odometry)
     little = decode(raw)
-    from sensing_nodes.bag import TYPESTORE
+    from sensing_nodes.ros.bag import TYPESTORE
     big = TYPESTORE.serialize_cdr(TYPESTORE.deserialize_cdr(raw, 'nav_msgs/msg/Odometry'),
                                   'nav_msgs/msg/Odometry', little_endian=False)
     assert bytes(big[:2]) == b'\x00\x00'

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sensing_nodes.bag import BagWriter
+from sensing_nodes.ros.bag import BagWriter
 from sensing_nodes.core import characterization as ch
 from sensing_nodes.core import sim
 from sensing_nodes.core.world import load_world

@@ -3,12 +3,11 @@
 import importlib.util
 import json
 import subprocess
-import sys
 
 import pytest
 from harness import BIN, REPO
 
-from sensing_nodes.bag import topic_counts
+from sensing_nodes.ros.bag import topic_counts
 
 
 @pytest.fixture(scope='module')
@@ -80,7 +79,7 @@ def test_a_short_still_run_works_and_its_bag_is_canonical(tmp_path):
     is canonical CDR (the recorder writes what arrives over DDS, padding zeroed)."""
     from rosbags.highlevel import AnyReader
 
-    from sensing_nodes.bag import TYPESTORE, canonical_cdr
+    from sensing_nodes.ros.bag import TYPESTORE, canonical_cdr
 
     out = tmp_path / 'run'
     result = subprocess.run(
@@ -112,4 +111,3 @@ def test_launch_file_describes_the_same_graph():
     names = [a.node_executable for a in description.entities if isinstance(a, Node)]
     assert names == ['sensor_sim', 'wheel_odometry', 'gyro_integrator', 'line_extractor',
                      'icp_matcher', 'complementary_fusion']
-    del sys

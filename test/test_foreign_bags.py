@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from harness import run_to_exit
 
-from sensing_nodes.bag import BagError, BagReader, read_messages
+from sensing_nodes.ros.bag import BagError, BagReader, read_messages
 from sensing_nodes.ros.conversions import odometry_pose
 
 ROS_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'ros'

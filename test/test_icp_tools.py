@@ -8,7 +8,7 @@ import pytest
 from harness import REPO, run_to_exit
 from sensor_msgs.msg import LaserScan
 
-from sensing_nodes.bag import BagWriter
+from sensing_nodes.ros.bag import BagWriter
 from sensing_nodes.core.scan import beam_angles
 from sensing_nodes.core.se2 import compose
 from sensing_nodes.core.world import load_world, raycast

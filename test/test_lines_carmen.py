@@ -8,7 +8,7 @@ import pytest
 from harness import run_to_exit
 from sensor_msgs.msg import LaserScan
 
-from sensing_nodes.bag import BagWriter
+from sensing_nodes.ros.bag import BagWriter
 from sensing_nodes.core.carmen import read_carmen
 from sensing_nodes.core.lines import extract_lines
 from sensing_nodes.core.world import raycast

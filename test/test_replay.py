@@ -15,7 +15,7 @@ import pytest
 from harness import REPO, run_to_exit
 from rclpy.serialization import deserialize_message
 
-from sensing_nodes.bag import BagWriter, message_class, topic_counts
+from sensing_nodes.ros.bag import BagWriter, message_class, topic_counts
 from sensing_nodes.ros.cdr import first_element_stamp_ns
 from sensing_nodes.ros.compare import (
     REPRODUCE_ATOL,
@@ -336,7 +336,7 @@ def test_a_node_failing_at_start_up_is_an_error_without_output(tmp_path):
 def _subset_bag(path: Path, source: Path, keep) -> Path:
     """A copy of `source` with only the messages keep(topic, stamp) accepts (topics kept with
     their type and QoS)."""
-    from sensing_nodes.bag import BagReader
+    from sensing_nodes.ros.bag import BagReader
 
     reader = BagReader(source)
     with BagWriter(path) as bag:

@@ -7,7 +7,7 @@ import pytest
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import LaserScan
 
-from sensing_nodes.bag import BagWriter, read_messages, topic_counts, type_name
+from sensing_nodes.ros.bag import BagWriter, read_messages, topic_counts, type_name
 from sensing_nodes.ros import conversions as conv
 
 

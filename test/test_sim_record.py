@@ -10,7 +10,7 @@ import pytest
 import yaml
 from harness import REPO, run_to_exit
 
-from sensing_nodes.bag import read_messages, topic_counts, type_name
+from sensing_nodes.ros.bag import read_messages, topic_counts, type_name
 from sensing_nodes.core import sim
 from sensing_nodes.core.world import load_world
 

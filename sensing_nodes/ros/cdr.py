@@ -28,7 +28,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message
 
-from sensing_nodes.bag import TYPESTORE, type_name
+from sensing_nodes.ros.bag import TYPESTORE, type_name
 from sensing_nodes.core import quaternion
 from sensing_nodes.core.se2 import Pose2
 
@@ -176,7 +176,7 @@ def shifted_stamp(raw: bytes, offset_ns: int) -> bytes:
 
 def first_field_type(msgtype: str) -> str:
     """Type of a 'pkg/msg/Name' message's first field ('std_msgs/Header', ...; '' if none)."""
-    from sensing_nodes.bag import message_class
+    from sensing_nodes.ros.bag import message_class
 
     return next(iter(message_class(msgtype).get_fields_and_field_types().values()), '')
 

@@ -41,7 +41,7 @@ class PassResult:
 
 def load_bag(path: str | Path) -> InputBag:
     """Read a whole rosbag2 bag; ReplayError (naming the file) when it is missing or unreadable."""
-    from sensing_nodes.bag import BagError, BagReader
+    from sensing_nodes.ros.bag import BagError, BagReader
 
     path = Path(path)
     try:
@@ -109,7 +109,7 @@ def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types
                      offered: dict[str, list] | None = None) -> dict[str, int]:
     """The input bag's topics (all but the graph's outputs) plus what the graph published, each
     with the QoS it was offered with (`offered`: topic -> profiles; else the input bag's)."""
-    from sensing_nodes.bag import BagWriter
+    from sensing_nodes.ros.bag import BagWriter
 
     offered = offered or {}
     with BagWriter(path, compress=compress) as out:

@@ -65,8 +65,8 @@ class Replayer:
         import rclpy
         from rclpy.node import Node
 
-        from sensing_nodes.bag import message_class
-        from sensing_nodes.recorder import TopicRecorder
+        from sensing_nodes.ros.bag import message_class
+        from sensing_nodes.ros.recorder import TopicRecorder
         from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
         from sensing_nodes.ros.run import make_executor
 

@@ -187,7 +187,7 @@ class SimMessages:
 def record(out_dir: str | Path, duration_s: float, params: core.SimParams, settings: NodeSettings,
            world: World, progress: bool = False) -> dict[str, int]:
     """Write a rosbag2 MCAP bag of every topic for duration_s simulated seconds; topic -> count."""
-    from sensing_nodes.bag import BagWriter
+    from sensing_nodes.ros.bag import BagWriter
 
     sim = core.SensorSim(params, world, settings.seed)
     convert = SimMessages(params, settings)

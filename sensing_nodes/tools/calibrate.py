@@ -25,7 +25,7 @@ import yaml
 from sensing_nodes.core import calibration as cal
 from sensing_nodes.core.scan import scan_to_points
 from sensing_nodes.paths import config_file
-from sensing_nodes.sensor_bag import (
+from sensing_nodes.ros.sensor_bag import (
     EXIT_BAD_INPUT, SensorBagError, atomic_write, read_sensor_bag, stderr_progress,
 )
 

@@ -78,7 +78,7 @@ def convert(log_path: str | Path, out: str | Path, laser_x_m: float = 0.0,
     from nav_msgs.msg import Odometry  # noqa: F401  (rclpy message classes load here)
     from sensor_msgs.msg import LaserScan
 
-    from sensing_nodes.bag import BagWriter
+    from sensing_nodes.ros.bag import BagWriter
     from sensing_nodes.ros.conversions import float32_array, make_odometry
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 

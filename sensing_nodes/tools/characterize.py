@@ -23,7 +23,7 @@ from sensing_nodes.core import characterization as ch
 from sensing_nodes.core.lines import extract_lines
 from sensing_nodes.core.se2 import wrap_angle
 from sensing_nodes.paths import config_file
-from sensing_nodes.sensor_bag import (
+from sensing_nodes.ros.sensor_bag import (
     EXIT_BAD_INPUT, SensorBagError, SensorData, atomic_write, describe_topics, read_sensor_bag,
     stderr_progress,
 )

@@ -115,7 +115,7 @@ class Collected:
 
     def load(self, bag_path: Path) -> None:
         """Estimates, ground truth and final diagnostics from the recorded bag."""
-        from sensing_nodes.bag import read_messages
+        from sensing_nodes.ros.bag import read_messages
         from sensing_nodes.ros.conversions import odometry_pose, quaternion_to_yaw
 
         odometry = {GROUND_TRUTH, WHEEL_ODOM, SCAN_MATCH, FUSED}
@@ -146,8 +146,8 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
     import rclpy
     from rclpy.node import Node
 
-    from sensing_nodes.bag import BagWriter
-    from sensing_nodes.recorder import TopicRecorder
+    from sensing_nodes.ros.bag import BagWriter
+    from sensing_nodes.ros.recorder import TopicRecorder
     from sensing_nodes.ros.run import make_executor, spin_until_quiet
 
     env = isolated_environment(args.domain_id)

@@ -19,13 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from sensing_nodes.core.evaluation import (
-    Relations,
     absolute_trajectory_error,
     read_relations,
     relations_from_trajectory,
     relative_pose_errors,
 )
-from sensing_nodes.sensor_bag import atomic_write
+from sensing_nodes.ros.sensor_bag import atomic_write
 
 EXIT_BAD_INPUT = 2
 ODOMETRY = 'nav_msgs/msg/Odometry'
@@ -39,7 +38,7 @@ class EvalError(Exception):
 def load_trajectories(bag: Path, topics: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """topic -> (stamps ns, poses (N, 3)) from Odometry topics (header stamps, sorted, the last
     message of a repeated stamp kept)."""
-    from sensing_nodes.bag import read_messages, topic_counts
+    from sensing_nodes.ros.bag import read_messages, topic_counts
     from sensing_nodes.ros.conversions import odometry_pose, stamp_to_ns
 
     if not bag.exists():
@@ -76,7 +75,7 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
              time_offset_s: float = 0.0) -> dict:
     """{'reference': ..., 'estimates': {topic: RPE and ATE figures}} (ATE needs the reference
     trajectory in the bag)."""
-    from sensing_nodes.bag import topic_counts
+    from sensing_nodes.ros.bag import topic_counts
 
     bag = Path(bag)
     if not bag.exists():

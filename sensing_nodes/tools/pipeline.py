@@ -107,7 +107,7 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
     place of earlier copies); returns the number of messages per output topic."""
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from sensing_nodes.bag import message_class, type_name
+    from sensing_nodes.ros.bag import message_class, type_name
     from sensing_nodes.ros.cdr import stamp_reader
     from sensing_nodes.ros.graph import DIAGNOSTICS, NODE_INPUT_TYPES
     from sensing_nodes.ros.input_bag import (

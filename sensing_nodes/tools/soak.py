@@ -75,7 +75,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
 
-    from sensing_nodes.bag import message_class
+    from sensing_nodes.ros.bag import message_class
     from sensing_nodes.ros.cdr import leading_stamp_ns
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
     from sensing_nodes.ros.run import make_executor, spin_until_quiet

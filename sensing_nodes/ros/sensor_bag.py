@@ -101,7 +101,7 @@ def _choose(topics: dict[str, tuple[str, int]], types: tuple[str, ...], wanted: 
 def _open(path: Path):
     """(topics: topic -> (type, count), messages(topics) -> iterator of (topic, bag ns, msg)):
     a rosbag2 folder or a ROS 1 .bag file, through the package's one bag reader."""
-    from sensing_nodes.bag import BagError, BagReader
+    from sensing_nodes.ros.bag import BagError, BagReader
 
     try:
         reader = BagReader(path)

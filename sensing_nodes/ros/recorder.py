@@ -16,7 +16,7 @@ from typing import Callable
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from sensing_nodes.bag import BagWriter, message_class
+from sensing_nodes.ros.bag import BagWriter, message_class
 from sensing_nodes.ros.cdr import leading_stamp_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
