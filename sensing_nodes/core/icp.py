@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -32,7 +32,7 @@ ANGULAR_WINDOW = 10
 # previous one: correspondences move along the scan by a beam or two at most.
 LOCAL_WINDOW = 3
 LOCAL_STEP = 0.05
-_LOCAL_OFFSETS = np.arange(-LOCAL_WINDOW, LOCAL_WINDOW + 1)
+_LOCAL_OFFSETS = np.arange(-LOCAL_WINDOW, LOCAL_WINDOW + 1)[:, None]
 # Neighbouring points each side of a target point among which its normal_neighbours nearest are
 # taken (a scan's neighbouring beams).
 NORMAL_WINDOW = 8
@@ -152,7 +152,7 @@ class BearingIndex:
     points: NDArray[np.complex128]
     index: NDArray[np.intp]
     pad: int
-    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -pad .. pad-1
+    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -pad .. pad-1, (2·pad, 1)
 
 
 @dataclass(frozen=True)
@@ -171,9 +171,11 @@ class Target:
     planarity: NDArray[np.float64]
     information: NDArray[np.float64]
     dropped: int = 0          # non-finite rows removed from the input
-    # Residual rows [U | U·q] per point q with UᵀU = its information (2x2 U: the residual of a
-    # pair is U·(p - q), its Jacobian rows follow from U) as (3, N, 2): U's first column, its
-    # second column and U·q, each over U's two rows; None = derived when first matched.
+    # Residual rows [U | 0 | -U·q] per point q with UᵀU = its information (2x2 U: the residual
+    # of a pair is U·(p - q), its Jacobian rows follow from U) as (4, 2, N): U's first column,
+    # its second column, a slot for the yaw column and -(U·q), each over U's two rows, points
+    # last so that every per-iteration operation runs over contiguous rows of pairs; None =
+    # derived when first matched.
     rows: NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
     bearing_index: BearingIndex | None = field(default=None, repr=False, compare=False)
     search: str = 'bearing'
@@ -343,10 +345,17 @@ def _residual_rows(points: NDArray[np.float64],
                                                       information[:, 1], information[:, 2])
     values, vectors = np.linalg.eigh(m)
     u = np.sqrt(np.clip(values, 0.0, None))[:, :, None] * vectors.transpose(0, 2, 1)
-    rows = np.empty((3, n, 2))
-    rows[0], rows[1] = u[:, :, 0], u[:, :, 1]
-    rows[2] = np.einsum('nij,nj->ni', u, points)
-    return rows
+    return _residual_table(u[:, :, 0], u[:, :, 1], np.einsum('nij,nj->ni', u, points))
+
+
+def _residual_table(u0: NDArray[np.float64], u1: NDArray[np.float64],
+                    uq: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Target.rows (4, 2, N) from U's first and second columns and U·q, each (N, 2) over U's
+    two rows: one take per iteration fetches the pairs' rows [U | 0 | -U·q]."""
+    table = np.zeros((4, 2, u0.shape[0]))
+    table[0], table[1] = u0.T, u1.T
+    np.negative(uq.T, out=table[3])
+    return table
 
 
 def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius: float = 1.0,
@@ -396,7 +405,8 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     rows[1, corner] = (0.0, 1.0)
     np.multiply(rows[0], array[:, 0, None], out=rows[2])
     rows[2] += rows[1] * array[:, 1, None]
-    target = Target(array, normals, planarity, information, dropped, rows, bearing_index, search)
+    target = Target(array, normals, planarity, information, dropped, _residual_table(*rows),
+                    bearing_index, search)
     if tree is not None:
         target.__dict__['tree'] = tree        # the cached_property's slot: built once
     return target
@@ -414,7 +424,7 @@ def _bearing_index(points: NDArray[np.float64], pad: int) -> BearingIndex | None
     bearings[:pad] -= 2.0 * math.pi
     bearings[n + pad:] += 2.0 * math.pi
     return BearingIndex(bearings, _complex(points).take(extended), extended, pad,
-                        np.arange(-pad, pad))
+                        np.arange(-pad, pad)[:, None])
 
 
 def _complex(points: NDArray[np.float64]) -> NDArray[np.complex128]:
@@ -445,20 +455,35 @@ def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128]
     point (x + iy, target frame): the nearest of the pad points each side of its bearing, or,
     given the previous positions (the points moved little since), the nearest of the
     LOCAL_WINDOW points each side of its previous one."""
+    size = bearing_index.points.shape[0]
     if previous is None:
         bearing = np.arctan2(points.imag, points.real)
-        window = np.searchsorted(bearing_index.bearings, bearing)[:, None] + bearing_index.offsets
+        centre = np.searchsorted(bearing_index.bearings, bearing)
+        # A finite bearing's window lies between the pads; a NaN one sorts past the end and is
+        # pulled back into the arrays (its distance is NaN: no correspondence).
+        np.minimum(centre, size - bearing_index.pad, out=centre)
+        window = bearing_index.offsets + centre
     else:
-        window = previous[:, None] + _LOCAL_OFFSETS
-    # A finite bearing's window lies between the pads; clipping keeps the rest in the arrays
-    # (a non-finite query gets a NaN distance, so no correspondence).
-    np.clip(window, 0, bearing_index.points.shape[0] - 1, out=window)
+        # Centres kept LOCAL_WINDOW inside the arrays: the window still holds the previous point.
+        centre = np.maximum(previous, LOCAL_WINDOW)
+        np.minimum(centre, size - 1 - LOCAL_WINDOW, out=centre)
+        window = _LOCAL_OFFSETS + centre
+    # (window, count): each operation runs over contiguous rows of queries, not short windows.
     distance = bearing_index.points.take(window)
-    distance -= points[:, None]
-    distance = np.abs(distance)                          # (count, window)
-    best = distance.argmin(axis=1)
-    best += np.arange(0, distance.size, distance.shape[1])
+    distance -= points
+    distance = np.abs(distance)
+    best = distance.argmin(axis=0)
+    best *= points.shape[0]
+    best += _counting(points.shape[0])
     return distance.take(best), window.take(best)
+
+
+@lru_cache(maxsize=16)
+def _counting(n: int) -> NDArray[np.intp]:
+    """0, 1, ..., n-1 (read-only, shared)."""
+    values = np.arange(n)
+    values.flags.writeable = False
+    return values
 
 
 def voxel_downsample(points: ArrayLike, voxel_size: float) -> NDArray[np.float64]:
@@ -502,10 +527,9 @@ class _Loop:
 
 def _identity_rows(points: NDArray[np.float64]) -> NDArray[np.float64]:
     """Residual rows of plain point-to-point pairs (information I): [[1, 0, qx], [0, 1, qy]]."""
-    rows = np.zeros((3, points.shape[0], 2))
-    rows[0, :, 0] = rows[1, :, 1] = 1.0
-    rows[2] = points
-    return rows
+    n = points.shape[0]
+    return _residual_table(np.broadcast_to([1.0, 0.0], (n, 2)),
+                           np.broadcast_to([0.0, 1.0], (n, 2)), points)
 
 
 def _solve_step(normal: NDArray[np.float64], radius: float,
@@ -622,7 +646,6 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
     floor_sq = (0.25 * min_gate) ** 2
     point_to_line = options.method == 'point_to_line'
     stop = _Stop(options.convergence)
-    u0_rows, u1_rows, uq_rows = rows
     n = src.shape[0]
     step, position = math.inf, None
     for iteration in range(1, max_iterations + 1):
@@ -641,20 +664,19 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
         # [U | U·J·l | U·(p - q)], J = 90° rotation. Pairs beyond the gate get a clipped (wrong
         # but finite) target row and an infinite size, which keeps them out of the median and
         # of every rule below without copying the rest.
-        whitened = np.empty((4, n, 2))
-        u0 = u0_rows.take(index, axis=0, mode='clip', out=whitened[0])
-        u1 = u1_rows.take(index, axis=0, mode='clip', out=whitened[1])
-        np.multiply(u1, lever.real[:, None], out=whitened[2])
-        whitened[2] -= u0 * lever.imag[:, None]
-        residual = np.multiply(u0, moved.real[:, None], out=whitened[3])
-        residual += u1 * moved.imag[:, None]
-        residual -= uq_rows.take(index, axis=0, mode='clip')
-        size_sq = np.einsum('ij,ij->i', residual, residual)   # squared Mahalanobis-like (m²)
+        whitened = rows.take(index, axis=2, mode='clip')          # (4, 2, n): [U | 0 | -U·q]
+        u0, u1 = whitened[0], whitened[1]
+        np.multiply(u1, lever.real, out=whitened[2])
+        whitened[2] -= u0 * lever.imag
+        residual = whitened[3]
+        residual += u0 * moved.real
+        residual += u1 * moved.imag
+        size_sq = np.einsum('ji,ji->i', residual, residual)   # squared Mahalanobis-like (m²)
         if count < n:
             size_sq[~keep] = math.inf
         chosen, median_sq = _choose_pairs(size_sq, keep, count, corr, min_inliers, floor_sq)
         if chosen is not None:
-            whitened, size_sq = whitened.take(chosen, axis=1), size_sq.take(chosen)
+            whitened, size_sq = whitened.take(chosen, axis=2), size_sq.take(chosen)
         state.inliers = size_sq.size
         state.error = float(np.sqrt(size_sq).sum()) / size_sq.size
         state.history.append(state.error)
