@@ -276,7 +276,7 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
                     tree: cKDTree | None, neighbours: int,
                     radius: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
                                             NDArray[np.bool_]]:
-    """Offsets dx, dy (n, k), m, from each point to its k nearest points (itself included) and
+    """Offsets dx, dy (k, n), m, from each point to its k nearest points (itself included) and
     which of them are present (closer than radius, m; an absent one has offset 0). With a
     bearing index, the k nearest among the pad points each side of the point's bearing (its
     neighbouring beams in a scan); else a k-d tree's k nearest."""
@@ -287,39 +287,40 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
         pad = bearing_index.pad
         position = np.empty(n, dtype=np.intp)
         position[bearing_index.index[pad:n + pad]] = np.arange(pad, n + pad)
-        offset = bearing_index.points.take(position[:, None] + np.arange(-half, half + 1))
-        offset -= _complex(points)[:, None]
-        size = np.abs(offset)                           # distances (n, 2·half + 1)
+        # (2·half + 1, n): each operation runs over contiguous rows of points.
+        offset = bearing_index.points.take(np.arange(-half, half + 1)[:, None] + position)
+        offset -= _complex(points)
+        size = np.abs(offset)                           # distances
         present = size < radius
-        if k < size.shape[1]:                           # the k nearest: at most the k-th size
-            present &= size <= np.partition(size, k - 1, axis=1)[:, k - 1, None]
+        if k < size.shape[0]:                           # the k nearest: at most the k-th size
+            present &= size <= np.partition(size, k - 1, axis=0)[k - 1]
         offset[~present] = 0.0
         return offset.real, offset.imag, present
     tree = tree if tree is not None else cKDTree(points)
     distance, index = tree.query(points, k=k, distance_upper_bound=radius)
     if k == 1:
         distance, index = distance[:, None], index[:, None]
-    present = distance <= radius
-    index = np.where(present, index, np.arange(n)[:, None])      # absent: the point itself
+    present = distance.T <= radius
+    index = np.where(present, index.T, np.arange(n))             # absent: the point itself
     dx = points[:, 0].take(index)
-    dx -= points[:, 0, None]
+    dx -= points[:, 0]
     dy = points[:, 1].take(index)
-    dy -= points[:, 1, None]
+    dy -= points[:, 1]
     return dx, dy, present
 
 
 def _line_normals(dx: NDArray[np.float64], dy: NDArray[np.float64],
                   present: NDArray[np.bool_]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Unit normal and planarity (1 - λmin/λmax of the neighbourhood scatter) per point, from
-    the offsets (n, k), m, to its neighbours and which of them are present (absent: offset 0).
+    the offsets (k, n), m, to its neighbours and which of them are present (absent: offset 0).
     The offsets are small numbers, so the one-pass scatter Σ d·dᵀ - (Σ d)(Σ d)ᵀ / count loses
     no precision."""
-    n, k = dx.shape
-    count = present.astype(float) @ np.ones(k)                    # exact: a sum of 0s and 1s
-    sx, sy = dx.sum(axis=1), dy.sum(axis=1)
-    sxx = np.einsum('ij,ij->i', dx, dx) - sx * sx / count
-    syy = np.einsum('ij,ij->i', dy, dy) - sy * sy / count
-    sxy = np.einsum('ij,ij->i', dx, dy) - sx * sy / count
+    k, n = dx.shape
+    count = present.sum(axis=0, dtype=float)                      # exact: a sum of 0s and 1s
+    sx, sy = dx.sum(axis=0), dy.sum(axis=0)
+    sxx = np.einsum('ij,ij->j', dx, dx) - sx * sx / count
+    syy = np.einsum('ij,ij->j', dy, dy) - sy * sy / count
+    sxy = np.einsum('ij,ij->j', dx, dy) - sx * sy / count
     # Principal axis of a 2x2 scatter in closed form; the normal is perpendicular to it.
     half_difference = 0.5 * (sxx - syy)
     theta = 0.5 * np.arctan2(sxy, half_difference)
@@ -444,14 +445,14 @@ def _nearest(target: Target, points: NDArray[np.complex128], gate: float,
         distance, index = target.tree.query(np.column_stack((points.real, points.imag)), k=1,
                                             distance_upper_bound=gate)
         return distance < gate, index, None
-    distance, position = _bearing_nearest(bearing_index, points, previous)
-    return distance < gate, bearing_index.index.take(position), position
+    distance_sq, position = _bearing_nearest(bearing_index, points, previous)
+    return distance_sq < gate * gate, bearing_index.index.take(position), position
 
 
 def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128],
                      previous: NDArray[np.intp] | None
                      ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-    """Distance (m) to and position (in the padded arrays) of a near target point of each query
+    """Squared distance (m²) to and position (in the padded arrays) of a near target point of each query
     point (x + iy, target frame): the nearest of the pad points each side of its bearing, or,
     given the previous positions (the points moved little since), the nearest of the
     LOCAL_WINDOW points each side of its previous one."""
@@ -462,28 +463,34 @@ def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128]
         # A finite bearing's window lies between the pads; a NaN one sorts past the end and is
         # pulled back into the arrays (its distance is NaN: no correspondence).
         np.minimum(centre, size - bearing_index.pad, out=centre)
-        window = bearing_index.offsets + centre
+        offsets = bearing_index.offsets
     else:
         # Centres kept LOCAL_WINDOW inside the arrays: the window still holds the previous point.
         centre = np.maximum(previous, LOCAL_WINDOW)
         np.minimum(centre, size - 1 - LOCAL_WINDOW, out=centre)
-        window = _LOCAL_OFFSETS + centre
-    # (window, count): each operation runs over contiguous rows of queries, not short windows.
-    distance = bearing_index.points.take(window)
-    distance -= points
-    distance = np.abs(distance)
-    best = distance.argmin(axis=0)
-    best *= points.shape[0]
-    best += _counting(points.shape[0])
-    return distance.take(best), window.take(best)
+        offsets = _LOCAL_OFFSETS
+    # Offsets (window, count): each operation runs over contiguous rows of queries, not over
+    # short windows; squared distances (no hypot) written with the queries as rows for argmin.
+    offset = bearing_index.points.take(offsets + centre)
+    offset -= points
+    parts = offset.view(np.float64)
+    np.square(parts, out=parts)
+    count, width = points.shape[0], offsets.shape[0]
+    distance_sq = np.empty((count, width))
+    np.add(parts[:, 0::2], parts[:, 1::2], out=distance_sq.T)
+    best = distance_sq.argmin(axis=1)
+    position = offsets.take(best)
+    position += centre
+    best += _row_starts(count, width)
+    return distance_sq.take(best), position
 
 
 @lru_cache(maxsize=16)
-def _counting(n: int) -> NDArray[np.intp]:
-    """0, 1, ..., n-1 (read-only, shared)."""
-    values = np.arange(n)
-    values.flags.writeable = False
-    return values
+def _row_starts(rows: int, columns: int) -> NDArray[np.intp]:
+    """Flat index of each row's first entry in a C-ordered (rows, columns) array (read-only)."""
+    starts = np.arange(0, rows * columns, columns)
+    starts.flags.writeable = False
+    return starts
 
 
 def voxel_downsample(points: ArrayLike, voxel_size: float) -> NDArray[np.float64]:
@@ -769,9 +776,11 @@ def match(
     if src.shape[0] < min_points or tgt.points.shape[0] < min_points:
         return _failed(guess, f'too few valid points (source {src.shape[0]}, target '
                        f'{tgt.points.shape[0]}, need {min_points})', src.shape[0], dropped)
-    centred = src - src.sum(axis=0) / src.shape[0]
-    radius = math.sqrt(float(np.einsum('ij,ij->', centred, centred)) / src.shape[0])
-    if radius < 1e-9 or float(np.ptp(tgt.points, axis=0).max()) < 1e-9:
+    centred = _complex(src)
+    centred = (centred - centred.sum() / centred.size).view(np.float64)
+    radius = math.sqrt(float(centred @ centred) / src.shape[0])
+    target_points = _complex(tgt.points)
+    if radius < 1e-9 or float(np.abs(target_points - target_points[0]).max()) < 1e-9:
         return _failed(guess, 'all points identical: rotation undefined', src.shape[0], dropped)
 
     if options.method == 'point_to_line':
