@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -32,7 +32,7 @@ ANGULAR_WINDOW = 10
 # previous one: correspondences move along the scan by a beam or two at most.
 LOCAL_WINDOW = 3
 LOCAL_STEP = 0.05
-_LOCAL_OFFSETS = np.arange(-LOCAL_WINDOW, LOCAL_WINDOW + 1)
+_LOCAL_OFFSETS = np.arange(-LOCAL_WINDOW, LOCAL_WINDOW + 1)[:, None]
 # Neighbouring points each side of a target point among which its normal_neighbours nearest are
 # taken (a scan's neighbouring beams).
 NORMAL_WINDOW = 8
@@ -152,7 +152,7 @@ class BearingIndex:
     points: NDArray[np.complex128]
     index: NDArray[np.intp]
     pad: int
-    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -pad .. pad-1
+    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -pad .. pad-1, (2·pad, 1)
 
 
 @dataclass(frozen=True)
@@ -171,9 +171,11 @@ class Target:
     planarity: NDArray[np.float64]
     information: NDArray[np.float64]
     dropped: int = 0          # non-finite rows removed from the input
-    # Residual rows [U | U·q] per point q with UᵀU = its information (2x2 U: the residual of a
-    # pair is U·(p - q), its Jacobian rows follow from U) as (3, N, 2): U's first column, its
-    # second column and U·q, each over U's two rows; None = derived when first matched.
+    # Residual rows [U | 0 | -U·q] per point q with UᵀU = its information (2x2 U: the residual
+    # of a pair is U·(p - q), its Jacobian rows follow from U) as (4, 2, N): U's first column,
+    # its second column, a slot for the yaw column and -(U·q), each over U's two rows, points
+    # last so that every per-iteration operation runs over contiguous rows of pairs; None =
+    # derived when first matched.
     rows: NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
     bearing_index: BearingIndex | None = field(default=None, repr=False, compare=False)
     search: str = 'bearing'
@@ -274,7 +276,7 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
                     tree: cKDTree | None, neighbours: int,
                     radius: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
                                             NDArray[np.bool_]]:
-    """Offsets dx, dy (n, k), m, from each point to its k nearest points (itself included) and
+    """Offsets dx, dy (k, n), m, from each point to its k nearest points (itself included) and
     which of them are present (closer than radius, m; an absent one has offset 0). With a
     bearing index, the k nearest among the pad points each side of the point's bearing (its
     neighbouring beams in a scan); else a k-d tree's k nearest."""
@@ -285,39 +287,40 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
         pad = bearing_index.pad
         position = np.empty(n, dtype=np.intp)
         position[bearing_index.index[pad:n + pad]] = np.arange(pad, n + pad)
-        offset = bearing_index.points.take(position[:, None] + np.arange(-half, half + 1))
-        offset -= _complex(points)[:, None]
-        size = np.abs(offset)                           # distances (n, 2·half + 1)
+        # (2·half + 1, n): each operation runs over contiguous rows of points.
+        offset = bearing_index.points.take(np.arange(-half, half + 1)[:, None] + position)
+        offset -= _complex(points)
+        size = np.abs(offset)                           # distances
         present = size < radius
-        if k < size.shape[1]:                           # the k nearest: at most the k-th size
-            present &= size <= np.partition(size, k - 1, axis=1)[:, k - 1, None]
+        if k < size.shape[0]:                           # the k nearest: at most the k-th size
+            present &= size <= np.partition(size, k - 1, axis=0)[k - 1]
         offset[~present] = 0.0
         return offset.real, offset.imag, present
     tree = tree if tree is not None else cKDTree(points)
     distance, index = tree.query(points, k=k, distance_upper_bound=radius)
     if k == 1:
         distance, index = distance[:, None], index[:, None]
-    present = distance <= radius
-    index = np.where(present, index, np.arange(n)[:, None])      # absent: the point itself
+    present = distance.T <= radius
+    index = np.where(present, index.T, np.arange(n))             # absent: the point itself
     dx = points[:, 0].take(index)
-    dx -= points[:, 0, None]
+    dx -= points[:, 0]
     dy = points[:, 1].take(index)
-    dy -= points[:, 1, None]
+    dy -= points[:, 1]
     return dx, dy, present
 
 
 def _line_normals(dx: NDArray[np.float64], dy: NDArray[np.float64],
                   present: NDArray[np.bool_]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Unit normal and planarity (1 - λmin/λmax of the neighbourhood scatter) per point, from
-    the offsets (n, k), m, to its neighbours and which of them are present (absent: offset 0).
+    the offsets (k, n), m, to its neighbours and which of them are present (absent: offset 0).
     The offsets are small numbers, so the one-pass scatter Σ d·dᵀ - (Σ d)(Σ d)ᵀ / count loses
     no precision."""
-    n, k = dx.shape
-    count = present.astype(float) @ np.ones(k)                    # exact: a sum of 0s and 1s
-    sx, sy = dx.sum(axis=1), dy.sum(axis=1)
-    sxx = np.einsum('ij,ij->i', dx, dx) - sx * sx / count
-    syy = np.einsum('ij,ij->i', dy, dy) - sy * sy / count
-    sxy = np.einsum('ij,ij->i', dx, dy) - sx * sy / count
+    k, n = dx.shape
+    count = present.sum(axis=0, dtype=float)                      # exact: a sum of 0s and 1s
+    sx, sy = dx.sum(axis=0), dy.sum(axis=0)
+    sxx = np.einsum('ij,ij->j', dx, dx) - sx * sx / count
+    syy = np.einsum('ij,ij->j', dy, dy) - sy * sy / count
+    sxy = np.einsum('ij,ij->j', dx, dy) - sx * sy / count
     # Principal axis of a 2x2 scatter in closed form; the normal is perpendicular to it.
     half_difference = 0.5 * (sxx - syy)
     theta = 0.5 * np.arctan2(sxy, half_difference)
@@ -343,10 +346,17 @@ def _residual_rows(points: NDArray[np.float64],
                                                       information[:, 1], information[:, 2])
     values, vectors = np.linalg.eigh(m)
     u = np.sqrt(np.clip(values, 0.0, None))[:, :, None] * vectors.transpose(0, 2, 1)
-    rows = np.empty((3, n, 2))
-    rows[0], rows[1] = u[:, :, 0], u[:, :, 1]
-    rows[2] = np.einsum('nij,nj->ni', u, points)
-    return rows
+    return _residual_table(u[:, :, 0], u[:, :, 1], np.einsum('nij,nj->ni', u, points))
+
+
+def _residual_table(u0: NDArray[np.float64], u1: NDArray[np.float64],
+                    uq: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Target.rows (4, 2, N) from U's first and second columns and U·q, each (N, 2) over U's
+    two rows: one take per iteration fetches the pairs' rows [U | 0 | -U·q]."""
+    table = np.zeros((4, 2, u0.shape[0]))
+    table[0], table[1] = u0.T, u1.T
+    np.negative(uq.T, out=table[3])
+    return table
 
 
 def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius: float = 1.0,
@@ -396,7 +406,8 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     rows[1, corner] = (0.0, 1.0)
     np.multiply(rows[0], array[:, 0, None], out=rows[2])
     rows[2] += rows[1] * array[:, 1, None]
-    target = Target(array, normals, planarity, information, dropped, rows, bearing_index, search)
+    target = Target(array, normals, planarity, information, dropped, _residual_table(*rows),
+                    bearing_index, search)
     if tree is not None:
         target.__dict__['tree'] = tree        # the cached_property's slot: built once
     return target
@@ -414,7 +425,7 @@ def _bearing_index(points: NDArray[np.float64], pad: int) -> BearingIndex | None
     bearings[:pad] -= 2.0 * math.pi
     bearings[n + pad:] += 2.0 * math.pi
     return BearingIndex(bearings, _complex(points).take(extended), extended, pad,
-                        np.arange(-pad, pad))
+                        np.arange(-pad, pad)[:, None])
 
 
 def _complex(points: NDArray[np.float64]) -> NDArray[np.complex128]:
@@ -434,31 +445,52 @@ def _nearest(target: Target, points: NDArray[np.complex128], gate: float,
         distance, index = target.tree.query(np.column_stack((points.real, points.imag)), k=1,
                                             distance_upper_bound=gate)
         return distance < gate, index, None
-    distance, position = _bearing_nearest(bearing_index, points, previous)
-    return distance < gate, bearing_index.index.take(position), position
+    distance_sq, position = _bearing_nearest(bearing_index, points, previous)
+    return distance_sq < gate * gate, bearing_index.index.take(position), position
 
 
 def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128],
                      previous: NDArray[np.intp] | None
                      ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-    """Distance (m) to and position (in the padded arrays) of a near target point of each query
+    """Squared distance (m²) to and position (in the padded arrays) of a near target point of each query
     point (x + iy, target frame): the nearest of the pad points each side of its bearing, or,
     given the previous positions (the points moved little since), the nearest of the
     LOCAL_WINDOW points each side of its previous one."""
+    size = bearing_index.points.shape[0]
     if previous is None:
         bearing = np.arctan2(points.imag, points.real)
-        window = np.searchsorted(bearing_index.bearings, bearing)[:, None] + bearing_index.offsets
+        centre = np.searchsorted(bearing_index.bearings, bearing)
+        # A finite bearing's window lies between the pads; a NaN one sorts past the end and is
+        # pulled back into the arrays (its distance is NaN: no correspondence).
+        np.minimum(centre, size - bearing_index.pad, out=centre)
+        offsets = bearing_index.offsets
     else:
-        window = previous[:, None] + _LOCAL_OFFSETS
-    # A finite bearing's window lies between the pads; clipping keeps the rest in the arrays
-    # (a non-finite query gets a NaN distance, so no correspondence).
-    np.clip(window, 0, bearing_index.points.shape[0] - 1, out=window)
-    distance = bearing_index.points.take(window)
-    distance -= points[:, None]
-    distance = np.abs(distance)                          # (count, window)
-    best = distance.argmin(axis=1)
-    best += np.arange(0, distance.size, distance.shape[1])
-    return distance.take(best), window.take(best)
+        # Centres kept LOCAL_WINDOW inside the arrays: the window still holds the previous point.
+        centre = np.maximum(previous, LOCAL_WINDOW)
+        np.minimum(centre, size - 1 - LOCAL_WINDOW, out=centre)
+        offsets = _LOCAL_OFFSETS
+    # Offsets (window, count): each operation runs over contiguous rows of queries, not over
+    # short windows; squared distances (no hypot) written with the queries as rows for argmin.
+    offset = bearing_index.points.take(offsets + centre)
+    offset -= points
+    parts = offset.view(np.float64)
+    np.square(parts, out=parts)
+    count, width = points.shape[0], offsets.shape[0]
+    distance_sq = np.empty((count, width))
+    np.add(parts[:, 0::2], parts[:, 1::2], out=distance_sq.T)
+    best = distance_sq.argmin(axis=1)
+    position = offsets.take(best)
+    position += centre
+    best += _row_starts(count, width)
+    return distance_sq.take(best), position
+
+
+@lru_cache(maxsize=16)
+def _row_starts(rows: int, columns: int) -> NDArray[np.intp]:
+    """Flat index of each row's first entry in a C-ordered (rows, columns) array (read-only)."""
+    starts = np.arange(0, rows * columns, columns)
+    starts.flags.writeable = False
+    return starts
 
 
 def voxel_downsample(points: ArrayLike, voxel_size: float) -> NDArray[np.float64]:
@@ -502,10 +534,9 @@ class _Loop:
 
 def _identity_rows(points: NDArray[np.float64]) -> NDArray[np.float64]:
     """Residual rows of plain point-to-point pairs (information I): [[1, 0, qx], [0, 1, qy]]."""
-    rows = np.zeros((3, points.shape[0], 2))
-    rows[0, :, 0] = rows[1, :, 1] = 1.0
-    rows[2] = points
-    return rows
+    n = points.shape[0]
+    return _residual_table(np.broadcast_to([1.0, 0.0], (n, 2)),
+                           np.broadcast_to([0.0, 1.0], (n, 2)), points)
 
 
 def _solve_step(normal: NDArray[np.float64], radius: float,
@@ -622,7 +653,6 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
     floor_sq = (0.25 * min_gate) ** 2
     point_to_line = options.method == 'point_to_line'
     stop = _Stop(options.convergence)
-    u0_rows, u1_rows, uq_rows = rows
     n = src.shape[0]
     step, position = math.inf, None
     for iteration in range(1, max_iterations + 1):
@@ -641,20 +671,19 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
         # [U | U·J·l | U·(p - q)], J = 90° rotation. Pairs beyond the gate get a clipped (wrong
         # but finite) target row and an infinite size, which keeps them out of the median and
         # of every rule below without copying the rest.
-        whitened = np.empty((4, n, 2))
-        u0 = u0_rows.take(index, axis=0, mode='clip', out=whitened[0])
-        u1 = u1_rows.take(index, axis=0, mode='clip', out=whitened[1])
-        np.multiply(u1, lever.real[:, None], out=whitened[2])
-        whitened[2] -= u0 * lever.imag[:, None]
-        residual = np.multiply(u0, moved.real[:, None], out=whitened[3])
-        residual += u1 * moved.imag[:, None]
-        residual -= uq_rows.take(index, axis=0, mode='clip')
-        size_sq = np.einsum('ij,ij->i', residual, residual)   # squared Mahalanobis-like (m²)
+        whitened = rows.take(index, axis=2, mode='clip')          # (4, 2, n): [U | 0 | -U·q]
+        u0, u1 = whitened[0], whitened[1]
+        np.multiply(u1, lever.real, out=whitened[2])
+        whitened[2] -= u0 * lever.imag
+        residual = whitened[3]
+        residual += u0 * moved.real
+        residual += u1 * moved.imag
+        size_sq = np.einsum('ji,ji->i', residual, residual)   # squared Mahalanobis-like (m²)
         if count < n:
             size_sq[~keep] = math.inf
         chosen, median_sq = _choose_pairs(size_sq, keep, count, corr, min_inliers, floor_sq)
         if chosen is not None:
-            whitened, size_sq = whitened.take(chosen, axis=1), size_sq.take(chosen)
+            whitened, size_sq = whitened.take(chosen, axis=2), size_sq.take(chosen)
         state.inliers = size_sq.size
         state.error = float(np.sqrt(size_sq).sum()) / size_sq.size
         state.history.append(state.error)
@@ -747,9 +776,11 @@ def match(
     if src.shape[0] < min_points or tgt.points.shape[0] < min_points:
         return _failed(guess, f'too few valid points (source {src.shape[0]}, target '
                        f'{tgt.points.shape[0]}, need {min_points})', src.shape[0], dropped)
-    centred = src - src.sum(axis=0) / src.shape[0]
-    radius = math.sqrt(float(np.einsum('ij,ij->', centred, centred)) / src.shape[0])
-    if radius < 1e-9 or float(np.ptp(tgt.points, axis=0).max()) < 1e-9:
+    centred = _complex(src)
+    centred = (centred - centred.sum() / centred.size).view(np.float64)
+    radius = math.sqrt(float(centred @ centred) / src.shape[0])
+    target_points = _complex(tgt.points)
+    if radius < 1e-9 or float(np.abs(target_points - target_points[0]).max()) < 1e-9:
         return _failed(guess, 'all points identical: rotation undefined', src.shape[0], dropped)
 
     if options.method == 'point_to_line':
