@@ -264,8 +264,10 @@ def main(argv: list[str] | None = None) -> int:
                   f"{e['heading_within_3']:.3f} / {e['heading_beyond_1']:.3f}", flush=True)
             if args.inputs:
                 imu = next(c for c in run_configs if c.name == 'imu')
+                # As the filter reads them: delay-compensated (InputConfig.heading_delay_s).
                 row['gyro_increments'] = heading_increment_consistency(
-                    inputs.truth_t, inputs.truth_pose, inputs.gyro_t, inputs.gyro_yaw,
+                    inputs.truth_t, inputs.truth_pose, inputs.gyro_t,
+                    inputs.gyro_yaw + inputs.gyro_rate * imu.heading_delay_s,
                     imu.noise.yaw_variance_per_s)
                 row['scan_matches'] = keyframe_match_consistency(
                     inputs.truth_t, inputs.truth_pose, inputs.scan_keyframe_t, inputs.scan_t,
