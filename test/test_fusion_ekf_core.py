@@ -200,3 +200,22 @@ def test_a_match_moves_the_pose_not_its_already_published_keyframe():
     slot = ekf._slots['scan_match']
     assert tuple(ekf.x[slot.offset:slot.offset + 3]) == pytest.approx(published, abs=1e-12)
     assert se2.between(published, ekf.state.pose) == pytest.approx(match, abs=2e-3)
+
+
+def test_heading_delay_reads_the_yaw_as_the_heading_that_long_before_its_stamp():
+    """An integrated heading that lags by 10 ms: from rest (yaw 0, rate 0) to yaw 0.5 rad at
+    rate 1 rad/s, the fused heading is 0.5 + 1 x 0.01 = 0.51 rad (0.5 without the delay)."""
+    def run(delay_s):
+        imu = input_config('imu', {'covariance': 'model', 'gate_chi2': 0.0,
+                                   'heading_delay_s': delay_s})
+        ekf = EkfFusion((imu,), EkfSettings(initial_velocity_std=100.0,
+                                            angular_accel_noise_density=100.0))
+        for stamp, yaw, rate in ((T0, 0.0, 0.0), (T0 + 100_000_000, 0.5, 1.0)):
+            ekf.update('imu', Reading(stamp, (0.0, 0.0, yaw), np.zeros((3, 3)),
+                                      (0.0, 0.0, rate)))
+        return ekf.state.pose[2]
+
+    assert run(0.0) == pytest.approx(0.5, abs=1e-4)
+    assert run(0.01) == pytest.approx(0.51, abs=1e-4)
+    bad = input_config('imu', {'heading_delay_s': -0.1})
+    assert [field for field, _, _ in bad.problems()] == ['heading_delay_s']

@@ -92,6 +92,11 @@ class InputConfig:
     gyro_bias: bool = False
     keyframes: bool = False              # pose is relative to a keyframe (scan matcher)
     max_gap_s: float = 2.0               # differential: no increment across a longer silence
+    # The reading's yaw is the heading this long before its stamp (s): the fusion reads it as
+    # yaw + (the reading's yaw rate) x heading_delay_s. A gyro integrator whose samples are
+    # the mean rate over the sample period before their stamp (a delta-angle IMU, as
+    # sensor_sim's) and which integrates them by the trapezoid lags by half a period.
+    heading_delay_s: float = 0.0
 
     def problems(self) -> list[tuple[str, str, object]]:
         """(field, problem, value) for each setting the filter cannot run with."""
@@ -114,6 +119,8 @@ class InputConfig:
                 out.append((name, 'must be finite and >= 0', value))
         if not all(math.isfinite(v) and v > 0.0 for v in self.twist_variance):
             out.append(('twist_variance', 'must be finite and > 0', self.twist_variance))
+        if not (math.isfinite(self.heading_delay_s) and self.heading_delay_s >= 0.0):
+            out.append(('heading_delay_s', 'must be finite and >= 0', self.heading_delay_s))
         return out
 
 
@@ -408,6 +415,10 @@ class EkfFusion:
         """Fuse one reading of input `name` (stamps must not go backwards: use a
         StampOrderedBuffer)."""
         cfg = self.inputs[name]
+        if cfg.heading_delay_s and reading.pose is not None and reading.twist is not None:
+            pose = reading.pose
+            reading = replace(reading, pose=(pose[0], pose[1],
+                                             pose[2] + reading.twist[2] * cfg.heading_delay_s))
         previous_stamp = self._last_seen.get(name)
         self._last_seen[name] = reading.stamp_ns
         if self._coalesced(cfg):
@@ -662,4 +673,5 @@ def input_config(name: str, values: dict, **fixed) -> InputConfig:
                          yaw_variance_per_m=float(v['yaw_variance_per_m']),
                          yaw_variance_per_s=float(v['yaw_variance_per_s'])),
         twist_variance=tuple(float(x) for x in v['twist_variance']),
+        heading_delay_s=float(v.get('heading_delay_s', 0.0)),
         gate_chi2=gate if gate > 0.0 else math.inf, **fixed)

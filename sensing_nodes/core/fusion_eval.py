@@ -31,7 +31,7 @@ def inputs_from_params(params: dict) -> tuple[InputConfig, ...]:
     max_gap_s = float(params.get('max_gap_s', 2.0))
     return tuple(
         input_config(name, {k: v for k, v in params.get(name, {}).items()
-                            if k in INPUT_DEFAULTS[name]},
+                            if k in INPUT_DEFAULTS[name] or k == 'heading_delay_s'},
                      keyframes=name == 'scan_match', max_gap_s=max_gap_s,
                      gyro_bias=name == 'imu' and params.get('imu', {}).get('source') == 'rate')
         for name in ('wheel_odom', 'imu', 'scan_match') if use[name])
@@ -177,6 +177,47 @@ def input_errors(inputs: FusionInputs) -> dict[str, dict[str, float]]:
 
 
 
+def keyframe_match_consistency(truth_t, truth_pose, keyframe_t, stamps, relative,
+                               relative_cov) -> dict[str, float]:
+    """How the scan matcher's keyframe-relative matches (m, rad; keyframe_t -1: no match) meet
+    their covariances against ground truth: mean squared Mahalanobis distance (3 when
+    consistent), RMS heading z, and the correlation of the heading errors of consecutive
+    matches against the same keyframe (0 when independent, as the filter takes them)."""
+    ok = np.asarray(keyframe_t) >= 0
+    kf_t, t = np.asarray(keyframe_t)[ok], np.asarray(stamps)[ok]
+    at_kf = interpolate_poses(truth_t, truth_pose, kf_t)
+    at_scan = interpolate_poses(truth_t, truth_pose, t)
+    truth_rel = np.array([se2.between(tuple(a), tuple(b)) for a, b in zip(at_kf, at_scan)])
+    err = np.asarray(relative)[ok] - truth_rel
+    err[:, 2] = se2.wrap_angle(err[:, 2])
+    cov = np.asarray(relative_cov)[ok]
+    d2 = np.einsum('ni,nij,nj->n', err, np.linalg.inv(cov), err)
+    same = kf_t[1:] == kf_t[:-1]
+    corr = float(np.corrcoef(err[:-1, 2][same], err[1:, 2][same])[0, 1]) \
+        if np.count_nonzero(same) > 2 else float('nan')
+    return {'mean_distance2': float(np.mean(d2)),
+            'heading_z_rms': float(np.sqrt(np.mean(err[:, 2] ** 2 / cov[:, 2, 2]))),
+            'heading_error_correlation': corr,
+            'matches_per_keyframe': float(len(kf_t) / max(len(np.unique(kf_t)), 1))}
+
+
+def heading_increment_consistency(truth_t, truth_pose, t, yaw, variance_per_s: float,
+                                  every: int = 20) -> dict[str, float]:
+    """How the heading increments of a differential yaw input (rad, every `every`-th sample)
+    meet a white-noise model of variance_per_s (rad^2/s) against ground truth: RMS z (1 when
+    consistent), share beyond 3 sigma, largest error (rad)."""
+    t, yaw = np.asarray(t)[::every], np.asarray(yaw)[::every]
+    reference = interpolate_poses(truth_t, truth_pose, t)
+    err = se2.wrap_angle(np.diff(yaw) - np.diff(reference[:, 2]))
+    z = err / np.sqrt(variance_per_s * np.diff(t) * 1e-9)
+    return {'z_rms': float(np.sqrt(np.mean(z ** 2))), 'beyond_3': float(np.mean(np.abs(z) > 3)),
+            'max_error_rad': float(np.max(np.abs(err)))}
+
+
+
+def _rounded(figures: dict[str, float]) -> dict[str, float]:
+    return {k: round(v, 4) if abs(v) >= 1e-3 else float(f'{v:.2e}') for k, v in figures.items()}
+
 
 def main(argv: list[str] | None = None) -> int:
     """Table of fused (EKF and complementary) and per-input errors over seeds of the default
@@ -191,8 +232,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seeds', type=int, default=8)
     parser.add_argument('--configs', default='default,strong_errors')
     parser.add_argument('--json', help='write every figure here')
+    parser.add_argument('--inputs', action='store_true',
+                        help="also print how the gyro's heading increments and the scan "
+                             "matches meet the noise models the filter gives them")
     args = parser.parse_args(argv)
     rows = []
+    run_configs = default_inputs()
     for name in args.configs.split(','):
         params = None if name == 'default' else params_from_dict(
             load_params_file(config_file(f'bags_{name}.yaml')))
@@ -217,6 +262,18 @@ def main(argv: list[str] | None = None) -> int:
                   f"{row['wheel']['rms_heading_deg']:.4f} | within 3 / beyond 1: position "
                   f"{e['position_within_3']:.3f} / {e['position_beyond_1']:.3f}, heading "
                   f"{e['heading_within_3']:.3f} / {e['heading_beyond_1']:.3f}", flush=True)
+            if args.inputs:
+                imu = next(c for c in run_configs if c.name == 'imu')
+                # As the filter reads them: delay-compensated (InputConfig.heading_delay_s).
+                row['gyro_increments'] = heading_increment_consistency(
+                    inputs.truth_t, inputs.truth_pose, inputs.gyro_t,
+                    inputs.gyro_yaw + inputs.gyro_rate * imu.heading_delay_s,
+                    imu.noise.yaw_variance_per_s)
+                row['scan_matches'] = keyframe_match_consistency(
+                    inputs.truth_t, inputs.truth_pose, inputs.scan_keyframe_t, inputs.scan_t,
+                    inputs.scan_relative, inputs.scan_relative_cov)
+                print('  gyro 0.1 s increments:', _rounded(row['gyro_increments']),
+                      '| scan matches:', _rounded(row['scan_matches']), flush=True)
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(rows, f, indent=1)
