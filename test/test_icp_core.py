@@ -323,7 +323,7 @@ def test_bearing_window_finds_the_exact_nearest_across_the_plus_minus_pi_seam():
     # A full-circle scan (beams from -π): queries near bearing ±π must see the points on both
     # sides of the seam (the padded ends), as a k-d tree does.
     target = room_scan(TARGET_POSE)
-    prepared = icp.prepare_target(target)
+    prepared = icp.prepare_target(target, search='bearing')
     assert prepared.bearing_index is not None
     rng = np.random.default_rng(3)
     bearing = np.arctan2(target[:, 1], target[:, 0])
@@ -342,8 +342,8 @@ def test_bearing_and_kd_tree_search_agree_on_a_noisy_room_scan():
     target = room_scan(TARGET_POSE, 0.01, rng)
     source = room_scan(compose(TARGET_POSE, MOTION_10), 0.01, rng)
     guess = (0.15, -0.05, math.radians(6.0))
-    bearing = icp.match(source, icp.prepare_target(target), guess)
-    tree = icp.match(source, icp.prepare_target(target, search='kd_tree'), guess)
+    bearing = icp.match(source, icp.prepare_target(target, search='bearing'), guess)
+    tree = icp.match(source, icp.prepare_target(target), guess)   # the default: k-d tree
     assert bearing.converged and tree.converged
     assert math.hypot(bearing.x - tree.x, bearing.y - tree.y) < 2e-3
     assert abs(wrap_angle(bearing.yaw - tree.yaw)) < math.radians(0.05)
@@ -357,7 +357,7 @@ def test_unknown_search_is_rejected():
 
 def test_a_target_too_small_for_the_bearing_window_falls_back_to_the_tree():
     target = room_scan(TARGET_POSE)[::20]          # 18 points < 2 * ANGULAR_WINDOW + 1
-    prepared = icp.prepare_target(target)
+    prepared = icp.prepare_target(target, search='bearing')
     assert prepared.bearing_index is None
     result = icp.match(target, prepared, (0.01, 0.0, 0.0))
     assert result.converged and math.hypot(result.x, result.y) < 1e-6

@@ -646,7 +646,7 @@ INPUT_DEFAULTS: dict[str, dict] = {
             'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 16.0,
             # gyro_integrator's max_gap_s: across a longer silence of its input it holds the
             # heading (the turn in the gap is not in its output), so no increment spans one.
-            'max_gap_s': 0.5},
+            'max_gap_s': 0.5, 'heading_delay_s': 0.0},
     'scan_match': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential',
                    'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,
                    'variance_per_rad': 1e-3, 'yaw_variance_per_m': 1e-4,
@@ -673,5 +673,5 @@ def input_config(name: str, values: dict, **fixed) -> InputConfig:
                          yaw_variance_per_m=float(v['yaw_variance_per_m']),
                          yaw_variance_per_s=float(v['yaw_variance_per_s'])),
         twist_variance=tuple(float(x) for x in v['twist_variance']),
-        heading_delay_s=float(v.get('heading_delay_s', 0.0)),
+        heading_delay_s=float(v.get('heading_delay_s', 0.0)),   # imu only
         gate_chi2=gate if gate > 0.0 else math.inf, **fixed)

@@ -31,7 +31,7 @@ def inputs_from_params(params: dict) -> tuple[InputConfig, ...]:
     max_gap_s = float(params.get('max_gap_s', 2.0))
     return tuple(
         input_config(name, {k: v for k, v in params.get(name, {}).items()
-                            if k in INPUT_DEFAULTS[name] or k == 'heading_delay_s'},
+                            if k in INPUT_DEFAULTS[name]},
                      keyframes=name == 'scan_match', max_gap_s=max_gap_s,
                      gyro_bias=name == 'imu' and params.get('imu', {}).get('source') == 'rate')
         for name in ('wheel_odom', 'imu', 'scan_match') if use[name])

@@ -224,6 +224,8 @@ class ComplementaryFusionNode(Node):
                      '(chi-square value); 0 = no gate',
         'max_gap_s': 'differential: no increment across a longer silence of this input (s); '
                      "0 = the node's max_gap_s, else the shorter of the two",
+        'heading_delay_s': "how far the input's heading lags its stamp (s): its yaw is read as "
+                           'yaw + yaw rate x this (sensor_sim: half its IMU period)',
     }
 
     def _declare_input(self, name: str, enabled: bool, **fixed) -> InputConfig | None:
