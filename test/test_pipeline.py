@@ -80,6 +80,19 @@ def test_subset_of_nodes_takes_the_recorded_upstream_outputs(tmp_path):
     _assert_equal_outputs(BAGS / 'nominal', out, {'/odometry/filtered'})
 
 
+def test_called_in_process_it_leaves_the_discovery_range_as_it_found_it(tmp_path, monkeypatch):
+    """Its nodes are built with discovery off, but the caller's environment keeps its own
+    range: a test session's later graphs inherited OFF once and discovered nothing."""
+    from sensing_nodes.tools import pipeline
+
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    first = tmp_path / 'first'
+    assert _pipeline([str(BAGS / 'nominal'), str(first)]).returncode == 0
+    assert pipeline.main([str(first), str(tmp_path / 'out'), '--nodes', 'complementary_fusion',
+                          '--no-progress']) == 0
+    assert os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
+
+
 def test_parameters_reach_the_nodes(tmp_path):
     """--param and --params-file change what the node computes: no scan has a 6-beam line
     that is 50 m long."""

@@ -21,6 +21,7 @@ from typing import Any
 
 EXIT_BAD_INPUT = 2
 
+DISCOVERY_RANGE = 'ROS_AUTOMATIC_DISCOVERY_RANGE'
 PROGRESS_AFTER_S = 1.0   # no progress display for bags done sooner
 
 
@@ -42,16 +43,25 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
 
     # The nodes exist only to hold their parameters, logger and diagnostics: no peer should
     # ever see them (a robot's graph on the same domain has nodes of the same names).
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'
-    rclpy.init(args=['sensing_pipeline'])   # never the tool's own argv (its ':=' are not ROS's)
-    nodes = {}
-    for name in names:
-        try:
-            nodes[name] = make_node(name, node_arguments(name, params_files,
-                                                         node_params.get(name, [])))
-        except _PARAMETER_ERRORS as exc:
-            close(nodes)
-            raise PipelineError(f'{name}: invalid parameter: {exc}') from None
+    # Only while the context and nodes are made: the caller's environment (a test session
+    # that starts graphs afterwards) keeps its own discovery range.
+    previous = os.environ.get(DISCOVERY_RANGE)
+    os.environ[DISCOVERY_RANGE] = 'OFF'
+    try:
+        rclpy.init(args=['sensing_pipeline'])   # never the tool's own argv (its ':=' are not ROS's)
+        nodes = {}
+        for name in names:
+            try:
+                nodes[name] = make_node(name, node_arguments(name, params_files,
+                                                             node_params.get(name, [])))
+            except _PARAMETER_ERRORS as exc:
+                close(nodes)
+                raise PipelineError(f'{name}: invalid parameter: {exc}') from None
+    finally:
+        if previous is None:
+            os.environ.pop(DISCOVERY_RANGE, None)
+        else:
+            os.environ[DISCOVERY_RANGE] = previous
     return nodes
 
 
