@@ -248,6 +248,8 @@ class ComplementaryFusion:
         return (math.hypot(mismatch[0], mismatch[1]) > self.settings.restart_distance_m
                 or abs(mismatch[2]) > self.settings.restart_angle_rad)
 
+    # long: the complementary filter's scan update in the lesson's order (increment, position
+    # by inverse variance, heading by alpha, covariance, anchor), kept as one worked-number unit.
     def _fuse(self, stamp_ns, pose, cov, increment_cov, predicted, predicted_cov):
         assert self._anchor is not None and self._scan_offset is not None
         anchor = self._anchor

@@ -644,6 +644,8 @@ class _Stop:
             or self.stalled >= rules.stall_iterations
 
 
+# long: the hot loop of every match, kept flat (no per-iteration calls: numpy's call overhead
+# dominates at ~300 points; docs/performance.md).
 def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations: int,
               min_inliers: int, radius: float) -> _Loop:
     """Iterate correspondences and closed-form / Gauss-Newton steps from pose (x, y, yaw);
