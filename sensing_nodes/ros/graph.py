@@ -203,15 +203,17 @@ def node_arguments(name: str, params_files: list[Path], extra: list[str]) -> lis
     return args + list(extra)
 
 
-def make_node(name: str, arguments: list[str]):
-    """The processing node `name` constructed in this process's rclpy context with only
-    `arguments` (node_arguments) as its own, as its executable constructs it; the process's
-    global ROS arguments do not apply, so nodes built side by side never share a -p or -r."""
+def make_node(name: str, arguments: list[str], context=None):
+    """The processing node `name` constructed in `context` (default: this process's rclpy
+    context) with only `arguments` (node_arguments) as its own, as its executable constructs
+    it; the process's global ROS arguments do not apply, so nodes built side by side never
+    share a -p or -r."""
     import importlib
 
     module, cls = NODE_CLASSES[name]
+    options = {} if context is None else {'context': context}
     return getattr(importlib.import_module(module), cls)(
-        cli_args=arguments, use_global_arguments=False)
+        cli_args=arguments, use_global_arguments=False, **options)
 
 
 class Graph:

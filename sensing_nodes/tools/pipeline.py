@@ -48,14 +48,18 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
     previous = os.environ.get(DISCOVERY_RANGE)
     os.environ[DISCOVERY_RANGE] = 'OFF'
     try:
-        rclpy.init(args=['sensing_pipeline'])   # never the tool's own argv (its ':=' are not ROS's)
+        # A context of its own: a caller that already has rclpy running (a test session)
+        # keeps its default context.
+        context = rclpy.Context()
+        rclpy.init(args=['sensing_pipeline'], context=context)   # never the tool's own argv
         nodes = {}
         for name in names:
             try:
                 nodes[name] = make_node(name, node_arguments(name, params_files,
-                                                             node_params.get(name, [])))
+                                                             node_params.get(name, [])),
+                                        context)
             except _PARAMETER_ERRORS as exc:
-                close(nodes)
+                close(nodes, context)
                 raise PipelineError(f'{name}: invalid parameter: {exc}') from None
     finally:
         if previous is None:
@@ -65,12 +69,15 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
     return nodes
 
 
-def close(nodes: dict[str, Any]) -> None:
+def close(nodes: dict[str, Any], context=None) -> None:
+    """Destroy the nodes and shut their context down."""
     import rclpy
 
     for node in nodes.values():
+        context = node.context
         node.destroy_node()
-    rclpy.try_shutdown()
+    if context is not None:
+        rclpy.try_shutdown(context=context)
 
 
 class Progress:
