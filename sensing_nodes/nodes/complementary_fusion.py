@@ -310,6 +310,13 @@ class ComplementaryFusionProcessor:
         self._publish_tf = publish_tf
         self._tf_stamp: int | None = None   # stamp of the last transform sent
         self._start_ns: int | None = None
+        # The filter starts at the first stamp by which every enabled input has spoken (or
+        # when the reorder buffer stops waiting for a silent one): started on one input alone
+        # it follows that input's start-up transients, e.g. gyro_integrator's heading before
+        # its first bias estimate, which the wheels would have refused (a fusion subscribed a
+        # moment after the wheels started ended 0.15 deg off and refused every scan match).
+        self._first_ns: dict[str, int] = {}
+        self._started = False
         self.diagnostics = diagnostics   # counted here, published by the node
         self._warnings = warnings
         self._logger = logger
@@ -399,6 +406,7 @@ class ComplementaryFusionProcessor:
             return out
         if self._start_ns is None:
             self._start_ns = stamp
+        self._first_ns[source] = min(stamp, self._first_ns.get(source, stamp))
         record.arrived_ns = stamp if record.arrived_ns is None else max(record.arrived_ns, stamp)
         return out + self._process(self._buffer.pop_ready(watermark(
             list(self._records.values()), self._buffer.newest_ns, self._start_ns,
@@ -427,6 +435,8 @@ class ComplementaryFusionProcessor:
         for record in self._records.values():
             record.clear()
         self._start_ns = None
+        self._first_ns.clear()
+        self._started = False
         self._tf_stamp = None
         self._converter.reset()
         # /diagnostics carries the newest stamp of the new timeline (sensing_replay's warm-up
@@ -441,6 +451,9 @@ class ComplementaryFusionProcessor:
             if reading is RESTART:
                 self._fusion.restart(source)
                 continue
+            if not self._started and self._before_every_input(stamp):
+                self.diagnostics.count('before_every_input')
+                continue
             self._records[source].processed_at(stamp)
             self._fusion.update(source, reading)
             if source == IMU and (self._records[WHEEL].enabled or self._records[SCAN].enabled):
@@ -454,6 +467,25 @@ class ComplementaryFusionProcessor:
         if held is not None:
             out += self._transform(*held)
         return out
+
+    def _before_every_input(self, stamp: int) -> bool:
+        """True for a reading older than the first of some enabled input (not fused); the
+        first reading that is not starts the filter."""
+        enabled = [name for name, record in self._records.items() if record.enabled]
+        if all(name in self._first_ns for name in enabled):
+            start = max(self._first_ns[name] for name in enabled)
+            if stamp < start:
+                return True
+            skipped = self.diagnostics.counts.get('before_every_input', 0)
+            if skipped:
+                self._logger.info(f'every input has spoken: fusing from {start * 1e-9:.3f} s; '
+                                  f'{skipped} earlier readings not fused')
+        else:
+            silent = [name for name in enabled if name not in self._first_ns]
+            self._logger.warn(f'starting without {", ".join(silent)} (silent for '
+                              f'{self._input_timeout_s:g} s of stamps)')
+        self._started = True
+        return False
 
     def _transform(self, stamp: int, pose) -> Outputs:
         """odom -> base_link at the output's stamp (the input just fused: never ahead of the
