@@ -146,13 +146,18 @@ class BearingIndex:
     """A target's points sorted by bearing from its origin (rad), padded circularly by `pad`
     entries at each end (bearings shifted by ∓2π) so that a window of `pad` entries each side of
     any bearing in [-π, π] stays inside the arrays: bearing, point as x + iy (m) and point index
-    per entry."""
+    per entry. `edge_sin_sq[c]`: sin² of the smallest bearing gap (capped at π/2) between a
+    query sorted at c (bearings[c-1] < its bearing <= bearings[c]) and the nearest entry outside
+    its window c-pad .. c+pad-1; a query at range ρ is at least ρ·√edge_sin_sq[c] from every
+    point outside its window, which certifies the window's nearest point as the exact one."""
 
     bearings: NDArray[np.float64]
     points: NDArray[np.complex128]
     index: NDArray[np.intp]
     pad: int
     offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -pad .. pad-1, (2·pad, 1)
+    edge_sin_sq: NDArray[np.float64] = field(repr=False, compare=False)
+    slot: NDArray[np.intp] = field(repr=False, compare=False)          # point index -> entry
 
 
 @dataclass(frozen=True)
@@ -275,37 +280,66 @@ def align_paired(
 def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | None,
                     tree: cKDTree | None, neighbours: int,
                     radius: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
-                                            NDArray[np.bool_]]:
-    """Offsets dx, dy (k, n), m, from each point to its k nearest points (itself included) and
-    which of them are present (closer than radius, m; an absent one has offset 0). With a
-    bearing index, the k nearest among the pad points each side of the point's bearing (its
-    neighbouring beams in a scan); else a k-d tree's k nearest."""
+                                            NDArray[np.bool_], cKDTree | None]:
+    """Offsets dx, dy (rows, n), m, from each point to its k nearest points (itself included)
+    and which of them are present (closer than radius, m; an absent one has offset 0), and the
+    k-d tree if one was built. With a bearing index, the k nearest among the NORMAL_WINDOW
+    points each side of the point's bearing (its neighbouring beams in a scan) where the window
+    certifies them as the k nearest of all, the k-d tree's k nearest elsewhere; else the k-d
+    tree's for all."""
     n = points.shape[0]
     k = min(neighbours, n)
-    half = min(NORMAL_WINDOW, bearing_index.pad) if bearing_index is not None else 0
-    if bearing_index is not None and k <= 2 * half + 1:
-        pad = bearing_index.pad
-        position = np.empty(n, dtype=np.intp)
-        position[bearing_index.index[pad:n + pad]] = np.arange(pad, n + pad)
-        # (2·half + 1, n): each operation runs over contiguous rows of points.
-        offset = bearing_index.points.take(np.arange(-half, half + 1)[:, None] + position)
-        offset -= _complex(points)
-        size = np.abs(offset)                           # distances
-        present = size < radius
-        if k < size.shape[0]:                           # the k nearest: at most the k-th size
-            present &= size <= np.partition(size, k - 1, axis=0)[k - 1]
-        offset[~present] = 0.0
-        return offset.real, offset.imag, present
-    tree = tree if tree is not None else cKDTree(points)
-    distance, index = tree.query(points, k=k, distance_upper_bound=radius)
+    half = min(NORMAL_WINDOW, bearing_index.pad - 1) if bearing_index is not None else 0
+    if bearing_index is None or k > 2 * half + 1:
+        tree = tree if tree is not None else cKDTree(points)
+        dx, dy, present = _tree_neighbourhoods(points, tree, k, radius, points)
+        return dx, dy, present, tree
+    position = bearing_index.slot
+    # (2·half + 1, n): each operation runs over contiguous rows of points.
+    offset = bearing_index.points.take(np.arange(-half, half + 1)[:, None] + position)
+    centred = _complex(points)
+    offset -= centred
+    size = np.abs(offset)                           # distances
+    present = size < radius
+    kth = np.partition(size, k - 1, axis=0)[k - 1] if k < size.shape[0] else size.max(axis=0)
+    present &= size <= kth
+    # Every point outside the window is at least ρ·sin(gap) away (gap: the bearing gap to the
+    # window's outer neighbours, capped at π/2); beyond that the tree decides.
+    bearings = bearing_index.bearings
+    gap = np.minimum(bearings.take(position) - bearings.take(position - half - 1),
+                     bearings.take(position + half + 1) - bearings.take(position))
+    bound = np.abs(centred) * np.sin(np.minimum(gap, 0.5 * math.pi))
+    offset[~present] = 0.0
+    dx, dy = offset.real.copy(), offset.imag.copy()
+    uncertain = np.flatnonzero(np.minimum(kth, radius) > bound)
+    if uncertain.size:
+        tree = tree if tree is not None else cKDTree(points)
+        sub_dx, sub_dy, sub_present = _tree_neighbourhoods(points, tree, k, radius,
+                                                           points.take(uncertain, axis=0))
+        dx[:, uncertain] = 0.0
+        dy[:, uncertain] = 0.0
+        present[:, uncertain] = False
+        dx[:k, uncertain], dy[:k, uncertain], present[:k, uncertain] = sub_dx, sub_dy, sub_present
+    return dx, dy, present, tree
+
+
+def _tree_neighbourhoods(points: NDArray[np.float64], tree: cKDTree, k: int, radius: float,
+                         queries: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                                NDArray[np.float64],
+                                                                NDArray[np.bool_]]:
+    """Offsets dx, dy (k, q), m, from each query (q, 2) to its k nearest points (tree over
+    points) within radius, m, and which are present (absent: offset 0)."""
+    distance, index = tree.query(queries, k=k, distance_upper_bound=radius)
     if k == 1:
         distance, index = distance[:, None], index[:, None]
     present = distance.T <= radius
-    index = np.where(present, index.T, np.arange(n))             # absent: the point itself
+    index = np.where(present, index.T, 0)
     dx = points[:, 0].take(index)
-    dx -= points[:, 0]
+    dx -= queries[:, 0]
     dy = points[:, 1].take(index)
-    dy -= points[:, 1]
+    dy -= queries[:, 1]
+    dx[~present] = 0.0
+    dy[~present] = 0.0
     return dx, dy, present
 
 
@@ -379,10 +413,11 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
         return Target(array, np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)), dropped,
                       search=search)
     array = np.ascontiguousarray(array)
-    bearing_index = _bearing_index(array, ANGULAR_WINDOW) if search == 'bearing' else None
-    tree = cKDTree(array) if bearing_index is None else None
-    normals, planarity = _line_normals(
-        *_neighbourhoods(array, bearing_index, tree, normal_neighbours, normal_radius))
+    bearing_index = _bearing_index(array, max(ANGULAR_WINDOW, NORMAL_WINDOW + 1),
+                                   ANGULAR_WINDOW) if search == 'bearing' else None
+    dx, dy, present, tree = _neighbourhoods(array, bearing_index, None, normal_neighbours,
+                                            normal_radius)
+    normals, planarity = _line_normals(dx, dy, present)
     corner = planarity < min_planarity
     n = array.shape[0]
     # Information n·nᵀ + w·I on a line, I elsewhere, as rows (m00, m01, m11).
@@ -416,8 +451,9 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     return target
 
 
-def _bearing_index(points: NDArray[np.float64], pad: int) -> BearingIndex | None:
-    """The BearingIndex of points (N, 2) in their own frame (m); None below 2·pad + 1 points."""
+def _bearing_index(points: NDArray[np.float64], pad: int, window: int) -> BearingIndex | None:
+    """The BearingIndex of points (N, 2) in their own frame (m), padded by pad entries each
+    side, searched window entries each side (window <= pad); None below 2·pad + 1 points."""
     n = points.shape[0]
     if n < 2 * pad + 1:
         return None
@@ -427,8 +463,19 @@ def _bearing_index(points: NDArray[np.float64], pad: int) -> BearingIndex | None
     bearings = bearing.take(extended)
     bearings[:pad] -= 2.0 * math.pi
     bearings[n + pad:] += 2.0 * math.pi
+    # One more entry each side (circularly) for the window edges of the first and last centres.
+    outer = np.concatenate(([bearing[order[n - pad - 1]] - 2.0 * math.pi], bearings,
+                            [bearing[order[pad % n]] + 2.0 * math.pi]))
+    size = bearings.shape[0]
+    centre = np.arange(size + 1) + 1              # searchsorted's range, as outer's index
+    gap = np.minimum(outer.take(centre - 1) - outer.take(np.maximum(centre - window - 1, 0)),
+                     outer.take(np.minimum(centre + window, size + 1)) - outer.take(
+                         np.minimum(centre, size + 1)))
+    edge_sin_sq = np.square(np.sin(np.minimum(np.maximum(gap, 0.0), 0.5 * math.pi)))
+    slot = np.empty(n, dtype=np.intp)
+    slot[order] = np.arange(pad, n + pad)
     return BearingIndex(bearings, _complex(points).take(extended), extended, pad,
-                        np.arange(-pad, pad)[:, None])
+                        np.arange(-window, window)[:, None], edge_sin_sq, slot)
 
 
 def _complex(points: NDArray[np.float64]) -> NDArray[np.complex128]:
@@ -448,18 +495,36 @@ def _nearest(target: Target, points: NDArray[np.complex128], gate: float,
         distance, index = target.tree.query(np.column_stack((points.real, points.imag)), k=1,
                                             distance_upper_bound=gate)
         return distance < gate, index, None
-    distance_sq, position = _bearing_nearest(bearing_index, points, previous)
-    return distance_sq < gate * gate, bearing_index.index.take(position), position
+    gate_sq = gate * gate
+    distance_sq, position, bound_sq = _bearing_nearest(bearing_index, points, previous)
+    index = bearing_index.index.take(position)
+    if bound_sq is not None:
+        # A query whose window's nearest point (or the gate) is further than the window's
+        # certified bound may have a nearer point outside the window: the tree answers those.
+        uncertain = np.flatnonzero(np.minimum(distance_sq, gate_sq) > bound_sq)
+        if uncertain.size:
+            query = points.take(uncertain)
+            distance, found = target.tree.query(np.column_stack((query.real, query.imag)),
+                                                k=1, distance_upper_bound=gate)
+            inside = distance < gate
+            where = uncertain[inside]
+            found = found[inside]
+            index[where] = found
+            distance_sq[where] = np.square(distance[inside])
+            position[where] = bearing_index.slot.take(found)
+    return distance_sq < gate_sq, index, position
 
 
 def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128],
                      previous: NDArray[np.intp] | None
-                     ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-    """Squared distance (m²) to and position (in the padded arrays) of a near target point of each query
-    point (x + iy, target frame): the nearest of the pad points each side of its bearing, or,
-    given the previous positions (the points moved little since), the nearest of the
-    LOCAL_WINDOW points each side of its previous one."""
+                     ) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.float64] | None]:
+    """Squared distance (m²) to and position (in the padded arrays) of a near target point of
+    each query point (x + iy, target frame), and the squared distance (m²) within which that
+    point is certainly the nearest (None: not certified): the nearest of the pad points each
+    side of its bearing, or, given the previous positions (the points moved little since), the
+    nearest of the LOCAL_WINDOW points each side of its previous one."""
     size = bearing_index.points.shape[0]
+    bound_sq = None
     if previous is None:
         bearing = np.arctan2(points.imag, points.real)
         centre = np.searchsorted(bearing_index.bearings, bearing)
@@ -467,6 +532,9 @@ def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128]
         # pulled back into the arrays (its distance is NaN: no correspondence).
         np.minimum(centre, size - bearing_index.pad, out=centre)
         offsets = bearing_index.offsets
+        bound_sq = points.real * points.real
+        bound_sq += points.imag * points.imag
+        bound_sq *= bearing_index.edge_sin_sq.take(centre)
     else:
         # Centres kept LOCAL_WINDOW inside the arrays: the window still holds the previous point.
         centre = np.maximum(previous, LOCAL_WINDOW)
@@ -485,7 +553,7 @@ def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128]
     position = offsets.take(best)
     position += centre
     best += _row_starts(count, width)
-    return distance_sq.take(best), position
+    return distance_sq.take(best), position, bound_sq
 
 
 @lru_cache(maxsize=16)
