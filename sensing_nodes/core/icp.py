@@ -27,12 +27,10 @@ DEGENERATE_VARIANCE = 100.0
 # Target points each side of a query's bearing among which its nearest neighbour is sought first
 # (a scan's points are ordered by bearing, so the nearest one is almost always among them).
 ANGULAR_WINDOW = 10
-# Once the pose moves by less than LOCAL_STEP (m, yaw as arc length at the source's RMS radius)
-# per iteration, the nearest point is sought among the LOCAL_WINDOW points each side of the
-# previous one: correspondences move along the scan by a beam or two at most.
-LOCAL_WINDOW = 3
-LOCAL_STEP = 0.05
-_LOCAL_OFFSETS = np.arange(-LOCAL_WINDOW, LOCAL_WINDOW + 1)[:, None]
+# Queries the bearing window cannot certify are answered by computing every distance while
+# they are fewer than this many query-target pairs (a k-d tree's call costs more), else by the
+# target's k-d tree.
+BRUTE_FORCE_PAIRS = 40000
 # Neighbouring points each side of a target point among which its normal_neighbours nearest are
 # taken (a scan's neighbouring beams).
 NORMAL_WINDOW = 8
@@ -313,14 +311,32 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
     dx, dy = offset.real.copy(), offset.imag.copy()
     uncertain = np.flatnonzero(np.minimum(kth, radius) > bound)
     if uncertain.size:
-        tree = tree if tree is not None else cKDTree(points)
-        sub_dx, sub_dy, sub_present = _tree_neighbourhoods(points, tree, k, radius,
-                                                           points.take(uncertain, axis=0))
+        if uncertain.size * n <= BRUTE_FORCE_PAIRS:
+            sub_dx, sub_dy, sub_present = _all_neighbourhoods(centred, k, radius,
+                                                              centred.take(uncertain))
+        else:
+            tree = tree if tree is not None else cKDTree(points)
+            sub_dx, sub_dy, sub_present = _tree_neighbourhoods(
+                points, tree, k, radius, points.take(uncertain, axis=0))
         dx[:, uncertain] = 0.0
         dy[:, uncertain] = 0.0
         present[:, uncertain] = False
         dx[:k, uncertain], dy[:k, uncertain], present[:k, uncertain] = sub_dx, sub_dy, sub_present
     return dx, dy, present, tree
+
+
+def _all_neighbourhoods(points: NDArray[np.complex128], k: int, radius: float,
+                        queries: NDArray[np.complex128]) -> tuple[NDArray[np.float64],
+                                                                  NDArray[np.float64],
+                                                                  NDArray[np.bool_]]:
+    """_tree_neighbourhoods from every distance: points and queries as x + iy."""
+    offset = points[None, :] - queries[:, None]                    # (q, n)
+    nearest = np.argpartition(np.abs(offset), k - 1, axis=1)[:, :k] if k < points.size \
+        else np.broadcast_to(np.arange(points.size), (queries.size, points.size))
+    chosen = offset.take(nearest + _row_starts(*offset.shape)[:, None]).T     # (k, q)
+    present = np.abs(chosen) <= radius
+    chosen[~present] = 0.0
+    return chosen.real.copy(), chosen.imag.copy(), present
 
 
 def _tree_neighbourhoods(points: NDArray[np.float64], tree: cKDTree, k: int, radius: float,
@@ -483,63 +499,57 @@ def _complex(points: NDArray[np.float64]) -> NDArray[np.complex128]:
     return np.ascontiguousarray(points, dtype=np.float64).view(np.complex128).ravel()
 
 
-def _nearest(target: Target, points: NDArray[np.complex128], gate: float,
-             previous: NDArray[np.intp] | None = None
-             ) -> tuple[NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp] | None]:
+def _nearest(target: Target, points: NDArray[np.complex128],
+             gate: float) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
     """For each query point (x + iy, target frame, m): whether a target point lies closer than
-    gate, the index of the nearest one (any index when none), and where the search found it
-    (for the next call's `previous`; None with a k-d tree). With the target's `search`
-    'bearing', see _bearing_nearest; with 'kd_tree', the exact nearest point."""
+    gate, and the index of the nearest one (any index when none). Exact with either search:
+    with 'bearing', the nearest in the query's bearing window (_bearing_nearest) where the
+    window certifies it, the k-d tree's elsewhere."""
     bearing_index = target.bearing_index
     if bearing_index is None:
         distance, index = target.tree.query(np.column_stack((points.real, points.imag)), k=1,
                                             distance_upper_bound=gate)
-        return distance < gate, index, None
+        return distance < gate, index
     gate_sq = gate * gate
-    distance_sq, position, bound_sq = _bearing_nearest(bearing_index, points, previous)
-    index = bearing_index.index.take(position)
-    if bound_sq is not None:
-        # A query whose window's nearest point (or the gate) is further than the window's
-        # certified bound may have a nearer point outside the window: the tree answers those.
-        uncertain = np.flatnonzero(np.minimum(distance_sq, gate_sq) > bound_sq)
-        if uncertain.size:
-            query = points.take(uncertain)
+    distance_sq, index, certain_sq = _bearing_nearest(bearing_index, points)
+    # A query whose window's nearest point (or the gate) is further than the window certifies
+    # may have a nearer point outside the window: the tree answers those.
+    uncertain = np.flatnonzero(np.minimum(distance_sq, gate_sq) > certain_sq)
+    if uncertain.size:
+        query = points.take(uncertain)
+        count = bearing_index.index.shape[0] - 2 * bearing_index.pad
+        if uncertain.size * count <= BRUTE_FORCE_PAIRS:
+            every = np.abs(bearing_index.points[bearing_index.pad:count + bearing_index.pad]
+                           - query[:, None])
+            nearest = every.argmin(axis=1)
+            index[uncertain] = bearing_index.index.take(nearest + bearing_index.pad)
+            distance_sq[uncertain] = np.square(every.take(nearest
+                                                          + _row_starts(*every.shape)))
+        else:
             distance, found = target.tree.query(np.column_stack((query.real, query.imag)),
                                                 k=1, distance_upper_bound=gate)
             inside = distance < gate
             where = uncertain[inside]
-            found = found[inside]
-            index[where] = found
+            index[where] = found[inside]
             distance_sq[where] = np.square(distance[inside])
-            position[where] = bearing_index.slot.take(found)
-    return distance_sq < gate_sq, index, position
+    return distance_sq < gate_sq, index
 
 
-def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128],
-                     previous: NDArray[np.intp] | None
-                     ) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.float64] | None]:
-    """Squared distance (m²) to and position (in the padded arrays) of a near target point of
-    each query point (x + iy, target frame), and the squared distance (m²) within which that
-    point is certainly the nearest (None: not certified): the nearest of the pad points each
-    side of its bearing, or, given the previous positions (the points moved little since), the
-    nearest of the LOCAL_WINDOW points each side of its previous one."""
+def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128]
+                     ) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]]:
+    """For each query point (x + iy, target frame): the squared distance (m²) to and the index
+    of the nearest target point among the window's entries each side of its bearing, and the
+    squared distance (m²) within which that point is certainly the nearest of all (every point
+    outside the window is at least that far)."""
     size = bearing_index.points.shape[0]
-    bound_sq = None
-    if previous is None:
-        bearing = np.arctan2(points.imag, points.real)
-        centre = np.searchsorted(bearing_index.bearings, bearing)
-        # A finite bearing's window lies between the pads; a NaN one sorts past the end and is
-        # pulled back into the arrays (its distance is NaN: no correspondence).
-        np.minimum(centre, size - bearing_index.pad, out=centre)
-        offsets = bearing_index.offsets
-        bound_sq = points.real * points.real
-        bound_sq += points.imag * points.imag
-        bound_sq *= bearing_index.edge_sin_sq.take(centre)
-    else:
-        # Centres kept LOCAL_WINDOW inside the arrays: the window still holds the previous point.
-        centre = np.maximum(previous, LOCAL_WINDOW)
-        np.minimum(centre, size - 1 - LOCAL_WINDOW, out=centre)
-        offsets = _LOCAL_OFFSETS
+    centre = np.searchsorted(bearing_index.bearings, np.arctan2(points.imag, points.real))
+    # A finite bearing's window lies between the pads; a NaN one sorts past the end and is
+    # pulled back into the arrays (its distance is NaN: no correspondence).
+    np.minimum(centre, size - bearing_index.pad, out=centre)
+    offsets = bearing_index.offsets
+    certain_sq = points.real * points.real
+    certain_sq += points.imag * points.imag
+    certain_sq *= bearing_index.edge_sin_sq.take(centre)
     # Offsets (window, count): each operation runs over contiguous rows of queries, not over
     # short windows; squared distances (no hypot) written with the queries as rows for argmin.
     offset = bearing_index.points.take(offsets + centre)
@@ -553,7 +563,7 @@ def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128]
     position = offsets.take(best)
     position += centre
     best += _row_starts(count, width)
-    return distance_sq.take(best), position, bound_sq
+    return distance_sq.take(best), bearing_index.index.take(position), certain_sq
 
 
 @lru_cache(maxsize=16)
@@ -727,13 +737,11 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
     point_to_line = options.method == 'point_to_line'
     stop = _Stop(options.convergence)
     n = src.shape[0]
-    step, position = math.inf, None
     for iteration in range(1, max_iterations + 1):
         state.iterations = iteration
         lever = src * complex(math.cos(yaw), math.sin(yaw))      # R·s
         moved = lever + complex(x, y)
-        keep, index, position = _nearest(tgt, moved, gate,
-                                         position if step < LOCAL_STEP else None)
+        keep, index = _nearest(tgt, moved, gate)
         count = int(np.count_nonzero(keep))
         if count < min_inliers:
             state.reason = f'too few correspondences ({count} < {min_inliers}) within {gate:.3f} m'
@@ -784,7 +792,7 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
 def _score(src, tgt: Target, pose, inlier_distance: float) -> float:
     """Fraction of source points within inlier_distance (m) of a target point at pose."""
     moved = _complex(src) * complex(math.cos(pose[2]), math.sin(pose[2])) + complex(*pose[:2])
-    keep, _, _ = _nearest(tgt, moved, inlier_distance)
+    keep, _ = _nearest(tgt, moved, inlier_distance)
     return float(keep.mean())
 
 
