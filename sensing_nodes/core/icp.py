@@ -25,7 +25,8 @@ FAILED_VARIANCE = 1.0e6
 DEGENERATE_VARIANCE = 100.0
 
 # Target points each side of a query's bearing among which its nearest neighbour is sought first
-# (a scan's points are ordered by bearing, so the nearest one is almost always among them).
+# (a scan's points are ordered by bearing, so the nearest one is usually among them; the bearing
+# gap to the window's edges certifies it, else it is sought among all points).
 ANGULAR_WINDOW = 10
 # Queries the bearing window cannot certify are answered by computing every distance while
 # they are fewer than this many query-target pairs (a k-d tree's call costs more), else by the
@@ -162,7 +163,8 @@ class BearingIndex:
 class Target:
     """A target scan prepared once for many matches: points (N, 2) in its frame (m), how its
     neighbours are found (`search`: 'bearing' = `bearing_index`, its points sorted by bearing,
-    None below 2·ANGULAR_WINDOW + 1 points; else `tree`, a k-d tree built when first needed),
+    None below 2·ANGULAR_WINDOW + 1 points, with `tree` for what a bearing window cannot
+    certify; else `tree`, a k-d tree built when first needed),
     unit normals (N, 2) from the neighbouring points,
     how line-like each neighbourhood is (`planarity` in [0, 1]: 1 = points exactly on a line),
     and the 2x2 information matrix each point gives a residual, as (N, 3) rows (m00, m01, m11):
@@ -181,7 +183,7 @@ class Target:
     # derived when first matched.
     rows: NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
     bearing_index: BearingIndex | None = field(default=None, repr=False, compare=False)
-    search: str = 'kd_tree'
+    search: str = 'bearing'
 
     @cached_property
     def tree(self) -> cKDTree:
@@ -276,20 +278,20 @@ def align_paired(
 
 
 def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | None,
-                    tree: cKDTree | None, neighbours: int,
-                    radius: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
+                    neighbours: int, radius: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
                                             NDArray[np.bool_], cKDTree | None]:
     """Offsets dx, dy (rows, n), m, from each point to its k nearest points (itself included)
     and which of them are present (closer than radius, m; an absent one has offset 0), and the
     k-d tree if one was built. With a bearing index, the k nearest among the NORMAL_WINDOW
     points each side of the point's bearing (its neighbouring beams in a scan) where the window
-    certifies them as the k nearest of all, the k-d tree's k nearest elsewhere; else the k-d
-    tree's for all."""
+    certifies them as the k nearest of all, elsewhere from every distance (few such points) or
+    the k-d tree; else the k-d tree's for all."""
     n = points.shape[0]
     k = min(neighbours, n)
     half = min(NORMAL_WINDOW, bearing_index.pad - 1) if bearing_index is not None else 0
+    tree = None
     if bearing_index is None or k > 2 * half + 1:
-        tree = tree if tree is not None else cKDTree(points)
+        tree = cKDTree(points)
         dx, dy, present = _tree_neighbourhoods(points, tree, k, radius, points)
         return dx, dy, present, tree
     position = bearing_index.slot
@@ -315,7 +317,7 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
             sub_dx, sub_dy, sub_present = _all_neighbourhoods(centred, k, radius,
                                                               centred.take(uncertain))
         else:
-            tree = tree if tree is not None else cKDTree(points)
+            tree = cKDTree(points)
             sub_dx, sub_dy, sub_present = _tree_neighbourhoods(
                 points, tree, k, radius, points.take(uncertain, axis=0))
         dx[:, uncertain] = 0.0
@@ -411,15 +413,13 @@ def _residual_table(u0: NDArray[np.float64], u1: NDArray[np.float64],
 
 def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius: float = 1.0,
                    min_planarity: float = 0.5, tangent_weight: float = 0.0,
-                   search: str = 'kd_tree') -> Target:
+                   search: str = 'bearing') -> Target:
     """Normals and per-point information of a target point set (N, 2), m, in its own frame,
-    and the index its neighbours are found with (`search`: 'kd_tree' for any point set, or
-    'bearing' for a scan seen from the origin); a point is line-like when its planarity >=
-    min_planarity. Non-finite rows are dropped (counted in `dropped`); ValueError on a wrong
-    shape or bad settings."""
-    # The k-d tree is the default by measurement: the bearing order streams ~1.1x faster but
-    # its scan-to-scan rotation error on the real logs was worse (sensing_pipeline + sensing_eval,
-    # docs/real-data.md: ACES 0.49 deg against 0.40 mean RPE, Freiburg 101 0.30 against 0.28).
+    and the index its neighbours are found with (`search`: 'bearing', the points' order by
+    bearing from the origin, fastest for a scan, or 'kd_tree'; both give the exact nearest
+    neighbours, equal up to ties); a point is line-like when its planarity >= min_planarity.
+    Non-finite rows are dropped (counted in `dropped`); ValueError on a wrong shape or bad
+    settings."""
     if not (normal_neighbours >= 2 and normal_radius > 0 and 0 <= min_planarity <= 1
             and 0 <= tangent_weight <= 1 and search in _SEARCHES):
         raise ValueError('normal_neighbours >= 2, normal_radius > 0, 0 <= min_planarity <= 1, '
@@ -431,7 +431,7 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     array = np.ascontiguousarray(array)
     bearing_index = _bearing_index(array, max(ANGULAR_WINDOW, NORMAL_WINDOW + 1),
                                    ANGULAR_WINDOW) if search == 'bearing' else None
-    dx, dy, present, tree = _neighbourhoods(array, bearing_index, None, normal_neighbours,
+    dx, dy, present, tree = _neighbourhoods(array, bearing_index, normal_neighbours,
                                             normal_radius)
     normals, planarity = _line_normals(dx, dy, present)
     corner = planarity < min_planarity
@@ -504,7 +504,7 @@ def _nearest(target: Target, points: NDArray[np.complex128],
     """For each query point (x + iy, target frame, m): whether a target point lies closer than
     gate, and the index of the nearest one (any index when none). Exact with either search:
     with 'bearing', the nearest in the query's bearing window (_bearing_nearest) where the
-    window certifies it, the k-d tree's elsewhere."""
+    window certifies it, elsewhere from every distance (few such queries) or the k-d tree."""
     bearing_index = target.bearing_index
     if bearing_index is None:
         distance, index = target.tree.query(np.column_stack((points.real, points.imag)), k=1,
