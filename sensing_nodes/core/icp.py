@@ -29,9 +29,9 @@ DEGENERATE_VARIANCE = 100.0
 # gap to the window's edges certifies it, else it is sought among all points).
 ANGULAR_WINDOW = 10
 # Queries the bearing window cannot certify are answered by computing every distance while
-# they are fewer than this many query-target pairs (a k-d tree's call costs more), else by the
-# target's k-d tree.
-BRUTE_FORCE_PAIRS = 40000
+# they are fewer than this many query-target pairs (a k-d tree's call costs more: ~40 us), else
+# by the target's k-d tree.
+BRUTE_FORCE_PAIRS = 8000
 # Neighbouring points each side of a target point among which its normal_neighbours nearest are
 # taken (a scan's neighbouring beams).
 NORMAL_WINDOW = 8
@@ -284,8 +284,8 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
     and which of them are present (closer than radius, m; an absent one has offset 0), and the
     k-d tree if one was built. With a bearing index, the k nearest among the NORMAL_WINDOW
     points each side of the point's bearing (its neighbouring beams in a scan) where the window
-    certifies them as the k nearest of all, elsewhere from every distance (few such points) or
-    the k-d tree; else the k-d tree's for all."""
+    certifies them as the k nearest of all, the k-d tree's elsewhere; else the k-d tree's for
+    all."""
     n = points.shape[0]
     k = min(neighbours, n)
     half = min(NORMAL_WINDOW, bearing_index.pad - 1) if bearing_index is not None else 0
@@ -313,32 +313,14 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
     dx, dy = offset.real.copy(), offset.imag.copy()
     uncertain = np.flatnonzero(np.minimum(kth, radius) > bound)
     if uncertain.size:
-        if uncertain.size * n <= BRUTE_FORCE_PAIRS:
-            sub_dx, sub_dy, sub_present = _all_neighbourhoods(centred, k, radius,
-                                                              centred.take(uncertain))
-        else:
-            tree = cKDTree(points)
-            sub_dx, sub_dy, sub_present = _tree_neighbourhoods(
-                points, tree, k, radius, points.take(uncertain, axis=0))
+        tree = cKDTree(points)           # also answers the matches' uncertain queries
+        sub_dx, sub_dy, sub_present = _tree_neighbourhoods(points, tree, k, radius,
+                                                           points.take(uncertain, axis=0))
         dx[:, uncertain] = 0.0
         dy[:, uncertain] = 0.0
         present[:, uncertain] = False
         dx[:k, uncertain], dy[:k, uncertain], present[:k, uncertain] = sub_dx, sub_dy, sub_present
     return dx, dy, present, tree
-
-
-def _all_neighbourhoods(points: NDArray[np.complex128], k: int, radius: float,
-                        queries: NDArray[np.complex128]) -> tuple[NDArray[np.float64],
-                                                                  NDArray[np.float64],
-                                                                  NDArray[np.bool_]]:
-    """_tree_neighbourhoods from every distance: points and queries as x + iy."""
-    offset = points[None, :] - queries[:, None]                    # (q, n)
-    nearest = np.argpartition(np.abs(offset), k - 1, axis=1)[:, :k] if k < points.size \
-        else np.broadcast_to(np.arange(points.size), (queries.size, points.size))
-    chosen = offset.take(nearest + _row_starts(*offset.shape)[:, None]).T     # (k, q)
-    present = np.abs(chosen) <= radius
-    chosen[~present] = 0.0
-    return chosen.real.copy(), chosen.imag.copy(), present
 
 
 def _tree_neighbourhoods(points: NDArray[np.float64], tree: cKDTree, k: int, radius: float,
