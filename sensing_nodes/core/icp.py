@@ -143,20 +143,21 @@ _DEFAULT_OPTIONS = IcpOptions()
 @dataclass(frozen=True)
 class BearingIndex:
     """A target's points sorted by bearing from its origin (rad), padded circularly by `pad`
-    entries at each end (bearings shifted by ∓2π) so that a window of `pad` entries each side of
-    any bearing in [-π, π] stays inside the arrays: bearing, point as x + iy (m) and point index
-    per entry. `edge_sin_sq[c]`: sin² of the smallest bearing gap (capped at π/2) between a
-    query sorted at c (bearings[c-1] < its bearing <= bearings[c]) and the nearest entry outside
-    its window c-pad .. c+pad-1; a query at range ρ is at least ρ·√edge_sin_sq[c] from every
-    point outside its window, which certifies the window's nearest point as the exact one."""
+    entries at each end (bearings shifted by ∓2π) so that a window of up to `pad` entries each
+    side of any bearing in [-π, π] stays inside the arrays: bearing, point as x + iy (m) and
+    point index per entry. A query sorted at c (bearings[c-1] < its bearing <= bearings[c]) is
+    searched in the window c + offsets; `edge_sin_sq[c]` is sin² of the smallest bearing gap
+    (capped at π/2) between it and the nearest entry outside that window: a query at range ρ is
+    at least ρ·√edge_sin_sq[c] from every point outside, which certifies the window's nearest
+    point as the nearest of all. `slot`: each point's entry in the padded arrays."""
 
     bearings: NDArray[np.float64]
     points: NDArray[np.complex128]
     index: NDArray[np.intp]
     pad: int
-    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -pad .. pad-1, (2·pad, 1)
+    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -w .. w-1, (2·w, 1)
     edge_sin_sq: NDArray[np.float64] = field(repr=False, compare=False)
-    slot: NDArray[np.intp] = field(repr=False, compare=False)          # point index -> entry
+    slot: NDArray[np.intp] = field(repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -278,8 +279,9 @@ def align_paired(
 
 
 def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | None,
-                    neighbours: int, radius: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
-                                            NDArray[np.bool_], cKDTree | None]:
+                    neighbours: int, radius: float
+                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_],
+                               cKDTree | None]:
     """Offsets dx, dy (rows, n), m, from each point to its k nearest points (itself included)
     and which of them are present (closer than radius, m; an absent one has offset 0), and the
     k-d tree if one was built. With a bearing index, the k nearest among the NORMAL_WINDOW
@@ -495,7 +497,7 @@ def _nearest(target: Target, points: NDArray[np.complex128],
     gate_sq = gate * gate
     distance_sq, index, certain_sq = _bearing_nearest(bearing_index, points)
     # A query whose window's nearest point (or the gate) is further than the window certifies
-    # may have a nearer point outside the window: the tree answers those.
+    # may have a nearer point outside the window: every distance, or the tree, answers those.
     uncertain = np.flatnonzero(np.minimum(distance_sq, gate_sq) > certain_sq)
     if uncertain.size:
         query = points.take(uncertain)
