@@ -330,11 +330,45 @@ def test_bearing_window_finds_the_exact_nearest_across_the_plus_minus_pi_seam():
     near_seam = target[np.abs(bearing) > math.pi - 0.1]
     queries = np.vstack([near_seam + rng.normal(0.0, 0.02, near_seam.shape),
                          target + rng.normal(0.0, 0.02, target.shape)])
-    keep, index, _ = icp._nearest(prepared, icp._complex(queries), 0.5)
+    keep, index = icp._nearest(prepared, icp._complex(queries), 0.5)
     distance, expected = icp.prepare_target(target, search='kd_tree').tree.query(
         queries, distance_upper_bound=0.5)
     np.testing.assert_array_equal(keep, np.isfinite(distance))
     np.testing.assert_array_equal(index[keep], expected[keep])
+
+
+@pytest.mark.parametrize('brute_force_pairs', [10 ** 9, 0])
+def test_bearing_search_is_exact_where_its_window_cannot_be(monkeypatch, brute_force_pairs):
+    # Queries turned 40 deg about the scan origin and pushed inwards: most nearest points lie
+    # far outside a 10-beam window; the certified search must still return the k-d tree's
+    # nearest point within each gate, from every distance or (0 pairs) from the tree.
+    monkeypatch.setattr(icp, 'BRUTE_FORCE_PAIRS', brute_force_pairs)
+    rng = np.random.default_rng(11)
+    target = room_scan(TARGET_POSE, 0.01, rng)
+    prepared = icp.prepare_target(target, search='bearing')
+    tree = icp.prepare_target(target, search='kd_tree').tree
+    queries = icp._complex(target) * complex(math.cos(0.7), math.sin(0.7)) * 0.8
+    window_sq, _, certain_sq = icp._bearing_nearest(prepared.bearing_index, queries)
+    for gate in (0.3, 1.0, 3.0):
+        assert np.count_nonzero(np.minimum(window_sq, gate * gate) > certain_sq) > 20
+        keep, index = icp._nearest(prepared, queries, gate)
+        distance, expected = tree.query(np.column_stack((queries.real, queries.imag)),
+                                        distance_upper_bound=gate)
+        np.testing.assert_array_equal(keep, distance < gate)
+        np.testing.assert_array_equal(index[keep], expected[keep])
+
+
+def test_bearing_search_gives_the_k_d_trees_normals():
+    # Each point's normal from its 7 nearest within 1 m: the bearing windows (certified, the
+    # rest from the tree) pick the k-d tree's neighbours, so normals, planarity and
+    # information agree to rounding; a sparse scan has isolated points.
+    rng = np.random.default_rng(12)
+    for target in (room_scan(TARGET_POSE, 0.01, rng), room_scan(TARGET_POSE, 0.01, rng)[::7]):
+        bearing = icp.prepare_target(target, search='bearing')
+        tree = icp.prepare_target(target, search='kd_tree')
+        assert bearing.bearing_index is not None
+        np.testing.assert_allclose(bearing.planarity, tree.planarity, atol=1e-9)
+        np.testing.assert_allclose(bearing.information, tree.information, atol=1e-9)
 
 
 def test_bearing_and_kd_tree_search_agree_on_a_noisy_room_scan():
@@ -343,10 +377,12 @@ def test_bearing_and_kd_tree_search_agree_on_a_noisy_room_scan():
     source = room_scan(compose(TARGET_POSE, MOTION_10), 0.01, rng)
     guess = (0.15, -0.05, math.radians(6.0))
     bearing = icp.match(source, icp.prepare_target(target, search='bearing'), guess)
-    tree = icp.match(source, icp.prepare_target(target), guess)   # the default: k-d tree
+    tree = icp.match(source, icp.prepare_target(target, search='kd_tree'), guess)
     assert bearing.converged and tree.converged
-    assert math.hypot(bearing.x - tree.x, bearing.y - tree.y) < 2e-3
-    assert abs(wrap_angle(bearing.yaw - tree.yaw)) < math.radians(0.05)
+    # The same neighbours, hence the same match (to rounding).
+    assert math.hypot(bearing.x - tree.x, bearing.y - tree.y) < 1e-9
+    assert abs(wrap_angle(bearing.yaw - tree.yaw)) < 1e-9
+    assert bearing.iterations == tree.iterations
     assert pose_error(bearing, MOTION_10)[0] < 0.01
 
 

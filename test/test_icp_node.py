@@ -190,6 +190,7 @@ def test_constant_velocity_model_without_odometry(probe, pubs):
 @pytest.mark.parametrize('args, name', [
     (['-p', 'method:=plane'], 'method'),
     (['-p', 'robust:=ransac'], 'robust'),
+    (['-p', 'search:=octree'], 'search'),
     (['-p', 'keyframe_distance_m:=-1.0'], 'keyframe_distance_m'),
     (['-p', 'max_iterations:=0'], 'max_iterations'),
 ])

@@ -24,7 +24,7 @@ STRIDE = 10
 def table():
     methods = icp_real.matchers()
     methods.pop('ours_local')
-    methods.pop('ours_local_bearing')
+    methods.pop('ours_local_kd_tree')
     return icp_real.evaluate(stride=STRIDE, directory=CARMEN, methods=methods)
 
 

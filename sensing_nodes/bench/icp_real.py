@@ -167,10 +167,10 @@ def summary(trans: NDArray[np.float64], rot: NDArray[np.float64]) -> dict:
 
 def matchers(include_small_gicp: bool = True) -> dict[str, Matcher]:
     """The methods compared: ours, ours without yaw hypotheses (the node's setting) with
-    correspondences from a k-d tree (the default) and from the scans' bearing order, and
-    small_gicp's ICP, plane-ICP and GICP."""
+    neighbours from the scans' bearing order (the default) and from a k-d tree (the same
+    neighbours: a check), and small_gicp's ICP, plane-ICP and GICP."""
     out = {'ours': ours(), 'ours_local': ours({'yaw_hypotheses': ()}),
-           'ours_local_bearing': ours({'yaw_hypotheses': (), 'search': 'bearing'})}
+           'ours_local_kd_tree': ours({'yaw_hypotheses': (), 'search': 'kd_tree'})}
     if include_small_gicp:
         out.update({name: small_gicp_matcher(kind) for name, kind in SMALL_GICP_TYPES.items()})
     return out

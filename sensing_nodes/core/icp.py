@@ -25,14 +25,13 @@ FAILED_VARIANCE = 1.0e6
 DEGENERATE_VARIANCE = 100.0
 
 # Target points each side of a query's bearing among which its nearest neighbour is sought first
-# (a scan's points are ordered by bearing, so the nearest one is almost always among them).
+# (a scan's points are ordered by bearing, so the nearest one is usually among them; the bearing
+# gap to the window's edges certifies it, else it is sought among all points).
 ANGULAR_WINDOW = 10
-# Once the pose moves by less than LOCAL_STEP (m, yaw as arc length at the source's RMS radius)
-# per iteration, the nearest point is sought among the LOCAL_WINDOW points each side of the
-# previous one: correspondences move along the scan by a beam or two at most.
-LOCAL_WINDOW = 3
-LOCAL_STEP = 0.05
-_LOCAL_OFFSETS = np.arange(-LOCAL_WINDOW, LOCAL_WINDOW + 1)[:, None]
+# Queries the bearing window cannot certify are answered by computing every distance while
+# they are fewer than this many query-target pairs (a k-d tree's call costs more: ~40 us), else
+# by the target's k-d tree.
+BRUTE_FORCE_PAIRS = 8000
 # Neighbouring points each side of a target point among which its normal_neighbours nearest are
 # taken (a scan's neighbouring beams).
 NORMAL_WINDOW = 8
@@ -144,22 +143,29 @@ _DEFAULT_OPTIONS = IcpOptions()
 @dataclass(frozen=True)
 class BearingIndex:
     """A target's points sorted by bearing from its origin (rad), padded circularly by `pad`
-    entries at each end (bearings shifted by ∓2π) so that a window of `pad` entries each side of
-    any bearing in [-π, π] stays inside the arrays: bearing, point as x + iy (m) and point index
-    per entry."""
+    entries at each end (bearings shifted by ∓2π) so that a window of up to `pad` entries each
+    side of any bearing in [-π, π] stays inside the arrays: bearing, point as x + iy (m) and
+    point index per entry. A query sorted at c (bearings[c-1] < its bearing <= bearings[c]) is
+    searched in the window c + offsets; `edge_sin_sq[c]` is sin² of the smallest bearing gap
+    (capped at π/2) between it and the nearest entry outside that window: a query at range ρ is
+    at least ρ·√edge_sin_sq[c] from every point outside, which certifies the window's nearest
+    point as the nearest of all. `slot`: each point's entry in the padded arrays."""
 
     bearings: NDArray[np.float64]
     points: NDArray[np.complex128]
     index: NDArray[np.intp]
     pad: int
-    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -pad .. pad-1, (2·pad, 1)
+    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -w .. w-1, (2·w, 1)
+    edge_sin_sq: NDArray[np.float64] = field(repr=False, compare=False)
+    slot: NDArray[np.intp] = field(repr=False, compare=False)
 
 
 @dataclass(frozen=True)
 class Target:
     """A target scan prepared once for many matches: points (N, 2) in its frame (m), how its
     neighbours are found (`search`: 'bearing' = `bearing_index`, its points sorted by bearing,
-    None below 2·ANGULAR_WINDOW + 1 points; else `tree`, a k-d tree built when first needed),
+    None below 2·ANGULAR_WINDOW + 1 points, with `tree` for what a bearing window cannot
+    certify; else `tree`, a k-d tree built when first needed),
     unit normals (N, 2) from the neighbouring points,
     how line-like each neighbourhood is (`planarity` in [0, 1]: 1 = points exactly on a line),
     and the 2x2 information matrix each point gives a residual, as (N, 3) rows (m00, m01, m11):
@@ -178,7 +184,7 @@ class Target:
     # derived when first matched.
     rows: NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
     bearing_index: BearingIndex | None = field(default=None, repr=False, compare=False)
-    search: str = 'kd_tree'
+    search: str = 'bearing'
 
     @cached_property
     def tree(self) -> cKDTree:
@@ -273,39 +279,69 @@ def align_paired(
 
 
 def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | None,
-                    tree: cKDTree | None, neighbours: int,
-                    radius: float) -> tuple[NDArray[np.float64], NDArray[np.float64],
-                                            NDArray[np.bool_]]:
-    """Offsets dx, dy (k, n), m, from each point to its k nearest points (itself included) and
-    which of them are present (closer than radius, m; an absent one has offset 0). With a
-    bearing index, the k nearest among the pad points each side of the point's bearing (its
-    neighbouring beams in a scan); else a k-d tree's k nearest."""
+                    neighbours: int, radius: float
+                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_],
+                               cKDTree | None]:
+    """Offsets dx, dy (rows, n), m, from each point to its k nearest points (itself included)
+    and which of them are present (closer than radius, m; an absent one has offset 0), and the
+    k-d tree if one was built. With a bearing index, the k nearest among the NORMAL_WINDOW
+    points each side of the point's bearing (its neighbouring beams in a scan) where the window
+    certifies them as the k nearest of all, the k-d tree's elsewhere; else the k-d tree's for
+    all."""
     n = points.shape[0]
     k = min(neighbours, n)
-    half = min(NORMAL_WINDOW, bearing_index.pad) if bearing_index is not None else 0
-    if bearing_index is not None and k <= 2 * half + 1:
-        pad = bearing_index.pad
-        position = np.empty(n, dtype=np.intp)
-        position[bearing_index.index[pad:n + pad]] = np.arange(pad, n + pad)
-        # (2·half + 1, n): each operation runs over contiguous rows of points.
-        offset = bearing_index.points.take(np.arange(-half, half + 1)[:, None] + position)
-        offset -= _complex(points)
-        size = np.abs(offset)                           # distances
-        present = size < radius
-        if k < size.shape[0]:                           # the k nearest: at most the k-th size
-            present &= size <= np.partition(size, k - 1, axis=0)[k - 1]
-        offset[~present] = 0.0
-        return offset.real, offset.imag, present
-    tree = tree if tree is not None else cKDTree(points)
-    distance, index = tree.query(points, k=k, distance_upper_bound=radius)
+    half = min(NORMAL_WINDOW, bearing_index.pad - 1) if bearing_index is not None else 0
+    tree = None
+    if bearing_index is None or k > 2 * half + 1:
+        tree = cKDTree(points)
+        dx, dy, present = _tree_neighbourhoods(points, tree, k, radius, points)
+        return dx, dy, present, tree
+    position = bearing_index.slot
+    # (2·half + 1, n): each operation runs over contiguous rows of points.
+    offset = bearing_index.points.take(np.arange(-half, half + 1)[:, None] + position)
+    centred = _complex(points)
+    offset -= centred
+    size = np.abs(offset)                           # distances
+    present = size < radius
+    kth = np.partition(size, k - 1, axis=0)[k - 1] if k < size.shape[0] else size.max(axis=0)
+    present &= size <= kth
+    # Every point outside the window is at least ρ·sin(gap) away (gap: the bearing gap to the
+    # window's outer neighbours, capped at π/2); beyond that the tree decides.
+    bearings = bearing_index.bearings
+    gap = np.minimum(bearings.take(position) - bearings.take(position - half - 1),
+                     bearings.take(position + half + 1) - bearings.take(position))
+    bound = np.abs(centred) * np.sin(np.minimum(gap, 0.5 * math.pi))
+    offset[~present] = 0.0
+    dx, dy = offset.real.copy(), offset.imag.copy()
+    uncertain = np.flatnonzero(np.minimum(kth, radius) > bound)
+    if uncertain.size:
+        tree = cKDTree(points)           # also answers the matches' uncertain queries
+        sub_dx, sub_dy, sub_present = _tree_neighbourhoods(points, tree, k, radius,
+                                                           points.take(uncertain, axis=0))
+        dx[:, uncertain] = 0.0
+        dy[:, uncertain] = 0.0
+        present[:, uncertain] = False
+        dx[:k, uncertain], dy[:k, uncertain], present[:k, uncertain] = sub_dx, sub_dy, sub_present
+    return dx, dy, present, tree
+
+
+def _tree_neighbourhoods(points: NDArray[np.float64], tree: cKDTree, k: int, radius: float,
+                         queries: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                                NDArray[np.float64],
+                                                                NDArray[np.bool_]]:
+    """Offsets dx, dy (k, q), m, from each query (q, 2) to its k nearest points (tree over
+    points) within radius, m, and which are present (absent: offset 0)."""
+    distance, index = tree.query(queries, k=k, distance_upper_bound=radius)
     if k == 1:
         distance, index = distance[:, None], index[:, None]
     present = distance.T <= radius
-    index = np.where(present, index.T, np.arange(n))             # absent: the point itself
+    index = np.where(present, index.T, 0)
     dx = points[:, 0].take(index)
-    dx -= points[:, 0]
+    dx -= queries[:, 0]
     dy = points[:, 1].take(index)
-    dy -= points[:, 1]
+    dy -= queries[:, 1]
+    dx[~present] = 0.0
+    dy[~present] = 0.0
     return dx, dy, present
 
 
@@ -361,15 +397,13 @@ def _residual_table(u0: NDArray[np.float64], u1: NDArray[np.float64],
 
 def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius: float = 1.0,
                    min_planarity: float = 0.5, tangent_weight: float = 0.0,
-                   search: str = 'kd_tree') -> Target:
+                   search: str = 'bearing') -> Target:
     """Normals and per-point information of a target point set (N, 2), m, in its own frame,
-    and the index its neighbours are found with (`search`: 'kd_tree' for any point set, or
-    'bearing' for a scan seen from the origin); a point is line-like when its planarity >=
-    min_planarity. Non-finite rows are dropped (counted in `dropped`); ValueError on a wrong
-    shape or bad settings."""
-    # The k-d tree is the default by measurement: the bearing order streams ~1.1x faster but
-    # its scan-to-scan rotation error on the real logs was worse (sensing_pipeline + sensing_eval,
-    # docs/real-data.md: ACES 0.49 deg against 0.40 mean RPE, Freiburg 101 0.30 against 0.28).
+    and the index its neighbours are found with (`search`: 'bearing', the points' order by
+    bearing from the origin, fastest for a scan, or 'kd_tree'; both give the exact nearest
+    neighbours, equal up to ties); a point is line-like when its planarity >= min_planarity.
+    Non-finite rows are dropped (counted in `dropped`); ValueError on a wrong shape or bad
+    settings."""
     if not (normal_neighbours >= 2 and normal_radius > 0 and 0 <= min_planarity <= 1
             and 0 <= tangent_weight <= 1 and search in _SEARCHES):
         raise ValueError('normal_neighbours >= 2, normal_radius > 0, 0 <= min_planarity <= 1, '
@@ -379,10 +413,11 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
         return Target(array, np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)), dropped,
                       search=search)
     array = np.ascontiguousarray(array)
-    bearing_index = _bearing_index(array, ANGULAR_WINDOW) if search == 'bearing' else None
-    tree = cKDTree(array) if bearing_index is None else None
-    normals, planarity = _line_normals(
-        *_neighbourhoods(array, bearing_index, tree, normal_neighbours, normal_radius))
+    bearing_index = _bearing_index(array, max(ANGULAR_WINDOW, NORMAL_WINDOW + 1),
+                                   ANGULAR_WINDOW) if search == 'bearing' else None
+    dx, dy, present, tree = _neighbourhoods(array, bearing_index, normal_neighbours,
+                                            normal_radius)
+    normals, planarity = _line_normals(dx, dy, present)
     corner = planarity < min_planarity
     n = array.shape[0]
     # Information n·nᵀ + w·I on a line, I elsewhere, as rows (m00, m01, m11).
@@ -416,8 +451,9 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     return target
 
 
-def _bearing_index(points: NDArray[np.float64], pad: int) -> BearingIndex | None:
-    """The BearingIndex of points (N, 2) in their own frame (m); None below 2·pad + 1 points."""
+def _bearing_index(points: NDArray[np.float64], pad: int, window: int) -> BearingIndex | None:
+    """The BearingIndex of points (N, 2) in their own frame (m), padded by pad entries each
+    side, searched window entries each side (window <= pad); None below 2·pad + 1 points."""
     n = points.shape[0]
     if n < 2 * pad + 1:
         return None
@@ -427,8 +463,19 @@ def _bearing_index(points: NDArray[np.float64], pad: int) -> BearingIndex | None
     bearings = bearing.take(extended)
     bearings[:pad] -= 2.0 * math.pi
     bearings[n + pad:] += 2.0 * math.pi
+    # One more entry each side (circularly) for the window edges of the first and last centres.
+    outer = np.concatenate(([bearing[order[n - pad - 1]] - 2.0 * math.pi], bearings,
+                            [bearing[order[pad % n]] + 2.0 * math.pi]))
+    size = bearings.shape[0]
+    centre = np.arange(size + 1) + 1              # searchsorted's range, as outer's index
+    gap = np.minimum(outer.take(centre - 1) - outer.take(np.maximum(centre - window - 1, 0)),
+                     outer.take(np.minimum(centre + window, size + 1)) - outer.take(
+                         np.minimum(centre, size + 1)))
+    edge_sin_sq = np.square(np.sin(np.minimum(np.maximum(gap, 0.0), 0.5 * math.pi)))
+    slot = np.empty(n, dtype=np.intp)
+    slot[order] = np.arange(pad, n + pad)
     return BearingIndex(bearings, _complex(points).take(extended), extended, pad,
-                        np.arange(-pad, pad)[:, None])
+                        np.arange(-window, window)[:, None], edge_sin_sq, slot)
 
 
 def _complex(points: NDArray[np.float64]) -> NDArray[np.complex128]:
@@ -436,42 +483,57 @@ def _complex(points: NDArray[np.float64]) -> NDArray[np.complex128]:
     return np.ascontiguousarray(points, dtype=np.float64).view(np.complex128).ravel()
 
 
-def _nearest(target: Target, points: NDArray[np.complex128], gate: float,
-             previous: NDArray[np.intp] | None = None
-             ) -> tuple[NDArray[np.bool_], NDArray[np.intp], NDArray[np.intp] | None]:
+def _nearest(target: Target, points: NDArray[np.complex128],
+             gate: float) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
     """For each query point (x + iy, target frame, m): whether a target point lies closer than
-    gate, the index of the nearest one (any index when none), and where the search found it
-    (for the next call's `previous`; None with a k-d tree). With the target's `search`
-    'bearing', see _bearing_nearest; with 'kd_tree', the exact nearest point."""
+    gate, and the index of the nearest one (any index when none). Exact with either search:
+    with 'bearing', the nearest in the query's bearing window (_bearing_nearest) where the
+    window certifies it, elsewhere from every distance (few such queries) or the k-d tree."""
     bearing_index = target.bearing_index
     if bearing_index is None:
         distance, index = target.tree.query(np.column_stack((points.real, points.imag)), k=1,
                                             distance_upper_bound=gate)
-        return distance < gate, index, None
-    distance_sq, position = _bearing_nearest(bearing_index, points, previous)
-    return distance_sq < gate * gate, bearing_index.index.take(position), position
+        return distance < gate, index
+    gate_sq = gate * gate
+    distance_sq, index, certain_sq = _bearing_nearest(bearing_index, points)
+    # A query whose window's nearest point (or the gate) is further than the window certifies
+    # may have a nearer point outside the window: every distance, or the tree, answers those.
+    uncertain = np.flatnonzero(np.minimum(distance_sq, gate_sq) > certain_sq)
+    if uncertain.size:
+        query = points.take(uncertain)
+        count = bearing_index.index.shape[0] - 2 * bearing_index.pad
+        if uncertain.size * count <= BRUTE_FORCE_PAIRS:
+            every = np.abs(bearing_index.points[bearing_index.pad:count + bearing_index.pad]
+                           - query[:, None])
+            nearest = every.argmin(axis=1)
+            index[uncertain] = bearing_index.index.take(nearest + bearing_index.pad)
+            distance_sq[uncertain] = np.square(every.take(nearest
+                                                          + _row_starts(*every.shape)))
+        else:
+            distance, found = target.tree.query(np.column_stack((query.real, query.imag)),
+                                                k=1, distance_upper_bound=gate)
+            inside = distance < gate
+            where = uncertain[inside]
+            index[where] = found[inside]
+            distance_sq[where] = np.square(distance[inside])
+    return distance_sq < gate_sq, index
 
 
-def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128],
-                     previous: NDArray[np.intp] | None
-                     ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-    """Squared distance (m²) to and position (in the padded arrays) of a near target point of each query
-    point (x + iy, target frame): the nearest of the pad points each side of its bearing, or,
-    given the previous positions (the points moved little since), the nearest of the
-    LOCAL_WINDOW points each side of its previous one."""
+def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128]
+                     ) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]]:
+    """For each query point (x + iy, target frame): the squared distance (m²) to and the index
+    of the nearest target point among the window's entries each side of its bearing, and the
+    squared distance (m²) within which that point is certainly the nearest of all (every point
+    outside the window is at least that far)."""
     size = bearing_index.points.shape[0]
-    if previous is None:
-        bearing = np.arctan2(points.imag, points.real)
-        centre = np.searchsorted(bearing_index.bearings, bearing)
-        # A finite bearing's window lies between the pads; a NaN one sorts past the end and is
-        # pulled back into the arrays (its distance is NaN: no correspondence).
-        np.minimum(centre, size - bearing_index.pad, out=centre)
-        offsets = bearing_index.offsets
-    else:
-        # Centres kept LOCAL_WINDOW inside the arrays: the window still holds the previous point.
-        centre = np.maximum(previous, LOCAL_WINDOW)
-        np.minimum(centre, size - 1 - LOCAL_WINDOW, out=centre)
-        offsets = _LOCAL_OFFSETS
+    centre = np.searchsorted(bearing_index.bearings, np.arctan2(points.imag, points.real))
+    # A finite bearing's window lies between the pads; a NaN one sorts past the end and is
+    # pulled back into the arrays (its distance is NaN: no correspondence).
+    np.minimum(centre, size - bearing_index.pad, out=centre)
+    offsets = bearing_index.offsets
+    certain_sq = points.real * points.real
+    certain_sq += points.imag * points.imag
+    certain_sq *= bearing_index.edge_sin_sq.take(centre)
     # Offsets (window, count): each operation runs over contiguous rows of queries, not over
     # short windows; squared distances (no hypot) written with the queries as rows for argmin.
     offset = bearing_index.points.take(offsets + centre)
@@ -485,7 +547,7 @@ def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128]
     position = offsets.take(best)
     position += centre
     best += _row_starts(count, width)
-    return distance_sq.take(best), position
+    return distance_sq.take(best), bearing_index.index.take(position), certain_sq
 
 
 @lru_cache(maxsize=16)
@@ -659,13 +721,11 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
     point_to_line = options.method == 'point_to_line'
     stop = _Stop(options.convergence)
     n = src.shape[0]
-    step, position = math.inf, None
     for iteration in range(1, max_iterations + 1):
         state.iterations = iteration
         lever = src * complex(math.cos(yaw), math.sin(yaw))      # R·s
         moved = lever + complex(x, y)
-        keep, index, position = _nearest(tgt, moved, gate,
-                                         position if step < LOCAL_STEP else None)
+        keep, index = _nearest(tgt, moved, gate)
         count = int(np.count_nonzero(keep))
         if count < min_inliers:
             state.reason = f'too few correspondences ({count} < {min_inliers}) within {gate:.3f} m'
@@ -716,7 +776,7 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
 def _score(src, tgt: Target, pose, inlier_distance: float) -> float:
     """Fraction of source points within inlier_distance (m) of a target point at pose."""
     moved = _complex(src) * complex(math.cos(pose[2]), math.sin(pose[2])) + complex(*pose[:2])
-    keep, _, _ = _nearest(tgt, moved, inlier_distance)
+    keep, _ = _nearest(tgt, moved, inlier_distance)
     return float(keep.mean())
 
 

@@ -41,6 +41,7 @@ class ScanMatcherSettings:
     fallback_std_m: float = 0.05                  # std added per fallback step, translation
     fallback_std_rad: float = math.radians(3.0)   # ... and yaw
     max_gap_s: float = 1.0                        # scans further apart: restart the keyframe
+    search: str = 'bearing'                       # keyframe's neighbour search (icp.prepare_target)
     icp_options: icp.IcpOptions = icp.IcpOptions()   # how each scan is matched
 
 
@@ -111,7 +112,7 @@ class KeyframeScanMatcher:
         self.keyframe_stamp_ns: int | None = None
 
     def _set_keyframe(self, points: NDArray[np.float64], stamp_ns: int) -> None:
-        self.keyframe = icp.prepare_target(points)
+        self.keyframe = icp.prepare_target(points, search=self.settings.search)
         self.keyframe_stamp_ns = stamp_ns
         self.keyframe_pose = self.pose
         self.keyframe_covariance = self.covariance.copy()

@@ -92,6 +92,9 @@ class IcpMatcherNode(Node):
         method = declare(self, 'method', 'point_to_line', "'point_to_line' or 'point_to_point'")
         robust = declare(self, 'robust', 'adaptive',
                          "outlier rule: 'adaptive' (3 x robust std of residuals), 'trim', 'none'")
+        search = declare(self, 'search', 'bearing',
+                         "nearest neighbours from the scan's bearing order ('bearing') or a "
+                         "k-d tree ('kd_tree'): the same neighbours, the bearing order faster")
         max_iterations = declare(self, 'max_iterations', 50, 'ICP iterations at most',
                                  minimum=1, maximum=1000)
         max_corr = declare(self, 'max_correspondence_distance_m', 1.0,
@@ -130,6 +133,8 @@ class IcpMatcherNode(Node):
                 "must be 'point_to_line' or 'point_to_point'", method)
         require(robust in ('adaptive', 'trim', 'none'), 'robust',
                 "must be 'adaptive', 'trim' or 'none'", robust)
+        require(search in ('bearing', 'kd_tree'), 'search', "must be 'bearing' or 'kd_tree'",
+                search)
         require(all(math.isfinite(v) for v in laser), 'laser_x_m/laser_y_m',
                 'must be finite', laser)
         require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
@@ -139,7 +144,7 @@ class IcpMatcherNode(Node):
             laser_pose=laser, keyframe_distance_m=kf_distance, keyframe_angle_rad=kf_angle,
             max_error_m=max_error, max_jump_m=max_jump, max_jump_rad=max_jump_rad,
             fallback_std_m=fallback_std_m, fallback_std_rad=fallback_std_rad, max_gap_s=max_gap,
-            icp_options=IcpOptions(
+            search=search, icp_options=IcpOptions(
                 method=method, voxel_size=voxel,
                 convergence=Convergence(max_iterations=max_iterations),
                 correspondences=Correspondences(
