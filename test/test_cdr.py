@@ -150,8 +150,8 @@ def _varied_messages(rng):
         yield TFMessage(transforms=[TransformStamped(child_frame_id=text()) for _ in range(n)])
         yield DiagnosticArray(status=[DiagnosticStatus(name=text(), values=[
             KeyValue(key=text(), value=text())]) for _ in range(n)])
-        yield make_odometry(int(rng.integers(0, 2**62)), text(), text(), rng.normal(size=3).tolist(),
-                            np.diag(values(3)))
+        yield make_odometry(int(rng.integers(0, 2**62)), text(), text(),
+                            rng.normal(size=3).tolist(), np.diag(values(3)))
 
 
 def test_canonical_cdr_is_rosbags_round_trip():

@@ -36,10 +36,11 @@ from sensing_nodes.ros.tf import TF_TOPIC, SensorMount, StaticTransformBuffer
 
 
 def keyframe_odometry(step: ScanStep, base_frame: str) -> bytes:
-    """A scan step as /scan_match/keyframe_odom (CDR bytes, ros/cdr.py): header.frame_id 'keyframe/<stamp ns>' names the
-    keyframe the pose (base_link at the scan, in the keyframe's base_link) is relative to, or is
-    'keyframe/none' when nothing was matched; child_frame_id is 'keyframe/<this stamp>' when this
-    scan becomes the next keyframe, else the base frame."""
+    """A scan step as /scan_match/keyframe_odom, packed into CDR bytes (ros/cdr.py):
+    header.frame_id 'keyframe/<stamp ns>' names the keyframe the pose (base_link at the scan, in
+    the keyframe's base_link) is relative to, or is 'keyframe/none' when nothing was matched;
+    child_frame_id is 'keyframe/<this stamp>' when this scan becomes the next keyframe, else the
+    base frame."""
     matched = step.keyframe_stamp_ns is not None and step.relative is not None
     frame = keyframe_frame_id(step.keyframe_stamp_ns if matched else None)
     child = keyframe_frame_id(step.stamp_ns) if step.new_keyframe else base_frame

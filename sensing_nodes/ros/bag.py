@@ -74,6 +74,8 @@ _WALKERS: dict[tuple[str, bool], Callable] = {}
 _ZEROS = bytes(16)
 
 
+# long: a code generator that mirrors rosbags' generate_deserialize_cdr branch by branch (the
+# same alignment decisions in the same order), kept side by side with it in one place.
 def _padding_walker(msgtype: str, little_endian: bool) -> Callable:
     """A function of a CDR message body (bytes after the encapsulation header) -> (end of its
     last field, [start, end, start, end, ...] of its alignment padding), positions from the
@@ -139,7 +141,8 @@ def _padding_walker(msgtype: str, little_endian: bool) -> Callable:
                 elif sub[0] == Nodetype.BASE:
                     if sub[1][0] not in SIZEMAP or sub[1][0] == 'float128':
                         raise _NotPlain
-                    lines.append(f'{indent}pos += {length * SIZEMAP[sub[1][0]]}')   # numpy: bits kept
+                    # numpy arrays in the round trip: their bytes come back as they were
+                    lines.append(f'{indent}pos += {length * SIZEMAP[sub[1][0]]}')
                     aligned = SIZEMAP[sub[1][0]]
                 else:
                     before, after = align(sub, TYPESTORE), align_after(sub, TYPESTORE)
@@ -155,7 +158,8 @@ def _padding_walker(msgtype: str, little_endian: bool) -> Callable:
                 sub = desc[1][0]
                 least = 5 if sub[0] == Nodetype.BASE and sub[1][0] == 'string' else \
                     SIZEMAP.get(sub[1][0], 16) if sub[0] == Nodetype.BASE else 1
-                lines.extend([f'{indent}if pos + {count} * {least} > size or {count} > {TYPESTORE.max_sequence_length}:',
+                most = TYPESTORE.max_sequence_length
+                lines.extend([f'{indent}if pos + {count} * {least} > size or {count} > {most}:',
                               f'{indent} raise _NotPlain'])
                 if sub[0] == Nodetype.BASE and sub[1][0] == 'string':
                     lines.append(f'{indent}for _ in range({count}):')
