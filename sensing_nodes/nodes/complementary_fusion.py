@@ -35,14 +35,14 @@ from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_p
 from sensing_nodes.ros.fusion_readings import (
     IMU, IMU_SOURCES, SCAN, WHEEL, ReadingConverter, unit_quaternion,
 )
-from sensing_nodes.ros.cdr import odometry_cdr
+from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
-from sensing_nodes.ros.tf import TF_TOPIC, ImuMount, imu_mount, transform_message
+from sensing_nodes.ros.tf import TF_TOPIC, ImuMount, imu_mount
 
 # Processing rank at equal stamps: dead reckoning up to a stamp is in before the scan match
 # at that stamp is fused.
@@ -458,12 +458,13 @@ class ComplementaryFusionProcessor:
             self._fusion.update(source, reading)
             if source == IMU and (self._records[WHEEL].enabled or self._records[SCAN].enabled):
                 continue  # heading only: published with the next position update
-            published = self._publish(stamp)
+            state = self._fusion.state   # computed once: the odometry and /tf both use it
+            published = self._publish(stamp, state)
             out += published
             if published and self._publish_tf:
                 if held is not None and held[0] != stamp:
                     out += self._transform(*held)
-                held = (stamp, self._fusion.state.pose)
+                held = (stamp, state.pose)
         if held is not None:
             out += self._transform(*held)
         return out
@@ -495,11 +496,10 @@ class ComplementaryFusionProcessor:
         if stamp == self._tf_stamp:
             return []
         self._tf_stamp = stamp
-        return [(TF_TOPIC, transform_message(stamp, self._odom_frame, self._base_frame,
-                                             Transform.from_planar(*pose)))]
+        return [(TF_TOPIC, transform_cdr(stamp, self._odom_frame, self._base_frame,   # ros/cdr.py
+                                         Transform.from_planar(*pose)))]
 
-    def _publish(self, stamp: int) -> Outputs:
-        state = self._fusion.state
+    def _publish(self, stamp: int, state) -> Outputs:
         if state is None:
             return []
         twist, twist_cov = getattr(state, 'twist', (0.0, 0.0, 0.0)), \

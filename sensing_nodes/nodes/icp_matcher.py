@@ -21,8 +21,9 @@ from sensing_nodes.core.scan_matching import (
     ZERO, KeyframeScanMatcher, OdometryBuffer, ScanMatcherSettings, ScanStep,
 )
 from sensing_nodes.ros.conversions import (
-    keyframe_frame_id, make_odometry, odometry_pose, scan_arrays, stamp_to_ns,
+    keyframe_frame_id, odometry_pose, scan_arrays, stamp_to_ns,
 )
+from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.graph import SCAN, SCAN_MATCH, SCAN_MATCH_KEYFRAME
@@ -31,19 +32,20 @@ from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
-from sensing_nodes.ros.tf import TF_TOPIC, SensorMount, StaticTransformBuffer, transform_message
+from sensing_nodes.ros.tf import TF_TOPIC, SensorMount, StaticTransformBuffer
 
 
-def keyframe_odometry(step: ScanStep, base_frame: str) -> Odometry:
-    """A scan step as /scan_match/keyframe_odom: header.frame_id 'keyframe/<stamp ns>' names the
-    keyframe the pose (base_link at the scan, in the keyframe's base_link) is relative to, or is
-    'keyframe/none' when nothing was matched; child_frame_id is 'keyframe/<this stamp>' when this
-    scan becomes the next keyframe, else the base frame."""
+def keyframe_odometry(step: ScanStep, base_frame: str) -> bytes:
+    """A scan step as /scan_match/keyframe_odom, packed into CDR bytes (ros/cdr.py):
+    header.frame_id 'keyframe/<stamp ns>' names the keyframe the pose (base_link at the scan, in
+    the keyframe's base_link) is relative to, or is 'keyframe/none' when nothing was matched;
+    child_frame_id is 'keyframe/<this stamp>' when this scan becomes the next keyframe, else the
+    base frame."""
     matched = step.keyframe_stamp_ns is not None and step.relative is not None
     frame = keyframe_frame_id(step.keyframe_stamp_ns if matched else None)
     child = keyframe_frame_id(step.stamp_ns) if step.new_keyframe else base_frame
-    return make_odometry(step.stamp_ns, frame, child, step.relative if matched else ZERO,
-                         step.relative_covariance if matched else np.zeros((3, 3)))
+    return odometry_cdr(step.stamp_ns, frame, child, step.relative if matched else ZERO,
+                        step.relative_covariance if matched else np.zeros((3, 3)))
 
 
 class IcpMatcherNode(Node):
@@ -255,12 +257,12 @@ class IcpMatcherProcessor:
         # replay) then knows the fusion's input for this scan is already on its way.
         out: Outputs = [
             (SCAN_MATCH_KEYFRAME, keyframe_odometry(step, self._base_frame)),
-            (SCAN_MATCH, make_odometry(
+            (SCAN_MATCH, odometry_cdr(
                 stamp, self._odom_frame, self._base_frame, step.pose, step.covariance,
                 step.twist, step.twist_covariance))]
         if self._publish_tf:
-            out.append((TF_TOPIC, transform_message(stamp, self._odom_frame, self._base_frame,
-                                                    Transform.from_planar(*step.pose))))
+            out.append((TF_TOPIC, transform_cdr(stamp, self._odom_frame, self._base_frame,
+                                                Transform.from_planar(*step.pose))))
         diag.count('published')
         diag.last_stamp_ns = max(diag.last_stamp_ns, stamp)
         diag.values['pose'] = '%.4f %.4f %.4f' % step.pose

@@ -15,7 +15,7 @@ from sensing_nodes.core.timing import StampStep
 from sensing_nodes.core.transform import Transform
 from sensing_nodes.core.wheel_odometry import METHODS, WheelOdometry, WheelOdometryConfig
 from sensing_nodes.ros.conversions import stamp_to_ns
-from sensing_nodes.ros.cdr import odometry_cdr
+from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.graph import JOINT_STATES, WHEEL_ODOM
 from sensing_nodes.ros.logging import ThrottledWarnings
@@ -23,7 +23,7 @@ from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
-from sensing_nodes.ros.tf import TF_TOPIC, transform_message
+from sensing_nodes.ros.tf import TF_TOPIC
 
 class WheelOdometryNode(Node):
     # long: the parameter declarations (descriptors, ranges), then validation and wiring.
@@ -176,8 +176,8 @@ class WheelOdometryProcessor:
         out: Outputs = [(WHEEL_ODOM, odometry_cdr(
             stamp, self._odom_frame, self._base_frame, odo.pose, pose_cov, odo.twist, twist_cov))]
         if self._publish_tf:
-            out.append((TF_TOPIC, transform_message(stamp, self._odom_frame, self._base_frame,
-                                                    Transform.from_planar(*odo.pose))))
+            out.append((TF_TOPIC, transform_cdr(stamp, self._odom_frame, self._base_frame,
+                                                Transform.from_planar(*odo.pose))))
         self.diagnostics.count('published')
         self.diagnostics.last_stamp_ns = stamp
         return out

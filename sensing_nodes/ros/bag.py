@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import heapq
 import importlib
+import itertools
 import signal
-from collections.abc import Iterable, Iterator
+import struct
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StorageP
 from rosbags.typesys import Stores, get_typestore
 
 _DEFERRED_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+_SIGNAL_BATCH = 5000   # messages written with the signals held off (a few ms)
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -35,16 +38,166 @@ class BagError(Exception):
 
 def canonical_cdr(raw: bytes | memoryview, msgtype: str) -> bytes:
     """CDR bytes of a 'pkg/msg/Name' message -> the same message in canonical CDR (same byte
-    order and values, padding zero, nothing after the last field), through rosbags' typestore."""
+    order and values, padding zero, nothing after the last field): what rosbags' typestore
+    gives when it decodes and encodes the message again, found by walking the bytes instead
+    (`_padding_walker`), with the round trip itself for what the walk does not vouch for."""
     msgdef = TYPESTORE.get_msgdef(msgtype)
     if len(raw) < 4 or bytes(raw[:2]) not in (b'\x00\x00', b'\x00\x01'):
         raise ValueError(f'{msgtype}: not a CDR message (encapsulation header {bytes(raw[:4])!r})')
     little_endian = bool(raw[1])
+    walk = _WALKERS.get((msgtype, little_endian))
+    if walk is None:
+        walk = _WALKERS[msgtype, little_endian] = _padding_walker(msgtype, little_endian)
+    body = memoryview(raw)[4:]
+    try:
+        end, gaps = walk(body)
+    except (_NotPlain, IndexError, struct.error, UnicodeDecodeError):
+        end = -1   # rosbags decides (and raises for what it cannot read)
+    if 0 <= end <= len(body):
+        out = bytearray(raw[:4 + end])
+        out[2:4] = b'\x00\x00'     # rosbags writes no encapsulation options
+        for i in range(0, len(gaps), 2):
+            out[4 + gaps[i]:4 + gaps[i + 1]] = _ZEROS[:gaps[i + 1] - gaps[i]]
+        return bytes(out)
     decode = msgdef.deserialize_cdr_le if little_endian else msgdef.deserialize_cdr_be
     # Bytes after the last field are dropped: Fast-CDR aligns before the (absent) elements of
     # each empty sequence of doubles, so an all-empty JointState ends in 8 such bytes.
-    message, _ = decode(memoryview(raw)[4:], 0, msgdef.cls, TYPESTORE)
+    message, _ = decode(body, 0, msgdef.cls, TYPESTORE)
     return bytes(TYPESTORE.serialize_cdr(message, msgtype, little_endian=little_endian))
+
+
+class _NotPlain(Exception):
+    """A message whose bytes rosbags' round trip would change (or refuse) beyond its padding."""
+
+
+_WALKERS: dict[tuple[str, bool], Callable] = {}
+_ZEROS = bytes(16)
+
+
+# long: a code generator that mirrors rosbags' generate_deserialize_cdr branch by branch (the
+# same alignment decisions in the same order), kept side by side with it in one place.
+def _padding_walker(msgtype: str, little_endian: bool) -> Callable:
+    """A function of a CDR message body (bytes after the encapsulation header) -> (end of its
+    last field, [start, end, start, end, ...] of its alignment padding), positions from the
+    body's start, as rosbags' generated CDR decoder reads the body and its encoder writes it
+    back (rosbags.serde.cdr: the same alignment decisions, field by field, so the canonical
+    message is the body up to `end` with the padding zeroed). It raises _NotPlain where the
+    round trip would change a value's bytes or fail: a bool byte other than 0 or 1, a float32
+    NaN (widened to a Python float: a signalling NaN comes back quiet), a string without its
+    terminator, a sequence longer than the bytes left."""
+    from rosbags.interfaces import Nodetype
+    from rosbags.serde.utils import SIZEMAP, align, align_after
+
+    order = '<' if little_endian else '>'
+    lines = ['def walk(raw):', ' size = len(raw)', ' pos = 0', ' gaps = []']
+    names = iter(range(1_000_000))
+
+    def pad(to: int, indent: str) -> None:
+        lines.extend([f'{indent}new = (pos + {to - 1}) & -{to}',
+                      f'{indent}if new != pos:',
+                      f'{indent} gaps.append(pos)', f'{indent} gaps.append(new)',
+                      f'{indent} pos = new'])
+
+    def string(indent: str) -> None:
+        lines.extend([f'{indent}n = u32(raw, pos)[0]',
+                      f'{indent}if n < 1 or pos + 4 + n > size or raw[pos + 3 + n]:',
+                      f'{indent} raise _NotPlain',
+                      f'{indent}str(raw[pos + 4:pos + 3 + n], "utf-8")',
+                      f'{indent}pos += 4 + n'])
+
+    def scalar(kind: str, indent: str) -> None:
+        if kind == 'bool':
+            lines.extend([f'{indent}if raw[pos] > 1:', f'{indent} raise _NotPlain'])
+        elif kind == 'float32':
+            lines.extend([f'{indent}v = f32(raw, pos)[0]',
+                          f'{indent}if v != v:', f'{indent} raise _NotPlain'])
+        elif kind not in SIZEMAP or kind == 'float128':
+            raise _NotPlain
+        lines.append(f'{indent}pos += {SIZEMAP[kind]}')
+
+    def fields(desc_fields, indent: str) -> None:
+        aligned = 8    # as each generated rosbags function assumes at its start
+        for current, following in zip(desc_fields, [*desc_fields[1:], None]):
+            desc = current[1]
+            if desc[0] == Nodetype.NAME:
+                fields(TYPESTORE.get_msgdef(desc[1]).fields, indent)
+                aligned = align_after(desc, TYPESTORE)
+            elif desc[0] == Nodetype.BASE:
+                kind = desc[1][0]
+                if kind == 'string':
+                    string(indent)
+                    aligned = 1
+                else:
+                    scalar(kind, indent)
+                    aligned = SIZEMAP[kind]
+            elif desc[0] == Nodetype.ARRAY:
+                sub, length = desc[1]
+                if sub[0] == Nodetype.BASE and sub[1][0] == 'string':
+                    for index in range(length):
+                        if index:
+                            pad(4, indent)
+                        string(indent)
+                    aligned = 1
+                elif sub[0] == Nodetype.BASE:
+                    if sub[1][0] not in SIZEMAP or sub[1][0] == 'float128':
+                        raise _NotPlain
+                    # numpy arrays in the round trip: their bytes come back as they were
+                    lines.append(f'{indent}pos += {length * SIZEMAP[sub[1][0]]}')
+                    aligned = SIZEMAP[sub[1][0]]
+                else:
+                    before, after = align(sub, TYPESTORE), align_after(sub, TYPESTORE)
+                    for _ in range(length):
+                        if before > after:
+                            pad(before, indent)
+                        fields(TYPESTORE.get_msgdef(sub[1]).fields, indent)
+                    aligned = after
+            else:   # a sequence
+                count = f'n{next(names)}'
+                lines.extend([f'{indent}{count} = u32(raw, pos)[0]', f'{indent}pos += 4'])
+                aligned = 4
+                sub = desc[1][0]
+                least = 5 if sub[0] == Nodetype.BASE and sub[1][0] == 'string' else \
+                    SIZEMAP.get(sub[1][0], 16) if sub[0] == Nodetype.BASE else 1
+                most = TYPESTORE.max_sequence_length
+                lines.extend([f'{indent}if pos + {count} * {least} > size or {count} > {most}:',
+                              f'{indent} raise _NotPlain'])
+                if sub[0] == Nodetype.BASE and sub[1][0] == 'string':
+                    lines.append(f'{indent}for _ in range({count}):')
+                    pad(4, indent + ' ')
+                    string(indent + ' ')
+                    aligned = 1
+                elif sub[0] == Nodetype.BASE:
+                    if sub[1][0] not in SIZEMAP or sub[1][0] == 'float128':
+                        raise _NotPlain
+                    before = align(sub, TYPESTORE)
+                    if aligned < before:
+                        lines.append(f'{indent}if {count}:')
+                        pad(before, indent + ' ')
+                    lines.append(f'{indent}pos += {count} * {SIZEMAP[sub[1][0]]}')
+                    aligned = before
+                else:
+                    before = align(sub, TYPESTORE)
+                    lines.append(f'{indent}for _ in range({count}):')
+                    pad(before, indent + ' ')
+                    fields(TYPESTORE.get_msgdef(sub[1]).fields, indent + ' ')
+                    aligned = align_after(sub, TYPESTORE)
+                aligned = min(4, aligned)
+            if following is not None and aligned < (before := align(following[1], TYPESTORE)):
+                pad(before, indent)
+                aligned = before
+
+    try:
+        fields(TYPESTORE.get_msgdef(msgtype).fields, ' ')
+    except _NotPlain:   # a type the walk does not cover (float128): always the round trip
+
+        def never(raw):
+            raise _NotPlain
+        return never
+    lines.append(' return pos, gaps')
+    scope = {'_NotPlain': _NotPlain, 'u32': struct.Struct(order + 'I').unpack_from,
+             'f32': struct.Struct(order + 'f').unpack_from}
+    exec(compile('\n'.join(lines), f'<canonical_cdr walker of {msgtype}>', 'exec'), scope)
+    return scope['walk']
 
 
 def type_name(msg_or_class: Any) -> str:
@@ -118,17 +271,28 @@ class BagWriter:
     def write_raw(self, topic: str, data: bytes, stamp_ns: int) -> None:
         """Append one CDR-serialised message (as rclpy or DDS gave it) of a topic registered
         with add_topic; it is stored in canonical CDR."""
-        connection = self._connections[topic]
-        raw = canonical_cdr(data, connection.msgtype)
-        # SIGINT/SIGTERM held off for the one write: raised inside the writer, after it counted
-        # the message and before it stored it, the bag's metadata counted one message more than
-        # it held (seen: 4471 counted, 4470 read back after a SIGINT).
-        held = signal.pthread_sigmask(signal.SIG_BLOCK, _DEFERRED_SIGNALS)
-        try:
-            self._writer.write(connection, int(stamp_ns), raw)
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)
-        self.counts[topic] += 1
+        self.write_raw_many(((topic, data, stamp_ns),))
+
+    def write_raw_many(self, rows: Iterable[tuple[str, bytes, int]]) -> None:
+        """write_raw of each (topic, CDR bytes, bag time ns), in order."""
+        rows = iter(rows)
+        while True:
+            batch = list(itertools.islice(rows, _SIGNAL_BATCH))
+            if not batch:
+                return
+            # SIGINT/SIGTERM held off while messages are stored: raised inside the writer,
+            # after it counted a message and before it stored it, the bag's metadata counted
+            # one message more than it held (seen: 4471 counted, 4470 read back after a
+            # SIGINT). Per batch: twice per message, the mask cost as much as the writing.
+            held = signal.pthread_sigmask(signal.SIG_BLOCK, _DEFERRED_SIGNALS)
+            try:
+                for topic, data, stamp_ns in batch:
+                    connection = self._connections[topic]
+                    self._writer.write(connection, int(stamp_ns),
+                                       canonical_cdr(data, connection.msgtype))
+                    self.counts[topic] += 1
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 @dataclass(frozen=True)

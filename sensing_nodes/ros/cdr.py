@@ -19,6 +19,7 @@ the wire, checked against rclpy's serialiser in test/test_cdr.py.
 
 from __future__ import annotations
 
+import functools
 import struct
 from typing import Any, Callable, Sequence
 
@@ -31,14 +32,16 @@ from rclpy.serialization import deserialize_message
 from sensing_nodes.ros.bag import TYPESTORE, type_name
 from sensing_nodes.core import quaternion
 from sensing_nodes.core.se2 import Pose2
+from sensing_nodes.core.transform import Transform
+from sensing_nodes.ros.conversions import PLANAR_IN_36
 
 _CDR_LE = b'\x00\x01\x00\x00'   # encapsulation: plain CDR, little endian, no options
 _STAMP = struct.Struct('<iI')
 _LENGTH = struct.Struct('<I')
 _IMU_DOUBLES = struct.Struct('<37d')      # orientation, covariance, rate, cov., accel., cov.
 _ODOMETRY_DOUBLES = struct.Struct('<85d')  # pose (7), covariance (36), twist (6), cov. (36)
-# Row-major indices of x, y, yaw in a 6x6 ROS covariance (x, y, z, roll, pitch, yaw).
-_PLANAR_36 = (0, 1, 5, 6, 7, 11, 30, 31, 35)
+_TRANSFORM_DOUBLES = struct.Struct('<7d')  # translation, rotation (x, y, z, w)
+_ONE = _LENGTH.pack(1)
 _ZEROS_36 = (0.0,) * 36
 
 
@@ -90,12 +93,19 @@ def create_decoded_subscription(node: Node, msg_class: type, topic: str,
     return node.create_subscription(msg_class, topic, on_raw, qos, raw=True)
 
 
-def _stamped_prefix(stamp_ns: int, strings: Sequence[str]) -> bytes:
-    """Encapsulation, header stamp and the strings that follow it (frame ids), padded so the
-    float64 fields after them start 8-aligned (CDR aligns relative to the encapsulation end)."""
+def _stamped_prefix(stamp_ns: int, strings: tuple[str, ...], lead: bytes = b'') -> bytes:
+    """Encapsulation, `lead` (4-byte fields before the header: a sequence's length), header
+    stamp and the strings that follow it (frame ids), padded so the float64 fields after them
+    start 8-aligned (CDR aligns relative to the encapsulation end)."""
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    parts = [_CDR_LE, _STAMP.pack(sec, nanosec)]
-    size = 8
+    return _CDR_LE + lead + _STAMP.pack(sec, nanosec) + _strings(strings, len(lead) + 8)
+
+
+@functools.lru_cache(maxsize=64)
+def _strings(strings: tuple[str, ...], size: int) -> bytes:
+    """CDR strings starting `size` bytes into the body, then padding to an 8-byte boundary (the
+    same few frame ids in every message of a node: built once)."""
+    parts = []
     for text in strings:
         data = text.encode() + b'\x00'
         pad = -size % 4
@@ -119,7 +129,7 @@ def imu_cdr(stamp_ns: int, frame_id: str, orientation: Sequence[float],
 def _planar_36(cov3) -> list[float]:
     """3x3 covariance over (x, y, yaw) -> 36 values of a 6x6 ROS covariance (rest zero)."""
     out = list(_ZEROS_36)
-    for index, value in zip(_PLANAR_36, np.asarray(cov3, dtype=float).ravel().tolist()):
+    for index, value in zip(PLANAR_IN_36, np.asarray(cov3, dtype=float).ravel().tolist()):
         out[index] = value
     return out
 
@@ -135,6 +145,13 @@ def odometry_cdr(stamp_ns: int, frame_id: str, child_frame_id: str, pose: Pose2,
         *_planar_36(pose_covariance),
         float(twist[0]), float(twist[1]), 0.0, 0.0, 0.0, float(twist[2]),
         *(_ZEROS_36 if twist_covariance is None else _planar_36(twist_covariance)))
+
+
+def transform_cdr(stamp_ns: int, parent: str, child: str, transform: Transform) -> bytes:
+    """tf2_msgs/TFMessage of one transform as CDR bytes, the same message as
+    tf.transform_message with the same arguments: the child frame's pose in the parent frame."""
+    return _stamped_prefix(stamp_ns, (parent, child), _ONE) + _TRANSFORM_DOUBLES.pack(
+        *(float(v) for v in transform.translation), *(float(v) for v in transform.rotation))
 
 
 # -- stamps in CDR bytes (the recorder, the replay and the pipeline read them without decoding) --

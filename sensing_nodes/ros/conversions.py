@@ -20,8 +20,11 @@ from sensing_nodes.core.scan import beam_angles
 from sensing_nodes.core.se2 import Pose2
 from sensing_nodes.core.transform import Transform
 
-# Indices of x, y and yaw in a row-major 6x6 ROS covariance (x, y, z, roll, pitch, yaw).
+# Indices of x, y and yaw in a row-major 6x6 ROS covariance (x, y, z, roll, pitch, yaw), and
+# of their 3x3 block's entries (row-major) among the 36 values.
 _PLANAR = np.array([0, 1, 5])
+PLANAR_IN_36 = (0, 1, 5, 6, 7, 11, 30, 31, 35)
+_PLANAR_IN_36 = np.array(PLANAR_IN_36)
 
 
 def stamp_to_ns(stamp) -> int:
@@ -60,7 +63,7 @@ def planar_covariance_to_ros(cov3: ArrayLike) -> list[float]:
 
 def ros_covariance_to_planar(cov36: ArrayLike) -> NDArray[np.float64]:
     """36-element ROS covariance -> 3x3 over (x, y, yaw)."""
-    return np.asarray(cov36, dtype=float).reshape(6, 6)[np.ix_(_PLANAR, _PLANAR)].copy()
+    return np.asarray(cov36, dtype=float).reshape(36)[_PLANAR_IN_36].reshape(3, 3)
 
 
 def make_odometry(

@@ -122,8 +122,7 @@ def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types
         merged += [(s, 1, t, raw) for t in sorted(result.outputs) for s, raw in result.outputs[t]]
         # Outputs after the input of the same stamp; each topic keeps its arrival order.
         merged.sort(key=lambda row: (row[0], row[1]))
-        for stamp, _, topic, raw in merged:
-            out.write_raw(topic, raw, stamp)
+        out.write_raw_many((topic, raw, stamp) for stamp, _, topic, raw in merged)
         return dict(out.counts)
 
 

@@ -124,8 +124,8 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
     place of earlier copies); returns the number of messages per output topic."""
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from sensing_nodes.ros.bag import message_class, type_name
-    from sensing_nodes.ros.cdr import stamp_reader
+    from sensing_nodes.ros.bag import type_name
+    from sensing_nodes.ros.cdr import cdr_decoder, stamp_reader
     from sensing_nodes.ros.graph import DIAGNOSTICS, NODE_INPUT_TYPES
     from sensing_nodes.ros.input_bag import (
         InputBagError, PassResult, load_bag, write_output_bag,
@@ -143,12 +143,17 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
     try:
         handlers: dict[str, list] = defaultdict(list)   # topic -> handlers, in node order
         input_types: dict[str, type] = {}
+        decoders: dict[tuple[str, bool], Any] = {}      # (topic, decoded) -> CDR bytes -> msg
         outputs: dict[str, Any] = {}                    # topic -> Output
         for name in nodes:
             processor = built[name].processor
             for i in processor.inputs():
-                handlers[i.topic].append(i.handler)
+                # What the node's subscription gives it: a `decoded` input a rosbags-decoded
+                # message (ros/cdr.py), any other an rclpy message.
+                handlers[i.topic].append((i.handler, i.decoded))
                 input_types[i.topic] = i.msg_type
+                decoders[i.topic, i.decoded] = cdr_decoder(i.msg_type) if i.decoded else \
+                    (lambda raw, cls=i.msg_type: deserialize_message(raw, cls))
             for o in processor.outputs():
                 outputs[o.topic] = o
         output_types = {t: type_name(o.msg_type) for t, o in outputs.items()}
@@ -171,9 +176,17 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
             print(f'sensing_pipeline: warning: nothing in {bag.path} feeds {", ".join(unused)} '
                   f'(bag topics: {", ".join(sorted(bag.types))}; --remap BAG_TOPIC:=TOPIC)',
                   file=sys.stderr)
-        classes = {t: message_class(bag.types[t]) for t in feeds}
         result = PassResult()
         recorded = result.outputs
+
+        def receive(topic: str, raw: bytes, stamp_ns: int) -> None:
+            # CDR bytes on a topic to each of its handlers, decoded once per kind of decoding.
+            decoded: dict[bool, Any] = {}
+            for handler, kind in handlers[topic]:
+                msg = decoded.get(kind)
+                if msg is None:
+                    msg = decoded[kind] = decoders[topic, kind](raw)
+                deliver(handler(msg), stamp_ns)
 
         def deliver(produced, stamp_ns: int) -> None:
             # Depth first: an output reaches its consumers before the next output, as a
@@ -181,20 +194,19 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
             for topic, msg in produced:
                 if isinstance(msg, bytes):     # packed by the node itself (ros/cdr.py)
                     raw = msg
+                    recorded[topic].append((stamp_of[topic](raw, stamp_ns), raw))
                     if topic in handlers:
-                        msg = deserialize_message(raw, outputs[topic].msg_type)
-                else:
-                    raw = serialize_message(msg)   # now: a node may refill its message in place
+                        receive(topic, raw, stamp_ns)
+                    continue
+                raw = serialize_message(msg)   # now: a node may refill its message in place
                 recorded[topic].append((stamp_of[topic](raw, stamp_ns), raw))
-                for handler in handlers.get(topic, ()):
+                for handler, _ in handlers.get(topic, ()):
                     deliver(handler(msg), stamp_ns)
 
         inputs = [(t, s, raw) for t, s, raw in bag.messages if t in feeds]
         bar = Progress(inputs[0][1] if inputs else 0, inputs[-1][1] if inputs else 0, progress)
         for topic, stamp_ns, raw in inputs:
-            msg = deserialize_message(raw, classes[topic])
-            for handler in handlers[feeds[topic]]:
-                deliver(handler(msg), stamp_ns)
+            receive(feeds[topic], raw, stamp_ns)
             result.inputs_published += 1
             bar.update(stamp_ns)
         last_ns = inputs[-1][1] if inputs else 0
