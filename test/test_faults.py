@@ -35,16 +35,8 @@ MAX_SPEED_M_S, MAX_TURN_RAD_S = 0.25, math.radians(45.0)   # the default route's
 DIAG_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 
 
-# UDP only: with Fast DDS 2.14's shared-memory transport a subscriber restarted after SIGKILL
-# can match its publishers and still receive nothing (eProsima/Fast-DDS#5053, #5469); one CI-like
-# run saw the restarted fusion get no input for 60 s. That is the transport's fault, not a
-# node's, and the nodes' own restart is what this module tests.
-TRANSPORT = {'FASTDDS_BUILTIN_TRANSPORTS': 'UDPv4'}
-
-
 def start(name, **params):
-    return NodeProcess(name, params_file=config_file(f'{name}.yaml'), params=params,
-                       env=TRANSPORT).start()
+    return NodeProcess(name, params_file=config_file(f'{name}.yaml'), params=params).start()
 
 
 class Graph:
