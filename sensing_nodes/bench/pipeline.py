@@ -1,0 +1,58 @@
+"""sensing_pipeline's speed: x real time on a simulated bag at the default sensor rates.
+
+A bag is recorded with `sensor_sim --record` (300 s, seed 5, as issue 15's target states; 60 s
+with --quick), then `sensing_pipeline BAG OUT --no-progress` runs as a child process, all five
+nodes. Its CPU time (user + system, process start included) and wall time give x real time
+(bag seconds per CPU second, the target's one-core figure, and per wall second). The load
+average is reported with the figures: on a shared machine compare figures from one run only.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _executable(name: str) -> str:
+    """The venv's console script beside the running Python (else the PATH's)."""
+    path = Path(sys.executable).parent / name
+    return str(path) if path.is_file() else name
+
+
+def _child_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run(quick: bool = False) -> dict:
+    """Record the bag, run the pipeline over it, return its speed figures."""
+    duration_s = 60.0 if quick else 300.0
+    with tempfile.TemporaryDirectory() as tmp:
+        bag, out = Path(tmp) / 'bag', Path(tmp) / 'out'
+        subprocess.run([_executable('sensor_sim'), '--record', str(bag), '--duration',
+                        f'{duration_s:g}', '--seed', '5'], check=True, capture_output=True)
+        load_start = os.getloadavg()[0]
+        cpu0, wall0 = _child_cpu_s(), time.monotonic()
+        result = subprocess.run([_executable('sensing_pipeline'), str(bag), str(out),
+                                 '--no-progress'], capture_output=True, text=True)
+        cpu, wall = _child_cpu_s() - cpu0, time.monotonic() - wall0
+        if result.returncode != 0:
+            return {'error': (result.stderr.strip().splitlines() or ['failed'])[-1]}
+    return {
+        'pipeline_bag_seconds': duration_s,
+        'pipeline_cpu_seconds': round(cpu, 2),
+        'pipeline_wall_seconds': round(wall, 2),
+        'pipeline_x_real_time_cpu': round(duration_s / cpu, 2),
+        'pipeline_x_real_time_wall': round(duration_s / wall, 2),
+        'pipeline_load_average_1min_start': round(load_start, 2),
+        'pipeline_load_average_1min_end': round(os.getloadavg()[0], 2),
+    }
+
+
+if __name__ == '__main__':
+    print(run(quick='--quick' in sys.argv))
