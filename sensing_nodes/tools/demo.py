@@ -280,15 +280,16 @@ def score(collected: Collected, counts: dict, wall_s: float, duration_s: float) 
         published = int(sum(counts.get(t, 0) for t in outputs))
         processed = published if input_topic is None else int(counts.get(outputs[0], 0))
         report['nodes'][name] = {'published': published, 'processed': processed}
-    # What a node scans_processed is what it counted itself ('scans' on /diagnostics); the
+    # What a node processed is what it counted itself ('scans' on /diagnostics); the
     # recorder's count of its outputs can be lower only because the recorder lost some.
-    scans_processed = {name: max(counts.get(topic, 0),
-                           int(collected.diagnostics.get(name, {}).get('scans', 0)))
-                 for name, topic in (('icp_matcher', SCAN_MATCH), ('line_extractor', SCAN_LINES))}
+    scans_processed = {
+        name: max(counts.get(topic, 0), int(collected.diagnostics.get(name, {}).get('scans', 0)))
+        for name, topic in (('icp_matcher', SCAN_MATCH), ('line_extractor', SCAN_LINES))}
     sim_diag = collected.diagnostics.get('sensor_sim', {})
     # The simulator's last diagnostics may predate its last scans and the recorder's best-effort
     # subscription may miss one; no consumer can process a scan that was not published.
-    scans_published = max(int(sim_diag.get(SCAN, 0)), counts.get(SCAN, 0), *scans_processed.values())
+    scans_published = max(int(sim_diag.get(SCAN, 0)), counts.get(SCAN, 0),
+                          *scans_processed.values())
     report['scans'] = {
         'published_by_sim': scans_published,
         'received_by_recorder': counts.get(SCAN, 0),
