@@ -209,9 +209,14 @@ def test_use_sim_time_graph_runs_on_the_replayed_clock(tmp_path):
 
 
 def _assert_table_equal(recorded: Path, replayed: Path) -> None:
-    a = output_messages(recorded, {'/scan/lines/table'})['/scan/lines/table']
-    b = output_messages(replayed, {'/scan/lines/table'})['/scan/lines/table']
-    assert a == b
+    """Every table of the recording, at the same bag time, floats within the replay tolerance:
+    the bag was recorded on another CPU (on an AVX-512 machine 17 of 221 tables differed from
+    it in the last bit, 2e-16 m)."""
+    topics = {'/scan/lines/table'}
+    types = {t: v[0] for t, v in topic_counts(recorded).items()}
+    entry = compare_outputs(output_messages(recorded, topics), output_messages(replayed, topics),
+                            types)['/scan/lines/table']
+    assert entry['expected'] == entry['actual'] > 0 and entry['reproduced'], entry
 
 
 # -- bad input: no graph needed, the bag is checked before anything is started -------------------
