@@ -13,7 +13,9 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 
 from sensing_nodes.core.fusion import ComplementaryFusion, FusionSettings
-from sensing_nodes.ros.conversions import make_odometry, ns_to_stamp, odometry_pose, yaw_to_quaternion
+from sensing_nodes.ros.conversions import (
+    make_odometry, ns_to_stamp, odometry_pose, stamp_to_ns, yaw_to_quaternion,
+)
 from sensing_nodes.ros.qos import ESTIMATE_QOS
 
 STEP_NS = 20_000_000  # 50 Hz wheel and gyro; scan match every 5th step (10 Hz)
@@ -217,7 +219,11 @@ def test_odom_to_base_link_on_tf_with_each_output_never_ahead_of_the_inputs(prob
 
 
 @pytest.mark.parametrize('param, value', [('alpha', '1.5'), ('alpha', 'fast'),
-                                           ('reorder_window_s', '-1.0')])
+                                           ('reorder_window_s', '-1.0'),
+                                           # beyond the reorder window (default 2 s), not finite
+                                           ('wheel_odom.delay_s', '2.5'),
+                                           ('scan_match.delay_s', '-2.5'),
+                                           ('imu.delay_s', '.nan')])
 def test_bad_parameters_exit_with_an_error_naming_them(param, value):
     result = run_to_exit('complementary_fusion', ['--ros-args', '-p', f'{param}:={value}'], timeout=30)
     assert result.returncode == 2, result.stdout + result.stderr
@@ -229,3 +235,27 @@ def test_no_input_enabled_is_a_parameter_error():
                                             'use_scan_match_heading') for a in ('-p', f'{name}:=false')]
     result = run_to_exit('complementary_fusion', args, timeout=30)
     assert result.returncode == 2 and 'at least one input' in result.stderr
+
+
+def test_a_delayed_input_is_published_at_its_stamps_less_the_delay(probe, publishers):
+    """wheel_odom.delay_s 0.1 (EKF, wheels alone): every output is stamped 0.1 s before the
+    wheel message it came from (a message stamped t describes the robot at t - 0.1 s)."""
+    events = [e for e in _inputs(count=20) if e[0] == 'wheel']
+    out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
+    params = {'method': 'ekf', 'use_imu': False, 'use_scan_match_position': False,
+              'use_scan_match_heading': False, 'wheel_odom.delay_s': 0.1, 'flush_after_s': 3.0}
+    wheel = publishers['wheel']
+    with NodeProcess('complementary_fusion', params=params) as node:
+        assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0
+                          and wheel.get_subscription_count() > 0, 20), node.output()
+        spin_until(probe, lambda: False, 1.0)    # the node's reader sees our writer too
+        for kind, t, value, cov in events:
+            wheel.publish(_message(kind, t, value, cov))
+            time.sleep(0.002)
+            rclpy.spin_once(probe, timeout_sec=0)
+        out.wait_for(len(events), timeout=20)
+        log = node.output()
+        assert node.alive(), log
+    out.close()
+    stamps = [stamp_to_ns(m.header.stamp) for m in out.messages]
+    assert stamps == [t - 100_000_000 for _, t, _, _ in events], log

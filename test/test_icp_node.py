@@ -193,6 +193,8 @@ def test_constant_velocity_model_without_odometry(probe, pubs):
     (['-p', 'search:=octree'], 'search'),
     (['-p', 'keyframe_distance_m:=-1.0'], 'keyframe_distance_m'),
     (['-p', 'max_iterations:=0'], 'max_iterations'),
+    (['-p', 'odom_delay_s:=1.5'], 'odom_delay_s'),
+    (['-p', 'odom_delay_s:=.nan'], 'odom_delay_s'),
 ])
 def test_bad_parameters_exit_with_2(args, name):
     result = run_to_exit('icp_matcher', ['--ros-args', *args])
@@ -270,3 +272,26 @@ def test_laser_mount_from_tf_static_and_odom_to_base_link_on_tf(probe, pubs):
     last = sent[T0 + (count - 1) * SCAN_DT]
     assert (last.header.frame_id, last.child_frame_id) == ('odom', 'base_link')
     assert (last.transform.translation.x, last.transform.translation.y) == pose[:2]
+
+
+@pytest.mark.parametrize('delay_s, expected_x', [(0.1, 1.0), (0.0, 0.9)])
+def test_odom_delay_reads_odometry_stamped_t_as_the_pose_at_t_minus_the_delay(delay_s, expected_x):
+    """The matcher's per-message logic, without DDS: odometry of a robot at 1 m/s along x that
+    lags by 0.1 s (stamped t, it reports x = t - 0.1 s - T0). With odom_delay_s 0.1 the guess
+    reads x = 1.0 m at the scan stamp T0 + 1 s (the truth), 0.9 m without; the motion between
+    two scans is the same 1 m/s either way."""
+    from sensing_nodes.core.scan_matching import ScanMatcherSettings
+    from sensing_nodes.nodes.icp_matcher import IcpMatcherProcessor
+
+    processor = IcpMatcherProcessor(
+        ScanMatcherSettings(), '/wheel/odom', 0.1, 20, 'odom', 'base_link', False, None, None,
+        None, odom_delay_s=delay_s)
+    for k in range(31):                     # stamps T0 + 0.1 s .. T0 + 3.1 s
+        t = T0 + (k + 1) * 100_000_000
+        x = (t - T0) * 1e-9 - 0.1
+        assert processor.on_odometry(make_odometry(t, 'odom', 'base_link', (x, 0.0, 0.0),
+                                                   np.eye(3) * 1e-4)) == []
+    odometry = processor._odometry
+    assert odometry.pose_at(T0 + 1_000_000_000)[0] == pytest.approx(expected_x, abs=1e-9)
+    assert odometry.motion_between(T0 + 1_000_000_000, T0 + 2_000_000_000)[0] == \
+        pytest.approx(1.0, abs=1e-9)

@@ -707,3 +707,99 @@ def calibrate_gyro(intervals: Intervals, imu_t: NDArray[np.int64], gyro_z: NDArr
         bias = Estimate('gyro_bias_rad_s', float(coef[0]), float(math.sqrt(cov[0, 0])), 'rad/s',
                         'scale assumed 1')
     return GyroCalibration(bias, scale, int(keep.sum()), float(math.sqrt(s2)))
+
+
+# --- odometry time offset -----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TimeOffset:
+    """How far an odometry stream's stamps lag the scan matches': odometry stamped t describes
+    the robot at t - delay_s (s; < 0: stamps early), with its bootstrap std (s). cost_rad[i] is
+    the disagreement of yaw increments at grid_s[i] (rad, RMS of the best 1 - trim share)."""
+
+    delay_s: float
+    std_s: float
+    grid_s: NDArray[np.float64]
+    cost_rad: NDArray[np.float64]
+    intervals: int
+    turned_rad: float
+
+    @property
+    def two_sided(self) -> bool:
+        """The disagreement also falls well below its value at 0 on the other side of 0: no
+        single delay explains it (e.g. odometry re-anchored at the scans, docs/calibration.md)."""
+        at_zero = float(np.interp(0.0, self.grid_s, self.cost_rad))
+        other = self.cost_rad[self.grid_s * self.delay_s < 0.0]
+        drop = at_zero - float(self.cost_rad.min())
+        return other.size > 0 and drop > 0.0 and at_zero - float(other.min()) > 0.5 * drop
+
+
+def _trimmed_rms(residual: NDArray[np.float64], keep: int) -> NDArray[np.float64]:
+    """Per row: RMS of the `keep` smallest absolute residuals (rad)."""
+    part = np.partition(residual * residual, keep - 1, axis=-1)[..., :keep]
+    return np.sqrt(part.mean(axis=-1))
+
+
+def _grid_minimum(grid: NDArray[np.float64], cost: NDArray[np.float64]) -> float:
+    """Minimum of a sampled cost, refined by the parabola through it and its neighbours (s)."""
+    i = int(np.argmin(cost))
+    if i == 0 or i == len(grid) - 1:
+        return float(grid[i])
+    c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
+    curvature = c0 - 2.0 * c1 + c2
+    shift = 0.5 * (c0 - c2) / curvature if curvature > 0.0 else 0.0
+    return float(grid[i] + shift * (grid[1] - grid[0]))
+
+
+def odometry_delay(odom_t: NDArray[np.int64], odom_yaw: NDArray[np.float64],
+                   match_t: NDArray[np.int64], match_yaw: NDArray[np.float64],
+                   max_delay_s: float = 0.5, step_s: float = 0.005, trim: float = 0.1,
+                   min_turn_rad: float = math.radians(90.0), bootstrap: int = 200
+                   ) -> TimeOffset:
+    """Delay of odometry (stamps ns, yaw rad) against scan matches (cumulative poses' stamps ns
+    and yaw rad): the offset d on a grid over +-max_delay_s at which the odometry's yaw
+    increments read at (match stamps + d) agree best with the matches' own increments.
+
+    The worst `trim` share of intervals is left out at every d (failed matches fall back on
+    the odometry itself); the minimum is refined by a parabola; the std is the spread of that
+    minimum over `bootstrap` resamplings of the intervals (fixed seed: reproducible)."""
+    odom_t = np.asarray(odom_t, dtype=np.int64)
+    match_t = np.asarray(match_t, dtype=np.int64)
+    if len(odom_t) < 2 or np.any(np.diff(odom_t) <= 0):
+        raise CalibrationError('odometry needs at least two samples with increasing stamps')
+    if not (math.isfinite(max_delay_s) and max_delay_s > 0 and 0 < step_s <= max_delay_s):
+        raise CalibrationError('max_delay_s and step_s must be > 0, step_s <= max_delay_s')
+    base = odom_t[0]
+    t = (odom_t - base) * 1e-9
+    yaw = np.unwrap(np.asarray(odom_yaw, dtype=float))
+    margin = max_delay_s + step_s
+    m = (match_t - base) * 1e-9
+    inside = (m - margin >= t[0]) & (m + margin <= t[-1])
+    pairs = np.flatnonzero(inside[:-1] & inside[1:])
+    if len(pairs) < 10:
+        raise CalibrationError(f'only {len(pairs)} consecutive scan matches lie inside the '
+                               'odometry recording (need 10)')
+    matched = wrap_angle(np.asarray(match_yaw, dtype=float)[pairs + 1]
+                         - np.asarray(match_yaw, dtype=float)[pairs])
+    turned = float(np.abs(matched).sum())
+    if turned < min_turn_rad:
+        raise CalibrationError(f'the matches turn {math.degrees(turned):.0f} deg in all: a time '
+                               f'offset needs turning (>= {math.degrees(min_turn_rad):.0f} deg)')
+    n_steps = int(round(max_delay_s / step_s))
+    grid = np.arange(-n_steps, n_steps + 1) * step_s
+    at = m[None, :] + grid[:, None]                           # (grid, matches)
+    odom_at = np.interp(at.ravel(), t, yaw).reshape(at.shape)
+    residual = (odom_at[:, pairs + 1] - odom_at[:, pairs]) - matched[None, :]
+    keep = max(1, int(math.floor((1.0 - trim) * len(pairs))))
+    cost = _trimmed_rms(residual, keep)
+    delay = _grid_minimum(grid, cost)
+    rng = np.random.default_rng(0)
+    draws = []
+    for _ in range(bootstrap):
+        sample = residual[:, rng.integers(0, len(pairs), len(pairs))]
+        draws.append(_grid_minimum(grid, _trimmed_rms(sample, keep)))
+    std = float(np.std(draws)) if draws else float('nan')
+    if abs(delay) >= max_delay_s:
+        raise CalibrationError(f'the best agreement lies at the edge of the searched offsets '
+                               f'(+-{max_delay_s:g} s): widen the search')
+    return TimeOffset(delay, std, grid, cost, len(pairs), turned)

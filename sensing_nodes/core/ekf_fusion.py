@@ -97,6 +97,10 @@ class InputConfig:
     # the mean rate over the sample period before their stamp (a delta-angle IMU, as
     # sensor_sim's) and which integrates them by the trapezoid lags by half a period.
     heading_delay_s: float = 0.0
+    # The input's messages describe the robot at stamp - delay_s (s; < 0: after the stamp): the
+    # whole reading is retimed where messages are read (ros/fusion_readings.py), so it is fused,
+    # ordered and published at that time. The node bounds it by its reorder window.
+    delay_s: float = 0.0
 
     def problems(self) -> list[tuple[str, str, object]]:
         """(field, problem, value) for each setting the filter cannot run with."""
@@ -121,6 +125,8 @@ class InputConfig:
             out.append(('twist_variance', 'must be finite and > 0', self.twist_variance))
         if not (math.isfinite(self.heading_delay_s) and self.heading_delay_s >= 0.0):
             out.append(('heading_delay_s', 'must be finite and >= 0', self.heading_delay_s))
+        if not math.isfinite(self.delay_s):
+            out.append(('delay_s', 'must be finite', self.delay_s))
         return out
 
 
@@ -639,19 +645,20 @@ INPUT_DEFAULTS: dict[str, dict] = {
     'wheel_odom': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential', 'covariance': 'auto',
                    'covariance_scale': 1.0, 'variance_per_m': 1e-4, 'variance_per_rad': 1e-3,
                    'yaw_variance_per_m': 1e-4, 'yaw_variance_per_s': 0.0,
-                   'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 0.0, 'max_gap_s': 0.0},
+                   'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 0.0, 'max_gap_s': 0.0,
+                   'delay_s': 0.0},
     'imu': {'mask': ['yaw'], 'pose_mode': 'differential', 'covariance': 'model',
             'covariance_scale': 1.0, 'variance_per_m': 0.0, 'variance_per_rad': 0.0,
             'yaw_variance_per_m': 0.0, 'yaw_variance_per_s': 1e-8,
             'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 16.0,
             # gyro_integrator's max_gap_s: across a longer silence of its input it holds the
             # heading (the turn in the gap is not in its output), so no increment spans one.
-            'max_gap_s': 0.5, 'heading_delay_s': 0.0},
+            'max_gap_s': 0.5, 'heading_delay_s': 0.0, 'delay_s': 0.0},
     'scan_match': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential',
                    'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,
                    'variance_per_rad': 1e-3, 'yaw_variance_per_m': 1e-4,
                    'yaw_variance_per_s': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
-                   'gate_chi2': 25.0, 'max_gap_s': 0.0},
+                   'gate_chi2': 25.0, 'max_gap_s': 0.0, 'delay_s': 0.0},
 }
 
 
@@ -674,4 +681,5 @@ def input_config(name: str, values: dict, **fixed) -> InputConfig:
                          yaw_variance_per_s=float(v['yaw_variance_per_s'])),
         twist_variance=tuple(float(x) for x in v['twist_variance']),
         heading_delay_s=float(v.get('heading_delay_s', 0.0)),   # imu only
+        delay_s=float(v['delay_s']),
         gate_chi2=gate if gate > 0.0 else math.inf, **fixed)

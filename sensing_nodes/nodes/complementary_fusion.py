@@ -31,7 +31,7 @@ from sensing_nodes.core.fusion import (
 )
 from sensing_nodes.core.imu_mount import mount_rotation
 from sensing_nodes.core.transform import Transform
-from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_planar, stamp_to_ns
+from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_planar
 from sensing_nodes.ros.fusion_readings import (
     IMU, IMU_SOURCES, SCAN, WHEEL, ReadingConverter, unit_quaternion,
 )
@@ -174,7 +174,7 @@ class ComplementaryFusionNode(Node):
         it takes (keyframe-relative matches for the EKF)."""
         if s.method == 'ekf':
             configs = self._declare_ekf(s.use_wheel, s.use_imu, s.use_scan_position,
-                                        s.use_scan_heading, s.max_gap_s)
+                                        s.use_scan_heading, s.max_gap_s, s.reorder_window_s)
             fusion = EkfFusion(configs, self._declare_ekf_settings())
             return fusion, declare(self, 'scan_match.topic', '/scan_match/keyframe_odom',
                                    'keyframe-relative scan matches (icp_matcher)')
@@ -226,13 +226,16 @@ class ComplementaryFusionNode(Node):
                      "0 = the node's max_gap_s, else the shorter of the two",
         'heading_delay_s': "how far the input's heading lags its stamp (s): its yaw is read as "
                            'yaw + yaw rate x this (sensor_sim: half its IMU period)',
+        'delay_s': "how far the input's stamps lag the robot (s): a message stamped t is fused "
+                   'and published as at t - this (< 0: stamps early); within +-reorder_window_s',
     }
 
-    def _declare_input(self, name: str, enabled: bool, **fixed) -> InputConfig | None:
+    def _declare_input(self, name: str, enabled: bool, window_s: float, **fixed
+                       ) -> InputConfig | None:
         """Declare one input's EKF parameters (name.*) and return its validated config."""
         values = {}
         for key, default in INPUT_DEFAULTS[name].items():
-            numeric = isinstance(default, float)
+            numeric = isinstance(default, float) and key != 'delay_s'   # delay_s may be < 0
             values[key] = declare(self, f'{name}.{key}', default, self._DESCRIPTIONS[key],
                                   minimum=0.0 if numeric else None)
         try:
@@ -241,10 +244,15 @@ class ComplementaryFusionNode(Node):
             raise ParameterError(f'{name}.mask', str(error), values['mask']) from None
         for field, problem, value in cfg.problems():
             require(not enabled, f'{name}.{field}', problem, value)
+        # A retimed input lags (or leads) the others by delay_s in stamp time: the reorder
+        # buffer must hold the others that long, or its messages are dropped as late.
+        require(not enabled or abs(cfg.delay_s) <= window_s, f'{name}.delay_s',
+                f'must be within the reorder window (|delay_s| <= reorder_window_s = '
+                f'{window_s:g} s)', cfg.delay_s)
         return cfg if enabled else None
 
-    def _declare_ekf(self, use_wheel, use_imu, use_scan_pos, use_scan_heading, max_gap_s
-                     ) -> tuple[InputConfig, ...]:
+    def _declare_ekf(self, use_wheel, use_imu, use_scan_pos, use_scan_heading, max_gap_s,
+                     window_s) -> tuple[InputConfig, ...]:
         self._imu_source = declare(self, 'imu.source', 'integrated',
                                    "'integrated' (gyro_integrator's heading), 'orientation' "
                                    "(the IMU's own orientation) or 'rate' (raw gyro rate, bias "
@@ -258,11 +266,11 @@ class ComplementaryFusionNode(Node):
                     minimum=-2 * math.pi, maximum=2 * math.pi)
             for axis in ('roll', 'pitch', 'yaw'))
         configs = [
-            self._declare_input(WHEEL, use_wheel, max_gap_s=max_gap_s),
-            self._declare_input(IMU, use_imu, max_gap_s=max_gap_s,
+            self._declare_input(WHEEL, use_wheel, window_s, max_gap_s=max_gap_s),
+            self._declare_input(IMU, use_imu, window_s, max_gap_s=max_gap_s,
                                 gyro_bias=self._imu_source == 'rate'),
-            self._declare_input(SCAN, use_scan_pos or use_scan_heading, max_gap_s=max_gap_s,
-                                keyframes=True),
+            self._declare_input(SCAN, use_scan_pos or use_scan_heading, window_s,
+                                max_gap_s=max_gap_s, keyframes=True),
         ]
         scan = configs[2]
         if scan is not None:
@@ -373,7 +381,7 @@ class ComplementaryFusionProcessor:
 
     # -- input -------------------------------------------------------------------------------
     def on_message(self, source: str, msg) -> Outputs:
-        stamp = stamp_to_ns(msg.header.stamp)
+        stamp = self._converter.stamp_ns(source, msg)   # less the input's delay_s
         record = self._records[source]
         record.received += 1
         # Before the message is read: reading it uses per-timeline state (a source's starting

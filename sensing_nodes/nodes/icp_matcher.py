@@ -65,7 +65,8 @@ class IcpMatcherNode(Node):
         self.diagnostics = Diagnostics(self)
         self.processor = IcpMatcherProcessor(
             settings, odom_topic, self._odom_extrapolation_s, self._min_points, self._odom_frame,
-            self._base_frame, self._publish_tf, mount, self.diagnostics, ThrottledWarnings(self))
+            self._base_frame, self._publish_tf, mount, self.diagnostics, ThrottledWarnings(self),
+            self._odom_delay_s)
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.diagnostics.values['prediction'] = odom_topic or 'constant_velocity'
         laser, options = settings.laser_pose, settings.icp_options
@@ -125,6 +126,10 @@ class IcpMatcherNode(Node):
         self._odom_extrapolation_s = declare(
             self, 'odom_max_extrapolation_s', 0.1,
             'use odometry up to this far past its newest message (s)', minimum=0.0, maximum=1.0)
+        self._odom_delay_s = declare(
+            self, 'odom_delay_s', 0.0,
+            "how far the odometry's stamps lag the robot (s): a message stamped t is read as the "
+            'pose at t - this (< 0: stamps early)', minimum=-1.0, maximum=1.0)
         self._min_points = declare(self, 'min_points', 20,
                                    'scans with fewer valid points are not matched', minimum=3)
         self._publish_tf = declare(self, 'publish_tf', False,
@@ -142,6 +147,8 @@ class IcpMatcherNode(Node):
         require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
                 'must not be empty')
         require(max_gap > 0.0, 'max_gap_s', 'must be > 0', max_gap)
+        require(math.isfinite(self._odom_delay_s), 'odom_delay_s', 'must be finite',
+                self._odom_delay_s)
         return ScanMatcherSettings(
             laser_pose=laser, keyframe_distance_m=kf_distance, keyframe_angle_rad=kf_angle,
             max_error_m=max_error, max_jump_m=max_jump, max_jump_rad=max_jump_rad,
@@ -162,7 +169,7 @@ class IcpMatcherProcessor:
     def __init__(self, settings: ScanMatcherSettings, odom_topic: str,
                  odom_extrapolation_s: float, min_points: int, odom_frame: str, base_frame: str,
                  publish_tf: bool, mount: SensorMount, diagnostics: Diagnostics,
-                 warnings: ThrottledWarnings) -> None:
+                 warnings: ThrottledWarnings, odom_delay_s: float = 0.0) -> None:
         self._settings = settings
         self._matcher = KeyframeScanMatcher(settings)
         self._odom_topic = odom_topic
@@ -171,6 +178,8 @@ class IcpMatcherProcessor:
         self._odometry = OdometryBuffer(max_age_s=max(10.0, 2.0 * settings.max_gap_s),
                                         max_extrapolation_s=odom_extrapolation_s) \
             if odom_topic else None
+        # The odometry's poses are read as the robot's at stamp - odom_delay_s (a lagging source).
+        self._odom_delay_ns = round(odom_delay_s * 1e9)
         self._min_points = min_points
         self._odom_frame, self._base_frame = odom_frame, base_frame
         self._publish_tf = publish_tf
@@ -193,7 +202,7 @@ class IcpMatcherProcessor:
             ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
 
     def on_odometry(self, msg: Odometry) -> Outputs:
-        stamp = stamp_to_ns(msg.header.stamp)
+        stamp = stamp_to_ns(msg.header.stamp) - self._odom_delay_ns
         pose, _ = odometry_pose(msg)
         if not all(math.isfinite(v) for v in pose):
             self.diagnostics.count('odom_not_finite')

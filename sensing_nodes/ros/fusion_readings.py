@@ -4,7 +4,9 @@ tools that run the fusion core over a bag (one conversion, one set of acceptance
 Inputs: 'wheel_odom' (nav_msgs/Odometry), 'imu' (sensor_msgs/Imu: gyro_integrator's heading,
 the IMU's own orientation, or its raw rate, with the IMU mount rotation), 'scan_match'
 (nav_msgs/Odometry: keyframe-relative matches for the EKF, cumulative poses for the
-complementary filter). Poses in m and rad, stamps in ns.
+complementary filter). Poses in m and rad, stamps in ns. An EKF input's delay_s retimes its
+messages here, in one place: a message stamped t describes the robot at t - delay_s
+(`ReadingConverter.stamp_ns`, and the keyframes a match names).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from sensing_nodes.core.ekf_fusion import InputConfig, Reading
 from sensing_nodes.core.fusion import InputRecord, covariance_problem, pose_problem
 from sensing_nodes.core.imu_mount import base_orientation, to_base
 from sensing_nodes.ros.conversions import (
-    NO_KEYFRAME, keyframe_stamp, odometry_pose, odometry_twist, quaternion_to_yaw,
+    NO_KEYFRAME, keyframe_stamp, odometry_pose, odometry_twist, quaternion_to_yaw, stamp_to_ns,
 )
 
 WHEEL, IMU, SCAN = 'wheel_odom', 'imu', 'scan_match'
@@ -56,6 +58,16 @@ class ReadingConverter:
     previous_scan_ns: int | None = None
     tilt: NDArray[np.float64] = field(default_factory=lambda: np.eye(3))
     _identity_mount: bool | None = field(default=None, init=False, repr=False)
+    _delay_ns: dict[str, int] = field(default_factory=dict, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._delay_ns = {name: round(cfg.delay_s * 1e9) for name, cfg in self.configs.items()
+                          if cfg.delay_s}
+
+    def stamp_ns(self, source: str, msg) -> int:
+        """The time (ns) a message of input `source` describes the robot at: its header stamp
+        less the input's delay_s. Every stamp the fusion reads from a message comes from here."""
+        return stamp_to_ns(msg.header.stamp) - self._delay_ns.get(source, 0)
 
     def reset(self) -> None:
         self.previous_scan_ns = None
@@ -75,7 +87,8 @@ class ReadingConverter:
 
     def reading(self, source: str, msg, stamp: int, record: InputRecord
                 ) -> tuple[Reading | None, str]:
-        """A validated core Reading from a message, or (None, why not)."""
+        """A validated core Reading from a message stamped `stamp` (ns, from stamp_ns), or
+        (None, why not)."""
         if source == IMU:
             return self._imu(msg, stamp, record)
         if not unit_quaternion(msg.pose.pose.orientation):
@@ -156,12 +169,17 @@ class ReadingConverter:
                        _yaw_only(max(rate_var, 0.0))), ''
 
     def _keyframe(self, msg, stamp: int) -> tuple[Reading | None, str]:
-        """icp_matcher's keyframe-relative match (frame ids name keyframes: docs/fusion.md)."""
-        new_keyframe = keyframe_stamp(msg.child_frame_id) == stamp
+        """icp_matcher's keyframe-relative match (frame ids name keyframes: docs/fusion.md), the
+        keyframes' stamps retimed as the message's."""
+        delay = self._delay_ns.get(SCAN, 0)
+        child = keyframe_stamp(msg.child_frame_id)
+        new_keyframe = child is not None and child - delay == stamp
         keyframe = keyframe_stamp(msg.header.frame_id)
         if msg.header.frame_id != NO_KEYFRAME and keyframe is None:
             return None, (f"frame_id '{msg.header.frame_id}' names no keyframe "
                           f"('keyframe/<stamp ns>' or '{NO_KEYFRAME}')")
+        if keyframe is not None:
+            keyframe -= delay
         if keyframe is None:
             return Reading(stamp, new_keyframe=new_keyframe), ''
         pose, cov = odometry_pose(msg)

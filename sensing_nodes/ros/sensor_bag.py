@@ -223,6 +223,30 @@ def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
     return data
 
 
+def read_yaw_track(path: str | Path, topic: str) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Header stamps (int64 ns) and yaw (rad) of an Odometry topic, in bag order; a missing or
+    non-Odometry topic, or a non-finite yaw, is SensorBagError."""
+    from sensing_nodes.core.quaternion import yaw as quaternion_yaw
+
+    path = Path(path)
+    if not path.exists():
+        raise SensorBagError(f'{path}: no such bag')
+    with _open(path) as (topics, messages):
+        if topic not in topics or topics[topic][0] not in ODOMETRY:
+            raise SensorBagError(f'{path}: no nav_msgs/Odometry topic {topic} (topics: '
+                                 f'{_topic_list(topics)})')
+        t, yaw = [], []
+        for _, bag_ns, msg in messages([topic]):
+            q = msg.pose.pose.orientation
+            value = quaternion_yaw((q.x, q.y, q.z, q.w))
+            stamp = _stamp(msg, bag_ns)
+            if not np.isfinite(value):
+                raise SensorBagError(f'{topic}: yaw is not finite at {stamp * 1e-9:.3f} s')
+            t.append(stamp)
+            yaw.append(value)
+    return np.array(t, dtype=np.int64), np.array(yaw, dtype=float)
+
+
 def _topic_list(topics: dict[str, tuple[str, int]]) -> str:
     return '; '.join(f'{t} ({ty}, {n})' for t, (ty, n) in sorted(topics.items()))
 

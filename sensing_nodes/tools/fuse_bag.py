@@ -5,9 +5,9 @@ complementary_fusion parameter file, as the node would fuse it, and print the fi
         [--expect X Y --tolerance M]
 
 Inputs are taken from the topics the parameter file names (wheel_odom.topic, imu.topic,
-scan_match.topic); messages are converted and validated by the node's own converter, processed
-in stamp order (wheel, IMU, scan at equal stamps). Exit 1 when --expect is given and the final
-position is further than --tolerance from it.
+scan_match.topic); messages are converted, validated and retimed (delay_s) by the node's own
+converter, processed in stamp order (wheel, IMU, scan at equal stamps). Exit 1 when --expect is
+given and the final position is further than --tolerance from it.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ from sensing_nodes.core.ekf_fusion import EkfFusion, EkfSettings
 from sensing_nodes.core.fusion import InputRecord
 from sensing_nodes.core.fusion_eval import inputs_from_params
 from sensing_nodes.core.imu_mount import mount_rotation
-from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.fusion_readings import IMU, SCAN, WHEEL, ReadingConverter
 
 RANK = {WHEEL: 0, IMU: 1, SCAN: 2}
@@ -65,8 +64,9 @@ def fuse_bag(bag: str | Path, params: dict) -> dict:
             raise SystemExit(f'fuse_bag: {bag} has no topic(s) {sorted(missing)}')
         for connection, _, raw in reader.messages(connections=connections):
             msg = reader.deserialize(raw, connection.msgtype)
-            events.append((stamp_to_ns(msg.header.stamp), RANK[topics[connection.topic]],
-                           len(events), topics[connection.topic], msg))
+            name = topics[connection.topic]
+            events.append((converter.stamp_ns(name, msg), RANK[name],
+                           len(events), name, msg))
     events.sort(key=lambda e: e[:3])
     for stamp, _, _, name, msg in events:
         records[name].received += 1
