@@ -85,6 +85,45 @@ def _write_log(path: Path, lines: list[str]) -> Path:
     return path
 
 
+def test_odometry_reanchored_on_the_reference_is_chained_without_the_jump(tmp_path):
+    """A "corrected" log: the odometry has drifted to (1, 0, 0) at the scan, the reference says
+    (1.1, 0.1, 90 deg), the ODOM line stamped 0 repeats it and the next line continues from it
+    by 1 m straight ahead. /odom continues from (1, 0, 0) by the same 1 m: (2, 0, 0), not the
+    logged (1.1, 1.1, 90 deg)."""
+    ranges = ' '.join(['2.0'] * 180)
+    log = _write_log(tmp_path / 'anchored.log.gz', [
+        'ODOM 0.0 0.0 0.0 0 0 0 1.0 host 1.0',
+        'ODOM 1.0 0.0 0.0 0 0 0 2.0 host 2.0',
+        f'FLASER 180 {ranges} 1.1 0.1 1.5707963267948966 1.1 0.1 1.5707963267948966 2.0 host 2.0',
+        'ODOM 1.1 0.1 1.5707963267948966 0 0 0 0 host 0',
+        'ODOM 1.1 1.1 1.5707963267948966 0 0 0 3.0 host 3.0',
+        'ODOM 1.1 2.1 1.5707963267948966 0 0 0 4.0 host 4.0',
+    ])
+    out = tmp_path / 'bag'
+    summary = convert(log, out)
+    assert summary['skipped_odom']['stamped_zero'] == 1
+    poses = [odometry_pose(m)[0] for _, _, m in read_messages(out, ['/odom'])]
+    np.testing.assert_allclose(poses, [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (2.0, 0.0, 0.0),
+                                       (3.0, 0.0, 0.0)], atol=1e-12)
+    truth, _ = odometry_pose(next(m for _, _, m in read_messages(out, ['/ground_truth/odom'])))
+    assert truth == pytest.approx((1.1, 0.1, math.pi / 2))
+
+
+@needs_logs
+def test_shared_logs_odometry_carries_no_reference(tmp_path):
+    """Freiburg 101 re-anchors its ODOM on the reference after every scan: read as logged, the
+    odometry at the last scan is 0.017 m from the last reference pose. Chained, it keeps its own
+    drift: 65.6 m and 163 deg off at the last of its 292 scans (both in the reference's frame, where
+    the log's odometry starts)."""
+    out = tmp_path / 'bag'
+    convert(CARMEN / 'freiburg-101-corrected.log.gz', out)
+    odom = [(s, odometry_pose(m)[0]) for _, s, m in read_messages(out, ['/odom'])]
+    last_truth = [(s, odometry_pose(m)[0]) for _, s, m in read_messages(
+        out, ['/ground_truth/odom'])][-1]
+    at_last_scan = [p for s, p in odom if s <= last_truth[0]][-1]
+    assert math.hypot(at_last_scan[0] - last_truth[1][0], at_last_scan[1] - last_truth[1][1]) > 10
+
+
 def test_bad_lines_are_reported_with_their_number_and_the_rest_converts(tmp_path):
     ranges = ' '.join(['2.0'] * 178 + ['50.0', '50.0'])
     log = _write_log(tmp_path / 'small.log.gz', [

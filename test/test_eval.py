@@ -73,6 +73,21 @@ def test_ate_after_rigid_alignment():
     assert ate['ate_max_m'] <= 0.1 + 1e-12 and ate['ate_rmse_m'] > 0.05
 
 
+def test_ate_is_scored_at_the_reference_stamps():
+    """A sparse reference (two scans, 2 s apart) and a dense estimate that is exact at both: ATE
+    0, although the estimate's sample between them (the robot's detour to y = 1) is 1 m from
+    the reference interpolated there. The estimate is interpolated at the reference's stamps,
+    as for RPE."""
+    reference = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
+    estimate = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0],
+                         [4.0, 0.0, 0.0]])
+    ate = absolute_trajectory_error(np.arange(3) * 2 * S, reference, np.arange(5) * S, estimate)
+    assert ate['ate_rmse_m'] < 1e-12 and ate['ate_samples'] == 3
+    # Reference samples outside the estimate's span are not scored.
+    assert absolute_trajectory_error(np.arange(3) * 2 * S, reference, np.arange(3) * S,
+                                     estimate[:3])['ate_samples'] == 2
+
+
 def test_relations_file_parsing(tmp_path):
     path = tmp_path / 'r.relations'
     path.write_text('# t1 t2 x y z roll pitch yaw\n1.5 2.5 0.9 0.1 0 0 0 0.2\n')

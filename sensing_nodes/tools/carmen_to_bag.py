@@ -7,7 +7,9 @@
 
 The "corrected" benchmark logs carry the reference pose of the laser in each FLASER line and an
 extra ODOM line stamped 0 after it holding that same pose; those ODOM lines are not odometry and
-are skipped (and counted). The laser sits `--laser-x` metres ahead of base_link (default 0: the
+are skipped (and counted), and the ODOM lines after them, which continue from that reference
+pose, are chained on from the odometry before it (`odometry_chain`): /odom carries no
+reference information. The laser sits `--laser-x` metres ahead of base_link (default 0: the
 shared logs' FLASER pose measures as the laser's and their declared offsets do not hold, see
 ../shared/datasets/carmen/README.md), so base_link's reference pose is the laser pose moved back
 by it. A line that does not parse is reported with its number and the rest converts.
@@ -29,6 +31,9 @@ from sensing_nodes.ros.graph import GROUND_TRUTH, SCAN
 
 EXIT_BAD_INPUT = 2
 NS = 1_000_000_000
+# An ODOM line stamped below this is "stamped 0": Freiburg 101 writes 18 of its 292 zeros as
+# garbage such as 2.5e-91 (each repeats its scan's reference pose, as the real zeros do).
+ZERO_STAMP_S = 1e-6
 
 
 def no_return_value(log: CarmenLog, min_share: float = 0.001) -> float | None:
@@ -41,19 +46,36 @@ def no_return_value(log: CarmenLog, min_share: float = 0.001) -> float | None:
     return largest if np.mean(ranges == largest) >= min_share else None
 
 
-def odometry_rows(log: CarmenLog) -> tuple[np.ndarray, dict[str, int]]:
-    """Indices of the ODOM rows that are odometry: stamped > 0 and after the previous kept row."""
-    keep, skipped = [], {'stamped_zero': 0, 'not_after_previous': 0}
+def odometry_chain(log: CarmenLog) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """The ODOM rows that are odometry (stamped, after the previous kept row) and their
+    poses (x, y, theta; odom frame) with the reference taken out: (row indices, poses, skipped).
+
+    In the "corrected" logs an ODOM line stamped 0 after each FLASER repeats the scan's
+    reference pose, and the ODOM lines after it continue from that pose: the logged odometry
+    is re-anchored on the reference at every scan (a jump of up to 14 deg). Read as it is, the
+    odometry would carry the reference into every estimate fed from it. So each anchor is taken
+    to stand where the previous kept row stood (the scan's own ODOM line, same time) and the
+    rows after it continue by their own increments from the anchor: the robot's odometry as a
+    wheel-encoder chain, without the corrections. A log without such lines is unchanged."""
+    keep, poses, skipped = [], [], {'stamped_zero': 0, 'not_after_previous': 0}
     last = -math.inf
+    offset = (0.0, 0.0, 0.0)     # chained pose = offset (+) logged pose
+    anchor = None
     for i, t in enumerate(log.odom_time_s.tolist()):
-        if t <= 0.0:
+        logged = tuple(float(v) for v in log.odom_pose[i])
+        if t < ZERO_STAMP_S:
             skipped['stamped_zero'] += 1
+            anchor = logged
         elif t <= last:
             skipped['not_after_previous'] += 1
         else:
+            if anchor is not None and poses:
+                offset = se2.compose(poses[-1], se2.inverse(anchor))
+            anchor = None
             keep.append(i)
+            poses.append(tuple(float(v) for v in se2.compose(offset, logged)))
             last = t
-    return np.array(keep, dtype=int), skipped
+    return np.array(keep, dtype=int), np.array(poses).reshape(-1, 3), skipped
 
 
 def odometry_covariances(poses: np.ndarray, per_m_xy: float, per_m_yaw: float,
@@ -100,7 +122,7 @@ def convert(log_path: str | Path, out: str | Path, laser_x_m: float = 0.0,
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     try:
-        rows, skipped = odometry_rows(log)
+        rows, poses, skipped = odometry_chain(log)
         counts = {SCAN: 0, '/odom': 0, GROUND_TRUTH: 0}
         messages = []  # (stamp ns, order, topic, msg)
         laser_in_base = (laser_x_m, 0.0, 0.0)
@@ -128,7 +150,6 @@ def convert(log_path: str | Path, out: str | Path, laser_x_m: float = 0.0,
             base_pose = se2.compose(tuple(scan.pose), base_from_laser)
             truth = make_odometry(stamp(scan.time_s), 'map', 'base_link', base_pose, zero_cov)
             messages.append((stamp(scan.time_s), 0, GROUND_TRUTH, truth))
-        poses = log.odom_pose[rows]
         covs = odometry_covariances(poses, odom_var_per_m_xy, odom_var_per_m_yaw,
                                     odom_var_per_rad_yaw)
         twist_cov = np.diag([1e-4, 1e-6, 1e-4])
