@@ -46,6 +46,7 @@ X, Y, YAW, VX, VY, WZ, BG = range(BASE)
 # Smallest variance a measurement component may claim: an exactly known increment would make
 # the innovation covariance singular.
 MIN_VARIANCE = 1e-12
+_DIAG3 = (np.arange(3), np.arange(3))        # the diagonal of a 3x3 (fancy index, made once)
 
 
 @dataclass(frozen=True)
@@ -173,6 +174,9 @@ class Outcome:
     note: str = ''
 
 
+_HELD = Outcome(fused=True, note='increment held until the next output')
+
+
 @dataclass(frozen=True)
 class FusedState:
     """Fused estimate at stamp_ns: pose (odom), 3x3 pose covariance, body twist and its
@@ -221,6 +225,15 @@ def relative_jacobian(clone: Pose2, pose: Pose2) -> tuple[Pose2, NDArray[np.floa
     return h, j_pose, j_clone
 
 
+def _selection(mask: tuple[bool, ...]) -> tuple[NDArray, tuple[NDArray, NDArray]] | None:
+    """Rows a mask over three quantities selects, and the matching (rows, columns) index of a
+    3x3 noise; None when it selects all three."""
+    if all(mask):
+        return None
+    rows = np.array([i for i, used in enumerate(mask) if used], dtype=np.intp)
+    return rows, np.ix_(rows, rows)
+
+
 @dataclass
 class _Clone:
     """A slot of the state holding the pose at `stamp_ns` (None: empty), and for a
@@ -254,6 +267,15 @@ class EkfFusion:
                 self._slots[cfg.name] = _Clone(offset)
                 offset += 3
         self._size = offset
+        self._keyframe_slots = [self._slots[cfg.name] for cfg in inputs if cfg.keyframes]
+        # Per input, the rows of its pose and twist measurements that its mask selects (None:
+        # all three), as index arrays made once.
+        self._rows = {cfg.name: (_selection(cfg.mask[:3]), _selection(cfg.mask[3:]))
+                      for cfg in inputs}
+        self._diagonal = (np.arange(BASE), np.arange(BASE))
+        # The rows of F (predict) that differ from the identity's: x, y and yaw.
+        self._f = np.zeros((3, BASE))
+        self._f[YAW, YAW] = 1.0
         self._q_diagonal = np.array([self.settings.pose_noise_density ** 2] * 3
                                     + [self.settings.accel_noise_density ** 2] * 2
                                     + [self.settings.angular_accel_noise_density ** 2,
@@ -303,7 +325,7 @@ class EkfFusion:
     def _clone(self, slot: _Clone, key: object = None, reading: Reading | None = None) -> None:
         """Copy the current pose (and its correlations) into the slot."""
         at = slot.offset
-        self._empty(slot)
+        # Every entry of the slot's rows and columns is written below: nothing to empty first.
         self.x[at:at + 3] = self.x[:3]
         self.p[at:at + 3, :] = self.p[:3, :]
         self.p[:, at:at + 3] = self.p[:, :3]
@@ -349,7 +371,9 @@ class EkfFusion:
         # to the new pose by adjoint(u)⁻¹, a velocity error adds (u's end frame) dt.
         a, b, turn = vx * dt, vy * dt, wz * dt
         ct, st = math.cos(turn), math.sin(turn)
-        f = np.eye(BASE)
+        # F is the identity but for its rows x, y, yaw (f): only those rows and columns of P
+        # change.
+        f = self._f
         f[X, X], f[X, Y], f[Y, X], f[Y, Y] = ct, st, -st, ct
         f[X, YAW], f[Y, YAW] = -ct * b + st * a, st * b + ct * a
         f[X, VX], f[X, VY], f[Y, VX], f[Y, VY] = ct * dt, st * dt, -st * dt, ct * dt
@@ -358,9 +382,9 @@ class EkfFusion:
         self.x[Y] += (vx * si + vy * c) * dt
         self.x[YAW] = _wrap(yaw + wz * dt)
         p = self.p
-        p[:BASE, :] = f @ p[:BASE, :]
-        p[:, :BASE] = p[:, :BASE] @ f.T
-        p[range(BASE), range(BASE)] += self._q_diagonal * dt
+        p[:3, :] = f @ p[:BASE, :]
+        p[:, :3] = p[:, :BASE] @ f.T
+        p[self._diagonal] += self._q_diagonal * dt
         self.stamp_ns = stamp_ns
 
     def _correct(self, residual: NDArray, h: NDArray, r: NDArray, gate_chi2: float) -> Outcome:
@@ -393,7 +417,7 @@ class EkfFusion:
         its optimal correction), so the published motion from scan to scan is the fused one.
         Revising the keyframe instead moved the whole chain on the real logs: the wheels'
         increment across a keyframe and the velocities tie it to the motion after it."""
-        for slot in self._slots.values():
+        for slot in self._keyframe_slots:
             if slot.key is None or slot.stamp_ns is None:
                 continue
             at = slot.offset
@@ -405,13 +429,16 @@ class EkfFusion:
     def _inject(self, error: NDArray[np.float64]) -> None:
         """Apply a correction: pose and clones composed with their body-frame errors, the
         rest added."""
+        x, e = self.x.tolist(), error.tolist()   # plain floats: a dozen scalars per update
         for at in [0] + [slot.offset for slot in self._slots.values()
                          if slot.stamp_ns is not None]:
-            pose = (float(self.x[at]), float(self.x[at + 1]), float(self.x[at + 2]))
-            moved = se2.compose(pose, (float(error[at]), float(error[at + 1]),
-                                       float(error[at + 2])))
-            self.x[at:at + 3] = (moved[0], moved[1], _wrap(moved[2]))
-        self.x[3:BASE] += error[3:BASE]
+            if e[at] == 0.0 and e[at + 1] == 0.0 and e[at + 2] == 0.0:
+                continue   # not corrected (a keyframe: _keep_keyframes)
+            moved = se2.compose((x[at], x[at + 1], x[at + 2]), (e[at], e[at + 1], e[at + 2]))
+            x[at:at + 3] = (moved[0], moved[1], _wrap(moved[2]))
+        for i in range(3, BASE):
+            x[i] += e[i]
+        self.x[:] = x
 
     # -- measurements --------------------------------------------------------------------------
     def _coalesced(self, cfg: InputConfig) -> bool:
@@ -421,10 +448,6 @@ class EkfFusion:
         """Fuse one reading of input `name` (stamps must not go backwards: use a
         StampOrderedBuffer)."""
         cfg = self.inputs[name]
-        if cfg.heading_delay_s and reading.pose is not None and reading.twist is not None:
-            pose = reading.pose
-            reading = replace(reading, pose=(pose[0], pose[1],
-                                             pose[2] + reading.twist[2] * cfg.heading_delay_s))
         previous_stamp = self._last_seen.get(name)
         self._last_seen[name] = reading.stamp_ns
         if self._coalesced(cfg):
@@ -432,12 +455,16 @@ class EkfFusion:
             gap = previous_stamp is not None and \
                 reading.stamp_ns - previous_stamp > cfg.max_gap_s * 1e9
             if slot.stamp_ns is not None and not gap:
+                # As it came: most held readings are replaced before they are fused, so the
+                # heading delay is applied when one is (_flush).
                 self._pending[name] = reading
-                return Outcome(fused=True, note='increment held until the next output')
+                return _HELD
+            reading = _delayed(cfg, reading)
             self._flush()
             self.predict(reading.stamp_ns)
             self._clone(slot, reading=reading)
             return Outcome(note='first message of this differential input (or after a gap)')
+        reading = _delayed(cfg, reading)
         self._flush()
         self.predict(reading.stamp_ns)
         outcomes = []
@@ -461,20 +488,22 @@ class EkfFusion:
         gated = None
         while self._pending:
             name = min(self._pending, key=lambda n: self._pending[n].stamp_ns)
-            reading = self._pending.pop(name)
+            cfg = self.inputs[name]
+            reading = _delayed(cfg, self._pending.pop(name))
             self.predict(reading.stamp_ns)
-            outcome = self._differential(self.inputs[name], reading)
+            outcome = self._differential(cfg, reading)
             if outcome.gated:
                 gated = outcome
                 self.gated[name] = self.gated.get(name, 0) + 1
         return gated
 
     @staticmethod
-    def _masked(mask: tuple[bool, ...], residual, h, r) -> tuple:
-        if all(mask):
+    def _masked(selection, residual, h, r) -> tuple:
+        """The rows of residual, h and r that an input's mask selects (_selection)."""
+        if selection is None:
             return residual, h, r
-        rows = [i for i, used in enumerate(mask) if used]
-        return residual[rows], h[rows], r[np.ix_(rows, rows)]
+        rows, block = selection
+        return residual[rows], h[rows], r[block]
 
     @staticmethod
     def _pose_noise(cfg: InputConfig, covariance, increment: Pose2 | None,
@@ -486,7 +515,7 @@ class EkfFusion:
                 return np.diag([max(cfg.noise.min_variance, MIN_VARIANCE)] * 3)
             return cfg.noise.increment_covariance(increment, dt)
         cov = _symmetric(np.asarray(covariance, dtype=float)) * cfg.covariance_scale
-        cov[range(3), range(3)] += MIN_VARIANCE
+        cov[_DIAG3] += MIN_VARIANCE
         return cov
 
     def _pose(self, cfg: InputConfig, reading: Reading) -> Outcome:
@@ -524,7 +553,8 @@ class EkfFusion:
                              _wrap(pose[2] - float(self.x[YAW]))])
         h = np.zeros((3, self._size))
         h[:, :3] = body_to_odom(float(self.x[YAW]))
-        return self._correct(*self._masked(cfg.mask[:3], residual, h, cov), cfg.gate_chi2)
+        return self._correct(*self._masked(self._rows[cfg.name][0], residual, h, cov),
+                             cfg.gate_chi2)
 
     def _differential(self, cfg: InputConfig, reading: Reading) -> Outcome:
         """The motion from the slot's reading to this one, fused against the clone."""
@@ -569,7 +599,8 @@ class EkfFusion:
             yaw += float(self.x[BG]) * dt
         residual = np.array([measured[0] - predicted[0], measured[1] - predicted[1],
                              _wrap(measured[2] - yaw)])
-        return self._correct(*self._masked(cfg.mask[:3], residual, h, noise), cfg.gate_chi2)
+        return self._correct(*self._masked(self._rows[cfg.name][0], residual, h, noise),
+                             cfg.gate_chi2)
 
     def _keyframe(self, cfg: InputConfig, reading: Reading) -> Outcome:
         slot = self._slots[cfg.name]
@@ -613,13 +644,24 @@ class EkfFusion:
         if cfg.covariance == 'model' or cov is None or not np.all(np.diag(cov) > 0.0):
             cov = np.diag(cfg.twist_variance)
         cov = _symmetric(np.asarray(cov, dtype=float))
-        cov[range(3), range(3)] += MIN_VARIANCE
+        cov[_DIAG3] += MIN_VARIANCE
         h = np.zeros((3, self._size))
         h[0, VX] = h[1, VY] = h[2, WZ] = 1.0
         if cfg.gyro_bias:
             h[2, BG] = 1.0
         residual = np.asarray(reading.twist, dtype=float) - h @ self.x
-        return self._correct(*self._masked(cfg.mask[3:], residual, h, cov), cfg.gate_chi2)
+        return self._correct(*self._masked(self._rows[cfg.name][1], residual, h, cov),
+                             cfg.gate_chi2)
+
+
+def _delayed(cfg: InputConfig, reading: Reading) -> Reading:
+    """The reading with its yaw read as yaw + yaw rate x cfg.heading_delay_s (a heading that
+    lags its stamp)."""
+    if cfg.heading_delay_s and reading.pose is not None and reading.twist is not None:
+        pose = reading.pose
+        return replace(reading, pose=(pose[0], pose[1],
+                                      pose[2] + reading.twist[2] * cfg.heading_delay_s))
+    return reading
 
 
 def with_mask(cfg: InputConfig, **quantities: bool) -> InputConfig:
