@@ -19,7 +19,7 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'allan', 'graph_cpu', 'pipeline']
+AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'allan', 'graph_cpu', 'pipeline', 'fusion']
 
 
 def demo_figures(quick: bool, extra: tuple[str, ...] = ()) -> dict:

@@ -1,0 +1,80 @@
+"""complementary_fusion's own cost per message: its processor alone, no DDS and no bag I/O.
+
+A bag is recorded with `sensor_sim --record` (300 s, seed 5; 60 s with --quick) and run through
+`sensing_pipeline` (all five nodes) for the fusion's inputs (`/wheel/odom`, `/imu/data`,
+`/scan_match/keyframe_odom`). Then a fresh fusion node (default method `ekf`, config/ parameters)
+built as sensing_pipeline builds it takes them in bag order through its processor's handlers
+(ros/processor.py), each decoded beforehand as its subscription decodes it, with the flush at
+the end; three passes, the fastest one's CPU time (this process's) gives the figures. Decoding,
+DDS and writing are not counted: this is the node's per-message logic (reading conversion,
+reorder buffer, EKF, packing the outputs). The load average is reported with the figures.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+PASSES = 3
+
+
+def _executable(name: str) -> str:
+    """The venv's console script beside the running Python (else the PATH's)."""
+    path = Path(sys.executable).parent / name
+    return str(path) if path.is_file() else name
+
+
+def fusion_pass(messages: list[tuple[str, bytes]]) -> tuple[float, int, int]:
+    """One fresh fusion node over (topic, CDR bytes) in order: (CPU s, inputs, outputs)."""
+    from sensing_nodes.ros.cdr import cdr_decoder
+    from sensing_nodes.tools.pipeline import build_nodes, close
+
+    built = build_nodes(('complementary_fusion',), [], {})
+    try:
+        processor = built['complementary_fusion'].processor
+        handlers = {i.topic: (i.handler, cdr_decoder(i.msg_type)) for i in processor.inputs()}
+        decoded = [(handlers[t][0], handlers[t][1](raw)) for t, raw in messages
+                   if t in handlers]
+        outputs = 0
+        start = time.process_time()
+        for handler, msg in decoded:
+            outputs += len(handler(msg))
+        outputs += len(processor.flush())
+        return time.process_time() - start, len(decoded), outputs
+    finally:
+        close(built)
+
+
+def run(quick: bool = False) -> dict:
+    """Record the bag, make the fusion's inputs, time the fusion's processor over them."""
+    from sensing_nodes.ros.input_bag import load_bag
+
+    duration_s = 60.0 if quick else 300.0
+    with tempfile.TemporaryDirectory() as tmp:
+        bag, inputs = Path(tmp) / 'bag', Path(tmp) / 'inputs'
+        subprocess.run([_executable('sensor_sim'), '--record', str(bag), '--duration',
+                        f'{duration_s:g}', '--seed', '5'], check=True, capture_output=True)
+        subprocess.run([_executable('sensing_pipeline'), str(bag), str(inputs), '--no-progress'],
+                       check=True, capture_output=True)
+        messages = [(t, raw) for t, _, raw in load_bag(inputs).messages]
+    load_start = os.getloadavg()[0]
+    passes = [fusion_pass(messages) for _ in range(PASSES)]
+    cpu, count, outputs = min(passes)
+    return {
+        'fusion_bag_seconds': duration_s,
+        'fusion_input_messages': count,
+        'fusion_output_messages': outputs,
+        'fusion_cpu_seconds': round(cpu, 3),
+        'fusion_cpu_us_per_input_message': round(cpu / count * 1e6, 1),
+        'fusion_x_real_time_cpu': round(duration_s / cpu, 1),
+        'fusion_load_average_1min_start': round(load_start, 2),
+        'fusion_load_average_1min_end': round(os.getloadavg()[0], 2),
+    }
+
+
+if __name__ == '__main__':
+    print(run(quick='--quick' in sys.argv))
