@@ -140,3 +140,30 @@ def test_an_input_that_sent_nothing_does_not_claim_the_robot_stood_still():
         fusion.add_gyro(t, 0.0, 1e-6 * (k + 1))
         fusion.add_scan_match(t, (0.05 * k, 0.0, 0.0), np.diag([1e-4, 1e-4, 1e-5]) * (k + 1))
     assert fusion.state.pose[0] == pytest.approx(1.0, abs=1e-9)
+
+
+@pytest.mark.parametrize('eigenvalues, verdict', [
+    ((1.0, 2e-3, 1e-6), ''),                             # positive definite: the plain-float path
+    ((1.0, 2e-3, 0.0), ''),                              # singular (a still wheel): numpy's path
+    ((1.0, 2e-3, -0.5e-9), ''),                          # negative within 1e-9 of the scale
+    ((1.0, 2e-3, -2e-9), 'covariance is not positive semi-definite'),
+    ((1.0, -2e-3, 1e-6), 'covariance is not positive semi-definite'),
+])
+def test_covariance_problem_judges_the_eigenvalues_not_the_path(eigenvalues, verdict):
+    """The plain-float positive-definite test (_plainly_positive_definite) and the
+    eigendecomposition give one verdict: a rotated diagonal, eigenvalues known exactly enough."""
+    from sensing_nodes.core.fusion import _plainly_positive_definite, covariance_problem
+
+    c, s = math.cos(0.7), math.sin(0.7)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ \
+        np.array([[1.0, 0.0, 0.0], [0.0, math.cos(0.3), -math.sin(0.3)],
+                  [0.0, math.sin(0.3), math.cos(0.3)]])
+    cov = rotation @ np.diag(eigenvalues) @ rotation.T
+    cov = 0.5 * (cov + cov.T)
+    assert covariance_problem(cov) == verdict
+    if abs(min(eigenvalues)) > 1e-12:   # (exactly singular: rounding decides the path)
+        assert _plainly_positive_definite(cov.tolist()) == (min(eigenvalues) > 0.0)
+    asymmetric = cov.copy()
+    asymmetric[0, 1] += 1e-6
+    assert covariance_problem(asymmetric) == 'covariance is not symmetric'
+    assert covariance_problem(np.where(np.eye(3) > 0, np.nan, cov)) == 'covariance is not finite'
