@@ -187,3 +187,21 @@ def laser_scan(t_ns: int, ranges, frame_id: str = 'laser', angle_min: float = -3
     if intensities is not None:
         msg.intensities = float32_array(np.asarray(intensities, dtype=np.float32))
     return msg
+
+
+def carmen_pipeline(log: Path, tmp: Path) -> Path:
+    """docs/real-data.md's commands on a CARMEN log: carmen_to_bag into tmp/log, then
+    icp_matcher and the fusion (config/fusion_carmen.yaml) through sensing_pipeline into tmp/out,
+    which is returned."""
+    from sensing_nodes.paths import config_file
+    from sensing_nodes.tools import pipeline
+    from sensing_nodes.tools.carmen_to_bag import convert
+
+    convert(log, tmp / 'log')
+    assert pipeline.main([
+        str(tmp / 'log'), str(tmp / 'out'), '--nodes', 'icp_matcher,complementary_fusion',
+        '--remap', '/odom:=/wheel/odom', '--param', 'icp_matcher:laser_x_m:=0.0',
+        '--param', 'icp_matcher:max_gap_s:=60.0',
+        '--param', 'icp_matcher:odom_max_extrapolation_s:=1.0',
+        '--params-file', str(config_file('fusion_carmen.yaml')), '--no-progress']) == 0
+    return tmp / 'out'

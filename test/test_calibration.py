@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from harness import NodeProcess
+from harness import NodeProcess, carmen_pipeline
 
 from sensing_nodes.ros.bag import BagWriter, read_messages
 from sensing_nodes.core import sim
@@ -305,18 +305,9 @@ def test_odom_delay_on_the_carmen_logs(tmp_path, capsys, log):
     path = CARMEN / f'{log}-corrected.log.gz'
     if not path.exists():
         pytest.skip(f'{path} is not here')
-    from sensing_nodes.tools import pipeline
-    from sensing_nodes.tools.carmen_to_bag import convert
-
-    convert(path, tmp_path / 'log')
-    assert pipeline.main([
-        str(tmp_path / 'log'), str(tmp_path / 'out'), '--nodes', 'icp_matcher,complementary_fusion',
-        '--remap', '/odom:=/wheel/odom', '--param', 'icp_matcher:laser_x_m:=0.0',
-        '--param', 'icp_matcher:max_gap_s:=60.0',
-        '--param', 'icp_matcher:odom_max_extrapolation_s:=1.0',
-        '--params-file', str(config_file('fusion_carmen.yaml')), '--no-progress']) == 0
+    processed = carmen_pipeline(path, tmp_path)
     out = tmp_path / 'delay.yaml'
-    assert calibrate.main([str(tmp_path / 'out'), '--odom-delay', '--odom-topic', '/odom',
+    assert calibrate.main([str(processed), '--odom-delay', '--odom-topic', '/odom',
                            '--out', str(out)]) == 0
     report = yaml.safe_load(out.read_text())['sensing_calibrate']['ros__parameters']
     expected = {'aces': 0.044, 'freiburg-101': -0.155}[log]

@@ -3,8 +3,7 @@
 from pathlib import Path
 
 import pytest
-
-from sensing_nodes.paths import config_file
+from harness import carmen_pipeline
 
 CARMEN = Path(__file__).resolve().parents[1] / '..' / 'shared' / 'datasets' / 'carmen'
 FREIBURG = CARMEN / 'freiburg-101-corrected.log.gz'
@@ -19,18 +18,10 @@ def test_ekf_on_freiburg_101_is_no_worse_than_the_scan_matcher(tmp_path):
     reference, ATE at the reference's stamps): fused 0.032172 m / 0.23306 deg mean, 0.026634 m /
     0.14541 deg median, ATE 0.28159 m; matcher 0.032172 / 0.23306, 0.026627 / 0.14545, ATE
     0.28150 (fused 1.00035x: 0.1 mm, within the 0.1 %)."""
-    from sensing_nodes.tools import pipeline
-    from sensing_nodes.tools.carmen_to_bag import convert
     from sensing_nodes.tools.eval import evaluate
 
-    convert(FREIBURG, tmp_path / 'log')
-    assert pipeline.main([
-        str(tmp_path / 'log'), str(tmp_path / 'out'), '--nodes', 'icp_matcher,complementary_fusion',
-        '--remap', '/odom:=/wheel/odom', '--param', 'icp_matcher:laser_x_m:=0.0',
-        '--param', 'icp_matcher:max_gap_s:=60.0',
-        '--param', 'icp_matcher:odom_max_extrapolation_s:=1.0',
-        '--params-file', str(config_file('fusion_carmen.yaml')), '--no-progress']) == 0
-    report = evaluate(tmp_path / 'out', ['/odom', '/scan_match/odom', '/odometry/filtered'])
+    report = evaluate(carmen_pipeline(FREIBURG, tmp_path),
+                      ['/odom', '/scan_match/odom', '/odometry/filtered'])
     fused = report['estimates']['/odometry/filtered']
     for other in ('/scan_match/odom', '/odom'):
         for key in ('rpe_translation_mean_m', 'rpe_translation_median_m', 'rpe_rotation_mean_deg',

@@ -19,13 +19,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from sensing_nodes.bench.pipeline import executable, record_sim_bag
+
 PASSES = 3
-
-
-def _executable(name: str) -> str:
-    """The venv's console script beside the running Python (else the PATH's)."""
-    path = Path(sys.executable).parent / name
-    return str(path) if path.is_file() else name
 
 
 def fusion_pass(messages: list[tuple[str, bytes]]) -> tuple[float, int, int]:
@@ -56,9 +52,8 @@ def run(quick: bool = False) -> dict:
     duration_s = 60.0 if quick else 300.0
     with tempfile.TemporaryDirectory() as tmp:
         bag, inputs = Path(tmp) / 'bag', Path(tmp) / 'inputs'
-        subprocess.run([_executable('sensor_sim'), '--record', str(bag), '--duration',
-                        f'{duration_s:g}', '--seed', '5'], check=True, capture_output=True)
-        subprocess.run([_executable('sensing_pipeline'), str(bag), str(inputs), '--no-progress'],
+        record_sim_bag(bag, duration_s)
+        subprocess.run([executable('sensing_pipeline'), str(bag), str(inputs), '--no-progress'],
                        check=True, capture_output=True)
         messages = [(t, raw) for t, _, raw in load_bag(inputs).messages]
     load_start = os.getloadavg()[0]

@@ -18,10 +18,16 @@ import time
 from pathlib import Path
 
 
-def _executable(name: str) -> str:
+def executable(name: str) -> str:
     """The venv's console script beside the running Python (else the PATH's)."""
     path = Path(sys.executable).parent / name
     return str(path) if path.is_file() else name
+
+
+def record_sim_bag(bag: Path, duration_s: float) -> None:
+    """sensor_sim's default route (seed 5) recorded into `bag` for duration_s simulated s."""
+    subprocess.run([executable('sensor_sim'), '--record', str(bag), '--duration',
+                    f'{duration_s:g}', '--seed', '5'], check=True, capture_output=True)
 
 
 def _child_cpu_s() -> float:
@@ -34,11 +40,10 @@ def run(quick: bool = False) -> dict:
     duration_s = 60.0 if quick else 300.0
     with tempfile.TemporaryDirectory() as tmp:
         bag, out = Path(tmp) / 'bag', Path(tmp) / 'out'
-        subprocess.run([_executable('sensor_sim'), '--record', str(bag), '--duration',
-                        f'{duration_s:g}', '--seed', '5'], check=True, capture_output=True)
+        record_sim_bag(bag, duration_s)
         load_start = os.getloadavg()[0]
         cpu0, wall0 = _child_cpu_s(), time.monotonic()
-        result = subprocess.run([_executable('sensing_pipeline'), str(bag), str(out),
+        result = subprocess.run([executable('sensing_pipeline'), str(bag), str(out),
                                  '--no-progress'], capture_output=True, text=True)
         cpu, wall = _child_cpu_s() - cpu0, time.monotonic() - wall0
         if result.returncode != 0:
