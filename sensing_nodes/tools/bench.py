@@ -66,10 +66,11 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if area == 'graph':
                 figures = demo_figures(args.quick)
-                # The processing nodes in one process (sensing_graph), allowed up to 10x (the
-                # demo is paced by the fused output: it runs as fast as the machine allows).
-                one = demo_figures(args.quick, ('--one-process', '--rate', '10'))
-                figures.update({f'one_process_rate_10_{k}': v for k, v in one.items()
+                # The processing nodes in one process (sensing_graph), allowed up to 20x (the
+                # demo is paced by the fused output: it runs as fast as the machine allows; a
+                # cap of 10x itself reached only 9.1x, the pacing's own slack).
+                one = demo_figures(args.quick, ('--one-process', '--rate', '20'))
+                figures.update({f'one_process_rate_20_{k}': v for k, v in one.items()
                                 if k in ('error', 'real_time_factor', 'scans_published',
                                          'scans_matched', 'scans_lines')})
             else:
