@@ -2,10 +2,12 @@
 
 import os
 
+from sensing_nodes.ros.graph import pid_domain_id   # (imports no rclpy)
+
 # Before rclpy creates a context: stay on this machine, and use a domain of this run's own so
 # parallel runs (and other developers' runs) on one machine never see each other.
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 200))
+os.environ.setdefault('ROS_DOMAIN_ID', str(pid_domain_id('tests')))
 
 import subprocess  # noqa: E402
 import sys  # noqa: E402

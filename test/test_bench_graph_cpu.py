@@ -2,6 +2,7 @@
 node takes in, from the simulator's parameter file, and CPU time read from /proc."""
 
 import os
+import time
 
 from sensing_nodes.bench.graph_cpu import _cpu_seconds, _memory_mb, input_rates
 
@@ -15,9 +16,14 @@ def test_input_rates_follow_the_simulator_rates():
 
 
 def test_cpu_seconds_of_this_process_and_of_none():
+    """CPU time (clock ticks of 10 ms in /proc) grows while this process computes: work until it
+    does, within 5 s (one fixed loop of ~10 ms stayed within one tick on a fast CPU)."""
     spent = _cpu_seconds(os.getpid())
-    sum(i * i for i in range(200_000))
-    assert spent is not None and _cpu_seconds(os.getpid()) > spent
+    assert spent is not None
+    deadline = time.monotonic() + 5.0
+    while _cpu_seconds(os.getpid()) <= spent and time.monotonic() < deadline:
+        sum(i * i for i in range(200_000))
+    assert _cpu_seconds(os.getpid()) > spent
     assert _cpu_seconds(2 ** 22 + 12345) is None   # beyond pid_max: no such process
 
 

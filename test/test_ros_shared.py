@@ -56,3 +56,18 @@ def test_bag_round_trip_with_both_readers(tmp_path):
     theirs = list(read_ros2_messages(str(next(path.glob('*.mcap')))))
     assert len(theirs) == 2 and theirs[1].ros_msg.pose.pose.position.x == 1.0
     assert theirs[0].channel.topic == '/wheel/odom'
+
+
+def test_pid_domains_of_tools_benches_and_tests_never_meet():
+    """Each kind of user takes its pid-derived ROS domain from its own range, within Fast DDS's
+    0-232: a demo never joins a running benchmark's or test run's domain."""
+    from sensing_nodes.ros.graph import DOMAIN_RANGES, pid_domain_id
+
+    taken = {kind: {pid_domain_id(kind, offset) for offset in range(300)}
+             for kind in DOMAIN_RANGES}
+    for kind, (low, high) in DOMAIN_RANGES.items():
+        assert taken[kind] == set(range(low, high + 1)) and 0 <= low and high <= 232
+    kinds = list(taken)
+    for i, a in enumerate(kinds):
+        for b in kinds[i + 1:]:
+            assert not taken[a] & taken[b], (a, b)

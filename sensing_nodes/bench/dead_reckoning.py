@@ -28,6 +28,7 @@ from sensing_nodes.core.wheel_odometry import (
 )
 from sensing_nodes.core.world import load_world
 from sensing_nodes.paths import config_file
+from sensing_nodes.ros.graph import pid_domain_id
 
 JOINTS = ('left_wheel_joint', 'right_wheel_joint')
 
@@ -124,7 +125,7 @@ def _dds_check(executable: str, seconds: float, rate_hz: float) -> dict:
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
     env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
-    env.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 200))
+    env.setdefault('ROS_DOMAIN_ID', str(pid_domain_id('bench', 2)))
     os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
     exe = Path(sys.executable).parent / executable
     log = tempfile.NamedTemporaryFile('w+', suffix='.log')

@@ -29,7 +29,7 @@ import yaml
 
 from sensing_nodes.paths import config_file
 
-from sensing_nodes.ros.graph import ONE_PROCESS, PROCESSING_NODES
+from sensing_nodes.ros.graph import ONE_PROCESS, PROCESSING_NODES, pid_domain_id
 
 
 def input_rates(sim_overrides: dict[str, float] | None = None) -> dict[str, float]:
@@ -105,7 +105,7 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
 
     bin_dir = Path(sys.executable).parent
     env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
-           'ROS_DOMAIN_ID': str(150 + os.getpid() % 80)}
+           'ROS_DOMAIN_ID': str(pid_domain_id('bench'))}
     scan_consumers = sum(n in nodes for n in ('line_extractor', 'icp_matcher'))
     sim_args = ['-p', f'real_time_factor:={rate}', '-p', 'duration_s:=3600.0',
                 '-p', f'wait_for_scan_subscribers:={scan_consumers}']
@@ -206,7 +206,7 @@ def relay_floor(rate_hz: float, window_s: float) -> dict:
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
     env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
-           'ROS_DOMAIN_ID': str(150 + (os.getpid() + 1) % 80)}
+           'ROS_DOMAIN_ID': str(pid_domain_id('bench', 1))}
     os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
     proc = subprocess.Popen([sys.executable, '-m', 'sensing_nodes.bench.graph_cpu', '--relay'],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,

@@ -160,6 +160,19 @@ def executable(name: str) -> str:
     return found
 
 
+# The ROS domain a process takes from its pid when none is given: one range per kind of user,
+# so a tool's graph never shares a domain with a benchmark's or the tests' running at the same
+# time (a demo and a benchmark on one domain once counted each other's scans). Fast DDS takes
+# domain ids up to 232.
+DOMAIN_RANGES = {'tests': (1, 99), 'tools': (100, 199), 'bench': (200, 229)}
+
+
+def pid_domain_id(kind: str, offset: int = 0) -> int:
+    """A ROS domain id (int) from this process's pid (+ offset) within kind's DOMAIN_RANGES."""
+    low, high = DOMAIN_RANGES[kind]
+    return low + (os.getpid() + offset) % (high - low + 1)
+
+
 def isolated_environment(domain_id: int | None, offset: int = 0) -> dict[str, str]:
     """This process's environment for a graph of its own: this machine only, and the given
     ROS_DOMAIN_ID or one derived from the pid (offset keeps two tools started together apart);
@@ -167,7 +180,7 @@ def isolated_environment(domain_id: int | None, offset: int = 0) -> dict[str, st
     env = dict(os.environ)
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     env['ROS_DOMAIN_ID'] = str(domain_id if domain_id is not None
-                               else 100 + (os.getpid() + offset) % 100)
+                               else pid_domain_id('tools', offset))
     os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
     return env
 
