@@ -1,7 +1,7 @@
 """sensing_graph: the five processing nodes in one process, each with its own name, parameters
-and remappings (nothing leaks from one node to another), over real DDS; the same outputs as
-separate processes in a lockstep replay of a shipped bag; bad parameters exit 2; SIGTERM stops
-it cleanly."""
+and remappings (nothing leaks from one node to another), over real DDS; bad parameters exit 2;
+SIGTERM stops it cleanly; the demo in one process. (Its lockstep replay of a shipped bag,
+reproducing the recording: test_replay.py.)"""
 
 from __future__ import annotations
 
@@ -10,12 +10,10 @@ import signal
 import subprocess
 import sys
 import tempfile
-from pathlib import Path
 
-from harness import BIN, REPO, spin_until
+from harness import BIN, spin_until
 from rcl_interfaces.srv import GetParameters
 from rclpy.parameter import parameter_value_to_python
-from test_replay import _assert_reproduces, _replay
 
 from sensing_nodes.ros.graph import PROCESSING_NODES
 
@@ -83,14 +81,9 @@ def test_a_bad_parameter_of_any_node_exits_2_naming_node_and_parameter():
         assert result.returncode == 2 and 'sensing_graph: error' in result.stderr, (bad, result)
 
 
-def test_lockstep_replay_in_one_process_reproduces_the_recorded_outputs(tmp_path):
-    out, logs = tmp_path / 'out', tmp_path / 'logs'
-    result = _replay([str(REPO / 'bags' / 'strong_errors'), str(out), '--launch',
-                      '--one-process', '--logs', str(logs)])
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert 'MISSING' not in result.stdout
-    _assert_reproduces(REPO / 'bags' / 'strong_errors', out)
-    assert [p.name for p in Path(logs, 'logs').iterdir()] == ['sensing_graph.log']
+# The lockstep replay through one sensing_graph process reproducing the recorded bag (with
+# --check, under a forced OpenBLAS kernel): test_replay.py's
+# test_strong_errors_bag_reproduced_under_two_blas_kernels[0].
 
 
 def test_demo_in_one_process_scores_every_estimate(tmp_path):

@@ -119,19 +119,24 @@ def kernels():
 def test_strong_errors_bag_reproduced_under_two_blas_kernels(tmp_path, kernels, kernel):
     """The recorded-bag check passes whichever OpenBLAS kernel the nodes' code runs (the bag
     was recorded on another CPU or kernel): CPU independence, within the tolerance. The first
-    kernel runs the lockstep replay through the node processes with --check, the second the
-    same nodes' code without DDS (sensing_pipeline, whose outputs equal the replay's:
+    kernel runs the lockstep replay with --check through the five nodes in one sensing_graph
+    process (--one-process: the nodes as a component container holds them; the five-process
+    replay is test_nominal_bag_reproduced_twice_back_to_back_with_every_node_reset), the second
+    the same nodes' code without DDS (sensing_pipeline, whose outputs equal the replay's:
     test_pipeline.py), which takes a tenth of the time."""
     coretype = kernels[kernel]
-    out = tmp_path / 'out'
+    out, logs = tmp_path / 'out', tmp_path / 'logs'
     if kernel == 0:
         result = run_to_exit('sensing_replay', [str(BAGS / 'strong_errors'), str(out), '--launch',
-                                                '--check', '--no-progress'], timeout=150.0,
+                                                '--one-process', '--logs', str(logs), '--check',
+                                                '--no-progress'], timeout=150.0,
                              env={'OPENBLAS_CORETYPE': coretype})
         assert result.returncode == 0, (coretype, result.stdout + result.stderr)
+        assert 'MISSING' not in result.stdout
         # --check compares every output the bag holds: OUTPUTS and the fusion's /tf.
         assert result.stdout.count('reproduced:') == len(OUTPUTS) + 1 \
             and 'DIFFERS' not in result.stdout
+        assert [p.name for p in Path(logs, 'logs').iterdir()] == ['sensing_graph.log']
     else:
         result = run_to_exit('sensing_pipeline', [str(BAGS / 'strong_errors'), str(out),
                                                   '--no-progress'], timeout=150.0,
