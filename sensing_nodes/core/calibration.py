@@ -725,10 +725,15 @@ class TimeOffset:
     turned_rad: float
 
     @property
+    def cost_at_zero_rad(self) -> float:
+        """The disagreement with no offset (rad)."""
+        return float(np.interp(0.0, self.grid_s, self.cost_rad))
+
+    @property
     def two_sided(self) -> bool:
         """The disagreement also falls well below its value at 0 on the other side of 0: no
         single delay explains it (e.g. odometry re-anchored at the scans, docs/calibration.md)."""
-        at_zero = float(np.interp(0.0, self.grid_s, self.cost_rad))
+        at_zero = self.cost_at_zero_rad
         other = self.cost_rad[self.grid_s * self.delay_s < 0.0]
         drop = at_zero - float(self.cost_rad.min())
         return other.size > 0 and drop > 0.0 and at_zero - float(other.min()) > 0.5 * drop
@@ -793,13 +798,13 @@ def odometry_delay(odom_t: NDArray[np.int64], odom_yaw: NDArray[np.float64],
     keep = max(1, int(math.floor((1.0 - trim) * len(pairs))))
     cost = _trimmed_rms(residual, keep)
     delay = _grid_minimum(grid, cost)
+    if abs(delay) >= max_delay_s:
+        raise CalibrationError(f'the best agreement lies at the edge of the searched offsets '
+                               f'(+-{max_delay_s:g} s): widen the search')
     rng = np.random.default_rng(0)
     draws = []
     for _ in range(bootstrap):
         sample = residual[:, rng.integers(0, len(pairs), len(pairs))]
         draws.append(_grid_minimum(grid, _trimmed_rms(sample, keep)))
     std = float(np.std(draws)) if draws else float('nan')
-    if abs(delay) >= max_delay_s:
-        raise CalibrationError(f'the best agreement lies at the edge of the searched offsets '
-                               f'(+-{max_delay_s:g} s): widen the search')
     return TimeOffset(delay, std, grid, cost, len(pairs), turned)

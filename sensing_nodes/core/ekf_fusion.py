@@ -459,12 +459,12 @@ class EkfFusion:
                 # heading delay is applied when one is (_flush).
                 self._pending[name] = reading
                 return _HELD
-            reading = _delayed(cfg, reading)
+            reading = _with_heading_delay(cfg, reading)
             self._flush()
             self.predict(reading.stamp_ns)
             self._clone(slot, reading=reading)
             return Outcome(note='first message of this differential input (or after a gap)')
-        reading = _delayed(cfg, reading)
+        reading = _with_heading_delay(cfg, reading)
         self._flush()
         self.predict(reading.stamp_ns)
         outcomes = []
@@ -489,7 +489,7 @@ class EkfFusion:
         while self._pending:
             name = min(self._pending, key=lambda n: self._pending[n].stamp_ns)
             cfg = self.inputs[name]
-            reading = _delayed(cfg, self._pending.pop(name))
+            reading = _with_heading_delay(cfg, self._pending.pop(name))
             self.predict(reading.stamp_ns)
             outcome = self._differential(cfg, reading)
             if outcome.gated:
@@ -654,7 +654,7 @@ class EkfFusion:
                              cfg.gate_chi2)
 
 
-def _delayed(cfg: InputConfig, reading: Reading) -> Reading:
+def _with_heading_delay(cfg: InputConfig, reading: Reading) -> Reading:
     """The reading with its yaw read as yaw + yaw rate x cfg.heading_delay_s (a heading that
     lags its stamp)."""
     if cfg.heading_delay_s and reading.pose is not None and reading.twist is not None:

@@ -264,7 +264,6 @@ def delay_yaml(result: cal.TimeOffset, bag: str, odom_topic: str, match_topic: s
     """Parameter YAML of an odometry delay estimate: the fusion's wheel_odom input and the
     matcher's odometry guess, plus the estimate's figures."""
     delay = round(result.delay_s, 4)
-    at_zero = float(np.interp(0.0, result.grid_s, result.cost_rad))
     doc = {
         'complementary_fusion': {'ros__parameters': {'wheel_odom': {'delay_s': delay}}},
         'icp_matcher': {'ros__parameters': {'odom_delay_s': delay}},
@@ -272,7 +271,7 @@ def delay_yaml(result: cal.TimeOffset, bag: str, odom_topic: str, match_topic: s
             'bag': bag, 'odom_topic': odom_topic, 'match_topic': match_topic,
             'odom_delay_s': float(result.delay_s), 'odom_delay_std_s': float(result.std_s),
             'intervals': result.intervals, 'turned_deg': math.degrees(result.turned_rad),
-            'yaw_disagreement_at_zero_deg': math.degrees(at_zero),
+            'yaw_disagreement_at_zero_deg': math.degrees(result.cost_at_zero_rad),
             'yaw_disagreement_at_delay_deg': math.degrees(float(result.cost_rad.min())),
             'two_sided': bool(result.two_sided)}},
     }
@@ -288,10 +287,9 @@ def run_delay(args: argparse.Namespace) -> int:
           f'matches on {args.match_topic}')
     result = cal.odometry_delay(odom_t, odom_yaw, match_t, match_yaw,
                                 max_delay_s=args.max_delay)
-    at_zero = float(np.interp(0.0, result.grid_s, result.cost_rad))
     print(f'odometry delay: {result.delay_s:.4f} +- {result.std_s:.4f} s ({result.intervals} '
           f'intervals, {math.degrees(result.turned_rad):.0f} deg turned); yaw-increment '
-          f'disagreement {math.degrees(at_zero):.3f} deg at 0, '
+          f'disagreement {math.degrees(result.cost_at_zero_rad):.3f} deg at 0, '
           f'{math.degrees(float(result.cost_rad.min())):.3f} deg at the delay')
     if result.two_sided:
         print('  note: the disagreement also drops on the other side of 0: no single delay '
