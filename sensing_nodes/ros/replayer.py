@@ -16,12 +16,14 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 from sensing_nodes.ros.cdr import SEQUENCE_OF_STAMPED, first_element_stamp_ns, leading_stamp_ns
 from sensing_nodes.ros.graph import (
-    ANSWERS, CLOCK, DIAGNOSTICS, FUSED, JOINT_STATES, NODES, PROCESSING_NODES, SCAN, SENSOR_TOPICS, TF,
-    WALL_PERIODIC_TOPICS, Graph, GraphArgumentError, params_file_path,
+    ANSWERS, CLOCK, DIAGNOSTICS, FUSED, JOINT_STATES, NODES, PROCESSING_NODES, SCAN, SCAN_MATCH,
+    SENSOR_TOPICS, TF, WALL_PERIODIC_TOPICS, WHEEL_ODOM, Graph, GraphArgumentError,
+    params_file_path,
 )
 from sensing_nodes.ros.input_bag import (
     InputBag, InputBagError, PassResult, check_inputs, discard, load_bag, stamped_topics,
@@ -49,12 +51,27 @@ MAX_OUTSTANDING_LATER = 50
 # it; the end of a pass then waits for quiet a second longer than the flush can take (its
 # timer looks every flush_after_s / 2).
 LOCKSTEP_FUSION_FLUSH_S = 2.0
+# The fusion answers each of these inputs with a message carrying its stamp, in stamp order, and
+# its idle flush answers everything it holds at once: once the answer to the latest of them is
+# in, no flush is still to come and the end of a pass needs only the ordinary quiet.
+FUSION_ANSWERED = (WHEEL_ODOM, SCAN_MATCH)
 # Outputs that are not 1:1 with an input: recorded as they come.
 DEFAULT_EXTRA_OUTPUTS = (FUSED, DIAGNOSTICS, TF)
 
 
 class ReplayError(InputBagError):
     """Bad input or a graph that did not come up: the message names the file and topic."""
+
+
+@dataclass(frozen=True)
+class FlushWait:
+    """The end of a lockstep pass through a node that buffers its inputs: `output` answers each
+    of `sources` with its stamp once flushed; without the answer to the latest, wait until
+    nothing has arrived for quiet_s (longer than the node's idle flush can take)."""
+
+    output: str
+    sources: tuple[str, ...]
+    quiet_s: float
 
 
 class Replayer:
@@ -88,6 +105,8 @@ class Replayer:
         self.outputs = outputs
         self.seen: dict[tuple[str, int], int] = defaultdict(int)
         self.arrivals = 0
+        # Latest stamp (ns) per topic in this pass, published or received (see flush_wait).
+        self.latest_stamp_ns: dict[str, int] = {}
         self.current: PassResult | None = None
         listeners = {t: (lambda raw, stamp, wall, t=t: self._on_output(t, raw, stamp))
                      for t in outputs}
@@ -118,6 +137,7 @@ class Replayer:
         if topic not in WALL_PERIODIC_TOPICS:
             self.arrivals += 1
         self.seen[(topic, stamp)] += 1
+        self.latest_stamp_ns[topic] = max(stamp, self.latest_stamp_ns.get(topic, stamp))
         if self.current is not None:
             self.current.outputs[topic].append((stamp, bytes(raw)))
 
@@ -186,6 +206,20 @@ class Replayer:
 
         spin_until_quiet(self.executor, lambda: self.arrivals, quiet_s, timeout_s)
 
+    def wait_for_flush(self, wait: FlushWait, timeout_s: float = 60.0) -> None:
+        """Until wait.output carries a stamp at least the latest of wait.sources (the buffering
+        node has answered everything it holds), or nothing has arrived for wait.quiet_s."""
+        latest = [self.latest_stamp_ns[t] for t in wait.sources if t in self.latest_stamp_ns]
+        target = max(latest) if latest else math.inf
+        deadline = time.monotonic() + timeout_s
+        quiet_since, seen = time.monotonic(), self.arrivals
+        while self.latest_stamp_ns.get(wait.output, -1) < target \
+                and time.monotonic() - quiet_since < wait.quiet_s \
+                and time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+            if self.arrivals != seen:
+                quiet_since, seen = time.monotonic(), self.arrivals
+
     def close(self) -> None:
         self.node.destroy_node()
         self._rclpy.try_shutdown()
@@ -195,11 +229,13 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
               timeout_s: float, quiet_s: float, progress: str | None,
               settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
               settle_s: float = 0.002,
-              settle_before: dict[str, float] | None = None) -> PassResult:
+              settle_before: dict[str, float] | None = None,
+              flush: FlushWait | None = None) -> PassResult:
     """One pass over the bag's inputs; returns what the graph published during it."""
     settle_before = DEFAULT_SETTLE_BEFORE if settle_before is None else settle_before
     result = PassResult()
     replayer.current = result
+    replayer.latest_stamp_ns = {}
     started = time.monotonic()
     todo = [(t, s, raw) for t, s, raw in bag.messages if t in inputs]
     # The outputs carry the input's header stamp, which a bag recorded by ROS tools has apart
@@ -219,6 +255,9 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
         replayer.publishers[topic].publish(raw)
         stamp = leading_stamp_ns(raw) if topic in stamped else stamp   # what the outputs carry
         replayer.input_stamp_ns = stamp
+        published = replayer.publishers[topic].topic_name
+        replayer.latest_stamp_ns[published] = max(stamp, replayer.latest_stamp_ns.get(published,
+                                                                                   stamp))
         result.inputs_published += 1
         if mode == 'lockstep':
             expected = replayer.expectations.get(topic, ())
@@ -270,6 +309,8 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
     deadline = time.monotonic() + timeout_s   # the answers still outstanding, then quiet
     while any(replayer.seen[k] < 1 for k in deferred_pending) and time.monotonic() < deadline:
         replayer.spin(0.02)
+    if flush is not None:
+        replayer.wait_for_flush(flush)
     replayer.drain(quiet_s)
     for o, stamp in deferred_pending:
         if replayer.seen[(o, stamp)] < 1:
@@ -325,6 +366,7 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
         staging.mkdir(parents=True)
 
     graph = None
+    flush = None       # the fusion's end of pass, when it is launched in lockstep
     succeeded = False
     log_dir = Path(tempfile.mkdtemp(prefix='sensing_replay-')) if logs is None else Path(logs)
     replayer = None
@@ -349,7 +391,8 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                     # without input; a lockstep wait that long (a scan match on an overloaded
                     # machine) would flush before the match arrives and change the outputs.
                     extra = ['-p', f'flush_after_s:={LOCKSTEP_FUSION_FLUSH_S}', *extra]
-                    quiet_s = max(quiet_s, 1.5 * LOCKSTEP_FUSION_FLUSH_S + 1.0)
+                    flush = FlushWait(FUSED, FUSION_ANSWERED,
+                                      max(quiet_s, 1.5 * LOCKSTEP_FUSION_FLUSH_S + 1.0))
                 extras[name] = extra
             if one_process:
                 graph.start_one_process(nodes, extras)
@@ -377,13 +420,14 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
             # the warm-up played.
             play_pass(replayer, warm_up_bag(bag, set(expectations), warmup_s),
                       set(expectations), 'lockstep', rate, timeout_s, quiet_s,
-                      'warm-up: ' if progress else None, settle_after, settle_s, settle_before)
+                      'warm-up: ' if progress else None, settle_after, settle_s, settle_before,
+                      flush)
         results = []
         for k in range(loops):
             label = f'pass {k + 1}/{loops}: ' if loops > 1 else ''
             results.append(play_pass(replayer, bag, set(expectations), mode, rate, timeout_s,
                                      quiet_s, label if progress else None, settle_after,
-                                     settle_s, settle_before))
+                                     settle_s, settle_before, flush))
             if graph is not None and graph.failed():
                 raise ReplayError(f'node(s) exited during the replay: {", ".join(graph.failed())}; '
                                   f'logs in {log_dir / "logs"}')
