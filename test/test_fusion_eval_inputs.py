@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sensing_nodes.core.fusion_eval import (
-    heading_increment_consistency, keyframe_match_consistency,
+    heading_increment_consistency, keyframe_match_consistency, stop_corrections,
 )
 
 T0 = 1_700_000_000 * 10 ** 9
@@ -51,3 +51,26 @@ def test_keyframe_matches_distance_heading_z_and_shared_error():
                                      np.vstack([relative, [1.0, 1.0, 1.0]]),
                                      np.vstack([cov, cov[:1]]))
     assert out['mean_distance2'] == pytest.approx(1.0)
+
+
+def test_stop_corrections_drift_before_and_after_a_stop():
+    truth_t, truth_pose = _still_truth(20.0)
+    t = T0 + np.arange(4001, dtype=np.int64) * 5 * 10 ** 6                   # 200 Hz, 20 s
+    seconds = (t - T0) * 1e-9
+    # The robot stands still throughout: the integrator's heading drifts at 1e-4 rad/s until a
+    # stop at 12-14 s, where its re-estimate brings it to 2e-4 rad and it stays there.
+    yaw = np.where(seconds < 12.0, 1e-4 * seconds, 2e-4)
+    still = (seconds < 6.0) | ((seconds >= 12.0) & (seconds <= 14.0))
+    bias = np.where(seconds < 12.0, 0.01, 0.0101)
+    variance = np.where(seconds < 12.0, 1e-9, 4e-10)
+    out = stop_corrections(truth_t, truth_pose, t, yaw, bias, variance, still)
+    assert len(out) == 1                        # the first still period is the calibration
+    stop = out[0]
+    assert stop['start_s'] == pytest.approx(12.0)
+    assert stop['end_s'] == pytest.approx(14.0)
+    # 0.6 s before the stop: 1e-4 rad/s x 11.4 s = 1.14e-3 rad.
+    assert stop['heading_error_before_deg'] == pytest.approx(math.degrees(1.14e-3))
+    assert stop['heading_error_after_deg'] == pytest.approx(math.degrees(2e-4))
+    assert stop['bias_change_rad_s'] == pytest.approx(1e-4)
+    assert stop['bias_std_before_rad_s'] == pytest.approx(math.sqrt(1e-9))
+    assert stop['bias_std_after_rad_s'] == pytest.approx(2e-5)

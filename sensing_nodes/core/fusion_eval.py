@@ -215,6 +215,34 @@ def heading_increment_consistency(truth_t, truth_pose, t, yaw, variance_per_s: f
 
 
 
+def stop_corrections(truth_t, truth_pose, t, yaw, bias, bias_variance, still,
+                     lead_s: float = 0.6) -> list[dict[str, float]]:
+    """What an integrating gyro's re-estimates at stops did to its heading (rad, stamps ns,
+    bias rad/s): for every still period after the first (the first calibration), its start and
+    end (s after the truth's first stamp), the heading error (deg, against ground truth) lead_s
+    before it (ahead of the stillness window's step back) and at its end, the change of the
+    bias estimate (rad/s) and its standard deviation before and at the end (rad/s)."""
+    t, still = np.asarray(t), np.asarray(still, dtype=bool)
+    origin = tuple(truth_pose[0])
+    reference = interpolate_poses(truth_t, truth_pose, t)
+    estimate = express_in_reference_frame(
+        origin, np.column_stack([np.zeros((t.size, 2)), np.asarray(yaw)]))
+    error = np.degrees(se2.wrap_angle(estimate[:, 2] - reference[:, 2]))
+    edges = np.diff(np.concatenate([[0], still.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
+    out = []
+    for first, last in list(zip(starts, ends))[1:]:
+        before = int(np.searchsorted(t, t[first] - int(lead_s * 1e9)))
+        out.append({'start_s': float((t[first] - truth_t[0]) * 1e-9),
+                    'end_s': float((t[last] - truth_t[0]) * 1e-9),
+                    'heading_error_before_deg': float(error[before]),
+                    'heading_error_after_deg': float(error[last]),
+                    'bias_change_rad_s': float(bias[last] - bias[before]),
+                    'bias_std_before_rad_s': float(math.sqrt(bias_variance[before])),
+                    'bias_std_after_rad_s': float(math.sqrt(bias_variance[last]))})
+    return out
+
+
 def _rounded(figures: dict[str, float]) -> dict[str, float]:
     return {k: round(v, 4) if abs(v) >= 1e-3 else float(f'{v:.2e}') for k, v in figures.items()}
 
@@ -272,8 +300,18 @@ def main(argv: list[str] | None = None) -> int:
                 row['scan_matches'] = keyframe_match_consistency(
                     inputs.truth_t, inputs.truth_pose, inputs.scan_keyframe_t, inputs.scan_t,
                     inputs.scan_relative, inputs.scan_relative_cov)
+                row['stop_corrections'] = stop_corrections(
+                    inputs.truth_t, inputs.truth_pose, inputs.gyro_t, inputs.gyro_yaw,
+                    inputs.gyro_bias, inputs.gyro_bias_var, inputs.gyro_still)
                 print('  gyro 0.1 s increments:', _rounded(row['gyro_increments']),
                       '| scan matches:', _rounded(row['scan_matches']), flush=True)
+                for stop in row['stop_corrections']:
+                    print(f"  integrator at the stop {stop['start_s']:.1f}-{stop['end_s']:.1f} s:"
+                          f" heading error {stop['heading_error_before_deg']:+.3f} -> "
+                          f"{stop['heading_error_after_deg']:+.3f} deg, bias "
+                          f"{stop['bias_change_rad_s']:+.1e} rad/s (std "
+                          f"{stop['bias_std_before_rad_s']:.1e} -> "
+                          f"{stop['bias_std_after_rad_s']:.1e})", flush=True)
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(rows, f, indent=1)

@@ -42,6 +42,9 @@ class FusionInputs:
     gyro_yaw_var: NDArray[np.float64]        # its variance (rad^2)
     gyro_rate: NDArray[np.float64]           # bias-corrected z rate (rad/s)
     raw_rate: NDArray[np.float64]            # the IMU's z rate before any correction (rad/s)
+    gyro_bias: NDArray[np.float64]           # the integrator's z bias estimate (rad/s)
+    gyro_bias_var: NDArray[np.float64]       # its variance (rad^2/s^2)
+    gyro_still: NDArray[np.bool_]            # the integrator stood still (heading corrections)
     scan_t: NDArray[np.int64]
     scan_pose: NDArray[np.float64]           # (S, 3) cumulative matcher pose
     scan_cov: NDArray[np.float64]            # (S, 3, 3)
@@ -71,7 +74,7 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
         laser_pose=(params.laser_x_m, params.laser_y_m, params.laser_yaw_rad)))
     buffer = OdometryBuffer(max_age_s=10.0, max_extrapolation_s=0.1)
     wt, wp, wc, wtw = [], [], [], []
-    gt, gy, gv, gr, raw = [], [], [], [], []
+    gt, gy, gv, gr, raw, gb, gbv, gs = [], [], [], [], [], [], [], []
     st, sp, sc, skt, srel, src, snew = [], [], [], [], [], [], []
     angles = run.scan_angles
     # Same-stamp order as the graph delivers it closely enough: joints, IMU, then scans.
@@ -98,6 +101,9 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
                 gv.append(integrator.heading_variance)
                 gr.append(float(integrator.rate[2]))
                 raw.append(float(run.imu_gyro[i][2]))
+                gb.append(float(integrator.bias[2]))
+                gbv.append(integrator.p_bias)
+                gs.append(integrator.still)
         else:
             points, _ = scan_to_points(run.scan_ranges[i], angles, run.scan_range_min,
                                        run.scan_range_max)
@@ -119,7 +125,8 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
         wheel_t=np.array(wt, dtype=np.int64), wheel_pose=np.array(wp), wheel_cov=np.array(wc),
         wheel_twist=np.array(wtw),
         gyro_t=np.array(gt, dtype=np.int64), gyro_yaw=np.array(gy), gyro_yaw_var=np.array(gv),
-        gyro_rate=np.array(gr), raw_rate=np.array(raw),
+        gyro_rate=np.array(gr), raw_rate=np.array(raw), gyro_bias=np.array(gb),
+        gyro_bias_var=np.array(gbv), gyro_still=np.array(gs, dtype=bool),
         scan_t=np.array(st, dtype=np.int64), scan_pose=np.array(sp), scan_cov=np.array(sc),
         scan_keyframe_t=np.array(skt, dtype=np.int64), scan_relative=np.array(srel),
         scan_relative_cov=np.array(src).reshape(-1, 3, 3),
