@@ -219,3 +219,19 @@ def test_heading_delay_reads_the_yaw_as_the_heading_that_long_before_its_stamp()
     assert run(0.01) == pytest.approx(0.51, abs=1e-4)
     bad = input_config('imu', {'heading_delay_s': -0.1})
     assert [field for field, _, _ in bad.problems()] == ['heading_delay_s']
+
+
+def test_heading_variance_flow_adds_growth_and_reduction():
+    """The chatter measure's step variance (fusion_eval): a heading set with variance 0.01,
+    1 s of prediction with pose noise 0.1 rad/√s adds 0.01 (variance 0.02), then a second
+    heading of variance 0.02 halves it to 0.01: the flow is 0.01 + 0.01 = 0.02, where the
+    variance itself went back to where it started."""
+    settings = EkfSettings(pose_noise_density=0.1, accel_noise_density=1e-9,
+                           angular_accel_noise_density=1e-9, initial_velocity_std=1e-9)
+    ekf = EkfFusion((absolute('a', 'yaw'), absolute('b', 'yaw')), settings)
+    ekf.update('a', Reading(T0, (0.0, 0.0, 0.1), np.diag([1.0, 1.0, 0.01])))
+    assert ekf.heading_variance_flow == 0.0               # the first reading sets the state
+    ekf.update('b', Reading(T0 + 1_000_000_000, (0.0, 0.0, 0.4), np.diag([1.0, 1.0, 0.02])))
+    assert ekf.state.covariance[2, 2] == pytest.approx(0.01, abs=1e-9)
+    assert ekf.state.pose[2] == pytest.approx(0.25, abs=1e-9)
+    assert ekf.heading_variance_flow == pytest.approx(0.02, abs=1e-9)

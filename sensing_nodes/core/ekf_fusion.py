@@ -303,6 +303,10 @@ class EkfFusion:
         self._initialized = False                # an absolute reading has set the state
         self.updates = 0
         self.gated: dict[str, int] = {}          # readings refused by the Mahalanobis gate
+        # Sum of |change| of the heading variance over every prediction and correction (rad²):
+        # between two outputs, the variance of the heading's step error (growth by prediction
+        # plus reduction by a correction, K·P); what a step is compared with (chatter).
+        self.heading_variance_flow = 0.0
 
     def set_pose(self, pose: Pose2, covariance: NDArray[np.float64]) -> None:
         """Put the robot at pose with the given covariance; velocities and bias are kept, every
@@ -382,9 +386,11 @@ class EkfFusion:
         self.x[Y] += (vx * si + vy * c) * dt
         self.x[YAW] = _wrap(yaw + wz * dt)
         p = self.p
+        yaw_variance = p[YAW, YAW]
         p[:3, :] = f @ p[:BASE, :]
         p[:, :3] = p[:, :BASE] @ f.T
         p[self._diagonal] += self._q_diagonal * dt
+        self.heading_variance_flow += abs(float(p[YAW, YAW] - yaw_variance))
         self.stamp_ns = stamp_ns
 
     def _correct(self, residual: NDArray, h: NDArray, r: NDArray, gate_chi2: float) -> Outcome:
@@ -406,7 +412,9 @@ class EkfFusion:
         self._inject(k @ residual)
         # P - K H P - (K H P)' + K S K': the covariance of any gain, not only the optimal one.
         khp = k @ ph.T
+        yaw_variance = self.p[YAW, YAW]
         self.p = _symmetric(self.p - khp - khp.T + k @ s @ k.T)
+        self.heading_variance_flow += abs(float(self.p[YAW, YAW] - yaw_variance))
         self.updates += 1
         return Outcome(fused=True, distance2=d2)
 
