@@ -133,8 +133,8 @@ class InputConfig:
 
 @dataclass(frozen=True)
 class EkfSettings:
-    """Process noise (white-noise densities) and the initial uncertainty of what no input has
-    told yet (velocities, bias)."""
+    """Process noise (white-noise densities), the initial uncertainty of what no input has
+    told yet (velocities, bias), and where a kept keyframe's correction goes."""
 
     pose_noise_density: float = 1e-4       # m/sqrt(s) and rad/sqrt(s) on the pose itself
     accel_noise_density: float = 1.0       # m/s^2/sqrt(Hz): how fast vx, vy may change
@@ -421,7 +421,9 @@ class EkfFusion:
         to the pose through the motion since it (pose = keyframe ⊕ motion: the motion keeps
         its optimal correction), so the published motion from scan to scan is the fused one.
         Revising the keyframe instead moved the whole chain on the real logs: the wheels'
-        increment across a keyframe and the velocities tie it to the motion after it."""
+        increment across a keyframe and the velocities tie it to the motion after it. With
+        settings.keyframe_correction_moves_clones the clones taken since the keyframe move
+        with the pose."""
         for slot in self._keyframe_slots:
             if slot.key is None or slot.stamp_ns is None:
                 continue
