@@ -202,6 +202,42 @@ def test_a_match_moves_the_pose_not_its_already_published_keyframe():
     assert se2.between(published, ekf.state.pose) == pytest.approx(match, abs=2e-3)
 
 
+def test_a_keyframe_correction_moves_the_clones_taken_since_the_keyframe_with_the_pose():
+    """As above, with a wheel message at the match's stamp (its clone is the pose before the
+    update). The keyframe's kept correction moves the pose; without
+    keyframe_correction_moves_clones the wheel clone stays behind (7 mm, 10 mm, 0.0166 rad
+    from the pose) and the next straight 0.1 m wheel increment is fused as (0.094, -0.010 m,
+    -0.0154 rad): it takes 93 % of the heading shift back. With it, clone and pose move
+    together and the increment is fused as 0.1008 m, 0.0008 m, 0.00008 rad."""
+    def run(moves_clones: bool):
+        wheel = InputConfig('wheel_odom', mask=(True, True, True, False, False, False),
+                            covariance='model', noise=NoiseModel(1e-3, 1e-3, 1e-3))
+        scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
+                           keyframes=True, covariance='message')
+        ekf = EkfFusion((wheel, scan),
+                        EkfSettings(keyframe_correction_moves_clones=moves_clones))
+        ms = 1_000_000
+        for k in range(3):
+            ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
+        ekf.update('scan_match', Reading(T0 + 250 * ms, new_keyframe=True))
+        for k in range(3, 6):
+            ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
+        ekf.update('scan_match', Reading(T0 + 500 * ms, (0.30, 0.05, 0.02),
+                                         np.diag([1e-6] * 3), keyframe_ns=T0 + 250 * ms))
+        after = ekf.state.pose
+        at = ekf._slots['wheel_odom'].offset
+        clone = tuple(float(v) for v in ekf.x[at:at + 3])
+        ekf.update('wheel_odom', Reading(T0 + 600 * ms, (0.6, 0.0, 0.0)))
+        return se2.between(clone, after), se2.between(after, ekf.state.pose)
+
+    behind, taken_back = run(False)
+    assert behind == pytest.approx((0.0072, 0.0102, 0.0166), abs=2e-4)
+    assert taken_back == pytest.approx((0.0937, -0.0101, -0.0154), abs=2e-4)
+    together, increment = run(True)
+    assert together == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    assert increment == pytest.approx((0.1008, 0.0008, 0.0001), abs=2e-4)
+
+
 def test_heading_delay_reads_the_yaw_as_the_heading_that_long_before_its_stamp():
     """An integrated heading that lags by 10 ms: from rest (yaw 0, rate 0) to yaw 0.5 rad at
     rate 1 rad/s, the fused heading is 0.5 + 1 x 0.01 = 0.51 rad (0.5 without the delay)."""

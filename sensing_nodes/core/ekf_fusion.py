@@ -133,8 +133,8 @@ class InputConfig:
 
 @dataclass(frozen=True)
 class EkfSettings:
-    """Process noise (white-noise densities) and the initial uncertainty of what no input has
-    told yet (velocities, bias)."""
+    """Process noise (white-noise densities), the initial uncertainty of what no input has
+    told yet (velocities, bias), and where a kept keyframe's correction goes."""
 
     pose_noise_density: float = 1e-4       # m/sqrt(s) and rad/sqrt(s) on the pose itself
     accel_noise_density: float = 1.0       # m/s^2/sqrt(Hz): how fast vx, vy may change
@@ -142,6 +142,11 @@ class EkfSettings:
     bias_random_walk: float = 1e-5         # rad/s/sqrt(s)
     initial_velocity_std: float = 1.0      # m/s, rad/s
     initial_bias_std: float = 0.01         # rad/s
+    # The correction a match would give its (kept) keyframe moves the pose and also every clone
+    # taken since the keyframe (the wheels' previous message...), rigidly; False: the pose alone,
+    # and the next increment from such a clone sees the shift as motion and takes part of it
+    # back (docs/fusion.md, real logs).
+    keyframe_correction_moves_clones: bool = False
 
 
 @dataclass(frozen=True)
@@ -424,14 +429,26 @@ class EkfFusion:
         to the pose through the motion since it (pose = keyframe ⊕ motion: the motion keeps
         its optimal correction), so the published motion from scan to scan is the fused one.
         Revising the keyframe instead moved the whole chain on the real logs: the wheels'
-        increment across a keyframe and the velocities tie it to the motion after it."""
+        increment across a keyframe and the velocities tie it to the motion after it. With
+        settings.keyframe_correction_moves_clones the clones taken since the keyframe move
+        with the pose."""
         for slot in self._keyframe_slots:
             if slot.key is None or slot.stamp_ns is None:
                 continue
             at = slot.offset
             keyframe = (float(self.x[at]), float(self.x[at + 1]), float(self.x[at + 2]))
-            motion = se2.between(keyframe, self.pose)
-            gain[:3] -= adjoint(se2.inverse(motion)) @ gain[at:at + 3]
+            undone = gain[at:at + 3]
+            moved = [0]
+            if self.settings.keyframe_correction_moves_clones:
+                # A clone since the keyframe is keyframe ⊕ (motion to it) as the pose is: moved
+                # with it, an increment from it to the pose keeps its optimal correction.
+                moved += [other.offset for other in self._slots.values()
+                          if other is not slot and other.stamp_ns is not None
+                          and other.stamp_ns >= slot.stamp_ns]
+            for to in moved:
+                motion = se2.between(keyframe, (float(self.x[to]), float(self.x[to + 1]),
+                                                float(self.x[to + 2])))
+                gain[to:to + 3] -= adjoint(se2.inverse(motion)) @ undone
             gain[at:at + 3] = 0.0
 
     def _inject(self, error: NDArray[np.float64]) -> None:
