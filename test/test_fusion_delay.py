@@ -11,7 +11,7 @@ from sensor_msgs.msg import Imu
 from sensing_nodes.core.ekf_fusion import EkfFusion, EkfSettings, input_config
 from sensing_nodes.core.fusion import InputRecord
 from sensing_nodes.ros.conversions import (
-    keyframe_frame_id, make_odometry, ns_to_stamp, yaw_to_quaternion,
+    keyframe_frame_id, make_odometry, ns_to_stamp,
 )
 from sensing_nodes.ros.fusion_readings import IMU, SCAN, WHEEL, ReadingConverter
 

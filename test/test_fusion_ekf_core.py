@@ -204,38 +204,31 @@ def test_a_match_moves_the_pose_not_its_already_published_keyframe():
 
 def test_a_keyframe_correction_moves_the_clones_taken_since_the_keyframe_with_the_pose():
     """As above, with a wheel message at the match's stamp (its clone is the pose before the
-    update). The keyframe's kept correction moves the pose; without
-    keyframe_correction_moves_clones the wheel clone stays behind (7 mm, 10 mm, 0.0166 rad
-    from the pose) and the next straight 0.1 m wheel increment is fused as (0.094, -0.010 m,
-    -0.0154 rad): it takes 93 % of the heading shift back. With it, clone and pose move
-    together and the increment is fused as 0.1008 m, 0.0008 m, 0.00008 rad."""
-    def run(moves_clones: bool):
-        wheel = InputConfig('wheel_odom', mask=(True, True, True, False, False, False),
-                            covariance='model', noise=NoiseModel(1e-3, 1e-3, 1e-3))
-        scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
-                           keyframes=True, covariance='message')
-        ekf = EkfFusion((wheel, scan),
-                        EkfSettings(keyframe_correction_moves_clones=moves_clones))
-        ms = 1_000_000
-        for k in range(3):
-            ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
-        ekf.update('scan_match', Reading(T0 + 250 * ms, new_keyframe=True))
-        for k in range(3, 6):
-            ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
-        ekf.update('scan_match', Reading(T0 + 500 * ms, (0.30, 0.05, 0.02),
-                                         np.diag([1e-6] * 3), keyframe_ns=T0 + 250 * ms))
-        after = ekf.state.pose
-        at = ekf._slots['wheel_odom'].offset
-        clone = tuple(float(v) for v in ekf.x[at:at + 3])
-        ekf.update('wheel_odom', Reading(T0 + 600 * ms, (0.6, 0.0, 0.0)))
-        return se2.between(clone, after), se2.between(after, ekf.state.pose)
-
-    behind, taken_back = run(False)
-    assert behind == pytest.approx((0.0072, 0.0102, 0.0166), abs=2e-4)
-    assert taken_back == pytest.approx((0.0937, -0.0101, -0.0154), abs=2e-4)
-    together, increment = run(True)
-    assert together == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
-    assert increment == pytest.approx((0.1008, 0.0008, 0.0001), abs=2e-4)
+    update). The keyframe's kept correction moves the pose and the wheel clone together, and the
+    next straight 0.1 m wheel increment is fused as 0.1008 m, 0.0008 m, 0.00008 rad. (Before
+    2026-11-25 the clone stayed behind, 7 mm, 10 mm and 0.0166 rad from the pose, and the
+    increment was fused as (0.094, -0.010 m, -0.0154 rad): 93 % of the heading shift taken
+    back.)"""
+    wheel = InputConfig('wheel_odom', mask=(True, True, True, False, False, False),
+                        covariance='model', noise=NoiseModel(1e-3, 1e-3, 1e-3))
+    scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
+                       keyframes=True, covariance='message')
+    ekf = EkfFusion((wheel, scan))
+    ms = 1_000_000
+    for k in range(3):
+        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
+    ekf.update('scan_match', Reading(T0 + 250 * ms, new_keyframe=True))
+    for k in range(3, 6):
+        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
+    ekf.update('scan_match', Reading(T0 + 500 * ms, (0.30, 0.05, 0.02),
+                                     np.diag([1e-6] * 3), keyframe_ns=T0 + 250 * ms))
+    after = ekf.state.pose
+    at = ekf._slots['wheel_odom'].offset
+    clone = tuple(float(v) for v in ekf.x[at:at + 3])
+    ekf.update('wheel_odom', Reading(T0 + 600 * ms, (0.6, 0.0, 0.0)))
+    assert se2.between(clone, after) == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    assert se2.between(after, ekf.state.pose) == pytest.approx((0.1008, 0.0008, 0.0001),
+                                                               abs=2e-4)
 
 
 def test_heading_delay_reads_the_yaw_as_the_heading_that_long_before_its_stamp():
@@ -257,17 +250,22 @@ def test_heading_delay_reads_the_yaw_as_the_heading_that_long_before_its_stamp()
     assert [field for field, _, _ in bad.problems()] == ['heading_delay_s']
 
 
-def test_heading_variance_flow_adds_growth_and_reduction():
-    """The chatter measure's step variance (fusion_eval): a heading set with variance 0.01,
-    1 s of prediction with pose noise 0.1 rad/√s adds 0.01 (variance 0.02), then a second
-    heading of variance 0.02 halves it to 0.01: the flow is 0.01 + 0.01 = 0.02, where the
-    variance itself went back to where it started."""
+def test_heading_step_variance_counts_both_ends_and_their_correlation():
+    """The chatter measure's step variance (fusion_eval): a heading set with variance 0.01;
+    1 s of prediction with pose noise 0.1 rad/√s (w, variance 0.01), then a second heading of
+    variance 0.02 (v): gain 0.5, the step's error is -0.5·e0 + 0.5·w + 0.5·v, variance
+    0.0025 + 0.0025 + 0.005 = 0.01, though the heading variance went from 0.01 back to 0.01
+    (and the two variances summed would say 0.02)."""
     settings = EkfSettings(pose_noise_density=0.1, accel_noise_density=1e-9,
                            angular_accel_noise_density=1e-9, initial_velocity_std=1e-9)
     ekf = EkfFusion((absolute('a', 'yaw'), absolute('b', 'yaw')), settings)
+    with pytest.raises(RuntimeError):
+        ekf.heading_step_variance()
+    ekf.follow_heading_steps()
     ekf.update('a', Reading(T0, (0.0, 0.0, 0.1), np.diag([1.0, 1.0, 0.01])))
-    assert ekf.heading_variance_flow == 0.0               # the first reading sets the state
+    assert ekf.heading_step_variance() == pytest.approx(0.0, abs=1e-12)  # no step yet
     ekf.update('b', Reading(T0 + 1_000_000_000, (0.0, 0.0, 0.4), np.diag([1.0, 1.0, 0.02])))
     assert ekf.state.covariance[2, 2] == pytest.approx(0.01, abs=1e-9)
     assert ekf.state.pose[2] == pytest.approx(0.25, abs=1e-9)
-    assert ekf.heading_variance_flow == pytest.approx(0.02, abs=1e-9)
+    assert ekf.heading_step_variance() == pytest.approx(0.01, abs=1e-9)
+    assert ekf.heading_step_variance() == pytest.approx(0.0, abs=1e-12)  # starts again

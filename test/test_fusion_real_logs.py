@@ -28,7 +28,7 @@ def test_ekf_on_freiburg_101_is_no_worse_than_the_scan_matcher(tmp_path):
     """Freiburg 101 through sensing_pipeline with config/fusion_carmen.yaml (the EKF): fused RPE
     between consecutive scans, mean and median, translation and rotation, no worse than the
     matcher's and the odometry's, and ATE no worse than the matcher's, each within 0.1 %.
-    Measured (2026-11-25, with ekf.keyframe_correction_moves_clones): fused 0.032170 m /
+    Measured (2026-11-25, the clones moved with the pose): fused 0.032170 m /
     0.23305 deg mean, 0.026634 m / 0.14541 deg median, ATE 0.28107 m; matcher 0.032172 /
     0.23306, 0.026627 / 0.14545, ATE 0.28150 (the median translation 1.0003x: 0.007 mm, a
     tenth of the bootstrap standard deviation of the difference, docs/real-data.md)."""

@@ -142,11 +142,6 @@ class EkfSettings:
     bias_random_walk: float = 1e-5         # rad/s/sqrt(s)
     initial_velocity_std: float = 1.0      # m/s, rad/s
     initial_bias_std: float = 0.01         # rad/s
-    # The correction a match would give its (kept) keyframe moves the pose and also every clone
-    # taken since the keyframe (the wheels' previous message...), rigidly; False: the pose alone,
-    # and the next increment from such a clone sees the shift as motion and takes part of it
-    # back (docs/fusion.md, real logs).
-    keyframe_correction_moves_clones: bool = False
 
 
 @dataclass(frozen=True)
@@ -308,10 +303,10 @@ class EkfFusion:
         self._initialized = False                # an absolute reading has set the state
         self.updates = 0
         self.gated: dict[str, int] = {}          # readings refused by the Mahalanobis gate
-        # Sum of |change| of the heading variance over every prediction and correction (rad²):
-        # between two outputs, the variance of the heading's step error (growth by prediction
-        # plus reduction by a correction, K·P); what a step is compared with (chatter).
-        self.heading_variance_flow = 0.0
+        # follow_heading_steps: covariance of the state's error with the heading error at the
+        # last heading_step_variance() (n,), and that heading's variance; None: not followed.
+        self._step_cross: NDArray[np.float64] | None = None
+        self._step_variance = 0.0
 
     def set_pose(self, pose: Pose2, covariance: NDArray[np.float64]) -> None:
         """Put the robot at pose with the given covariance; velocities and bias are kept, every
@@ -331,6 +326,24 @@ class EkfFusion:
             self._empty(self._slots[name])
         self._origin.pop(name, None)
 
+    # -- evaluation: the fused heading's steps (fusion_eval's chatter measure) -----------------
+    def follow_heading_steps(self) -> None:
+        """Follow the error of the heading's change from now on (heading_step_variance); off
+        by default: it costs a vector update per prediction and correction."""
+        self._step_cross = self.p[:, YAW].copy()
+        self._step_variance = float(self.p[YAW, YAW])
+
+    def heading_step_variance(self) -> float:
+        """Variance (rad²) of the error of the heading's change since the previous call (or
+        follow_heading_steps), the error of both ends and their correlation included:
+        P_now + P_then - 2·Cov(e_now, e_then); then starts again from the current heading."""
+        if self._step_cross is None:
+            raise RuntimeError('follow_heading_steps() first')
+        variance = float(self.p[YAW, YAW]) + self._step_variance \
+            - 2.0 * float(self._step_cross[YAW])
+        self.follow_heading_steps()
+        return variance
+
     def _clone(self, slot: _Clone, key: object = None, reading: Reading | None = None) -> None:
         """Copy the current pose (and its correlations) into the slot."""
         at = slot.offset
@@ -339,6 +352,8 @@ class EkfFusion:
         self.p[at:at + 3, :] = self.p[:3, :]
         self.p[:, at:at + 3] = self.p[:, :3]
         self.p[at:at + 3, at:at + 3] = self.p[:3, :3]
+        if self._step_cross is not None:
+            self._step_cross[at:at + 3] = self._step_cross[:3]
         slot.stamp_ns, slot.key, slot.reading = self.stamp_ns, key, reading
 
     def _empty(self, slot: _Clone) -> None:
@@ -346,6 +361,8 @@ class EkfFusion:
         self.x[at:at + 3] = 0.0
         self.p[at:at + 3, :] = 0.0
         self.p[:, at:at + 3] = 0.0
+        if self._step_cross is not None:
+            self._step_cross[at:at + 3] = 0.0
         slot.stamp_ns, slot.key, slot.reading = None, None, None
 
     @property
@@ -391,11 +408,11 @@ class EkfFusion:
         self.x[Y] += (vx * si + vy * c) * dt
         self.x[YAW] = _wrap(yaw + wz * dt)
         p = self.p
-        yaw_variance = p[YAW, YAW]
         p[:3, :] = f @ p[:BASE, :]
         p[:, :3] = p[:, :BASE] @ f.T
         p[self._diagonal] += self._q_diagonal * dt
-        self.heading_variance_flow += abs(float(p[YAW, YAW] - yaw_variance))
+        if self._step_cross is not None:
+            self._step_cross[:3] = f @ self._step_cross[:BASE]
         self.stamp_ns = stamp_ns
 
     def _correct(self, residual: NDArray, h: NDArray, r: NDArray, gate_chi2: float) -> Outcome:
@@ -417,9 +434,9 @@ class EkfFusion:
         self._inject(k @ residual)
         # P - K H P - (K H P)' + K S K': the covariance of any gain, not only the optimal one.
         khp = k @ ph.T
-        yaw_variance = self.p[YAW, YAW]
         self.p = _symmetric(self.p - khp - khp.T + k @ s @ k.T)
-        self.heading_variance_flow += abs(float(self.p[YAW, YAW] - yaw_variance))
+        if self._step_cross is not None:
+            self._step_cross -= k @ (h @ self._step_cross)     # (I - KH)·c, any gain
         self.updates += 1
         return Outcome(fused=True, distance2=d2)
 
@@ -429,22 +446,20 @@ class EkfFusion:
         to the pose through the motion since it (pose = keyframe ⊕ motion: the motion keeps
         its optimal correction), so the published motion from scan to scan is the fused one.
         Revising the keyframe instead moved the whole chain on the real logs: the wheels'
-        increment across a keyframe and the velocities tie it to the motion after it. With
-        settings.keyframe_correction_moves_clones the clones taken since the keyframe move
-        with the pose."""
+        increment across a keyframe and the velocities tie it to the motion after it. The
+        clones taken since the keyframe move with the pose: left behind, the next increment
+        from one would see the shift as motion and take most of it back."""
         for slot in self._keyframe_slots:
             if slot.key is None or slot.stamp_ns is None:
                 continue
             at = slot.offset
             keyframe = (float(self.x[at]), float(self.x[at + 1]), float(self.x[at + 2]))
             undone = gain[at:at + 3]
-            moved = [0]
-            if self.settings.keyframe_correction_moves_clones:
-                # A clone since the keyframe is keyframe ⊕ (motion to it) as the pose is: moved
-                # with it, an increment from it to the pose keeps its optimal correction.
-                moved += [other.offset for other in self._slots.values()
-                          if other is not slot and other.stamp_ns is not None
-                          and other.stamp_ns >= slot.stamp_ns]
+            # A clone since the keyframe is keyframe ⊕ (motion to it) as the pose is: moved with
+            # it, an increment from it to the pose keeps its optimal correction.
+            moved = [0] + [other.offset for other in self._slots.values()
+                           if other is not slot and other.stamp_ns is not None
+                           and other.stamp_ns >= slot.stamp_ns]
             for to in moved:
                 motion = se2.between(keyframe, (float(self.x[to]), float(self.x[to + 1]),
                                                 float(self.x[to + 2])))
@@ -573,6 +588,8 @@ class EkfFusion:
             to_body = np.eye(self._size)
             to_body[:3, :3] = body_to_odom(float(self.x[YAW])).T
             self.p = _symmetric(to_body @ p @ to_body.T)
+            if self._step_cross is not None:
+                self.follow_heading_steps()      # a new start: no step across it
             return Outcome(note='first absolute reading: state set to it')
         residual = np.array([pose[0] - self.x[X], pose[1] - self.x[Y],
                              _wrap(pose[2] - float(self.x[YAW]))])
@@ -662,6 +679,8 @@ class EkfFusion:
         self.p[at:at + 3, :] = row
         self.p[:, at:at + 3] = row.T
         self.p[at:at + 3, at:at + 3] = j @ (self.p[:3, :3] + match_noise) @ j.T
+        if self._step_cross is not None:
+            self._step_cross[at:at + 3] = j @ self._step_cross[:3]
         slot.stamp_ns, slot.key, slot.reading = self.stamp_ns, key, None
 
     def _twist(self, cfg: InputConfig, reading: Reading) -> Outcome:

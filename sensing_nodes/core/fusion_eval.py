@@ -46,14 +46,15 @@ def default_inputs() -> tuple[InputConfig, ...]:
 
 @dataclass(frozen=True)
 class FusedTrack:
-    """Fused output at each published stamp: poses (N, 3), covariances (N, 3, 3), and the
-    filter's heading variance flow (N,) (rad², EkfFusion.heading_variance_flow) where known."""
+    """Fused output at each published stamp: poses (N, 3), covariances (N, 3, 3), and where
+    known the variance of the heading step's error from the previous output to each (N,), rad²
+    (EkfFusion.heading_step_variance; NaN at the first)."""
 
     t: NDArray[np.int64]
     pose: NDArray[np.float64]
     covariance: NDArray[np.float64]
     gated: int
-    heading_variance_flow: NDArray[np.float64] | None = None
+    heading_step_variance: NDArray[np.float64] | None = None
 
 
 def _events(inputs: FusionInputs) -> list[tuple[int, int, int]]:
@@ -66,8 +67,9 @@ def run_ekf(inputs: FusionInputs, configs: tuple[InputConfig, ...] | None = None
             settings: EkfSettings | None = None) -> FusedTrack:
     """The EKF over every stream in stamp order; output at each wheel and scan stamp."""
     ekf = EkfFusion(configs or default_inputs(), settings)
+    ekf.follow_heading_steps()
     names = {cfg.name for cfg in ekf.inputs.values()}
-    out_t, out_p, out_c, out_flow = [], [], [], []
+    out_t, out_p, out_c, out_step = [], [], [], []
     for stamp, kind, i in _events(inputs):
         if kind == WHEEL and 'wheel_odom' in names:
             ekf.update('wheel_odom', Reading(
@@ -94,9 +96,10 @@ def run_ekf(inputs: FusionInputs, configs: tuple[InputConfig, ...] | None = None
         out_t.append(stamp)
         out_p.append(state.pose)
         out_c.append(state.covariance)
-        out_flow.append(ekf.heading_variance_flow)
+        step_variance = ekf.heading_step_variance()    # and the next step starts here
+        out_step.append(step_variance if len(out_t) > 1 else math.nan)
     return FusedTrack(np.array(out_t, dtype=np.int64), np.array(out_p), np.array(out_c),
-                      sum(ekf.gated.values()), np.array(out_flow))
+                      sum(ekf.gated.values()), np.array(out_step))
 
 
 def run_complementary(inputs: FusionInputs, settings: FusionSettings | None = None
@@ -126,11 +129,11 @@ def run_complementary(inputs: FusionInputs, settings: FusionSettings | None = No
 
 
 def track_errors(truth_t, truth_pose, t, poses, covariances=None,
-                 heading_variance_flow=None) -> dict[str, float]:
+                 heading_step_variance=None) -> dict[str, float]:
     """RMS and final position (m) and heading (deg) errors of a track whose frame starts at the
-    truth's first pose; with covariances, the consistency shares; with the filter's heading
-    variance flow too (FusedTrack), the heading steps beyond the truth's steps in units of the
-    step's sigma (chatter: the largest, and the share beyond 3)."""
+    truth's first pose; with covariances, the consistency shares; with the variance of each
+    heading step's error too (FusedTrack), how far the steps depart from the truth's in units of
+    the step's sigma (chatter: the largest, and the share beyond 3)."""
     reference = interpolate_poses(truth_t, truth_pose, t)
     keep = np.all(np.isfinite(reference), axis=1)
     reference, poses, t = reference[keep], poses[keep], t[keep]
@@ -161,13 +164,15 @@ def track_errors(truth_t, truth_pose, t, poses, covariances=None,
             'heading_within_3': float(np.mean(z <= 3.0)),
             'heading_beyond_1': float(np.mean(z > 1.0)),
         })
-    if covariances is not None and heading_variance_flow is not None and len(t) > 1:
-        # Not the change of the heading variance between two outputs: a prediction's growth
-        # and a correction's reduction cancel in it (a step at a scan update came out at
-        # thousands of its "sigma").
+    if covariances is not None and heading_step_variance is not None and len(t) > 1:
+        # Not from the change of the heading variance between two outputs: a prediction's
+        # growth and a correction's reduction cancel in it (a step at a scan update came out at
+        # thousands of its "sigma"); nor their sum: a gyro increment's update takes back most of
+        # what the prediction added, and the two errors cancel too.
         est_step = se2.wrap_angle(np.diff(estimate[:, 2]))
         true_step = se2.wrap_angle(np.diff(reference[:, 2]))
-        step_sigma = np.sqrt(np.diff(heading_variance_flow[keep]) + 1e-30)
+        step_variance = heading_step_variance[keep][1:]
+        step_sigma = np.sqrt(np.maximum(step_variance, 0.0) + 1e-30)
         z_step = np.abs(est_step - true_step) / step_sigma
         out['chatter_max_sigma'] = float(np.max(z_step))
         out['chatter_beyond_3'] = float(np.mean(z_step > 3.0))
@@ -285,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
             comp = run_complementary(inputs)
             row = {'config': name, 'seed': seed, **input_errors(inputs),
                    'ekf': track_errors(inputs.truth_t, inputs.truth_pose, track.t, track.pose,
-                                       track.covariance, track.heading_variance_flow),
+                                       track.covariance, track.heading_step_variance),
                    'complementary': track_errors(inputs.truth_t, inputs.truth_pose, comp.t,
                                                  comp.pose, comp.covariance),
                    'gated': track.gated}

@@ -199,12 +199,7 @@ class ComplementaryFusionNode(Node):
                                      'gyro bias random walk (rad/s/sqrt(s))', minimum=0.0),
             initial_bias_std=declare(self, 'ekf.initial_bias_std',
                                      EkfSettings.initial_bias_std,
-                                     'gyro bias std before any input (rad/s)', minimum=0.0),
-            keyframe_correction_moves_clones=declare(
-                self, 'ekf.keyframe_correction_moves_clones',
-                EkfSettings.keyframe_correction_moves_clones,
-                "a match's correction of its kept keyframe moves the pose and every clone "
-                'taken since the keyframe (false: the pose alone)'))
+                                     'gyro bias std before any input (rad/s)', minimum=0.0))
 
     def _arrival(self, handler: Callable[[Any], Outputs]) -> Callable[[Any], Outputs]:
         """The handler, noting the wall time of each input (the idle flush's clock)."""
