@@ -10,7 +10,6 @@ re-anchored): same motion between consecutive outputs, and that motion is the tr
 """
 
 import math
-import re
 
 import numpy as np
 import pytest

@@ -9,7 +9,6 @@ published bias-corrected rate.
 """
 
 import math
-import re
 
 import numpy as np
 import pytest

@@ -9,7 +9,6 @@ gap or a failed match, so "correct" is the motion, not the absolute pose).
 """
 
 import math
-import re
 
 import numpy as np
 import pytest
@@ -22,7 +21,7 @@ from sensor_msgs.msg import LaserScan
 from sensing_nodes.core import se2
 from sensing_nodes.core.world import load_world, raycast
 from sensing_nodes.paths import config_file
-from sensing_nodes.ros.conversions import float32_array, ns_to_stamp, odometry_pose, stamp_to_ns
+from sensing_nodes.ros.conversions import odometry_pose, stamp_to_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
 T0 = 1_700_000_000 * 1_000_000_000

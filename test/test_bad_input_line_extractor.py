@@ -9,7 +9,6 @@ fresh-node answer is the core's).
 """
 
 import math
-import re
 
 import numpy as np
 import pytest
@@ -24,7 +23,7 @@ from sensing_nodes.core.scan import beam_angles
 from sensing_nodes.core.world import load_world, raycast
 from sensing_nodes.nodes.line_extractor import TABLE_DTYPE
 from sensing_nodes.paths import config_file
-from sensing_nodes.ros.conversions import float32_array, ns_to_stamp, stamp_to_ns
+from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
 T0 = 1_700_000_000 * 1_000_000_000

@@ -8,7 +8,6 @@ consecutive outputs of the valid stretch, plus the twist, which only depend on t
 """
 
 import math
-import re
 
 import numpy as np
 import pytest

@@ -10,7 +10,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 from harness import run_to_exit
 
 CONSUMER = Path(__file__).with_name('tf_consumer.py')
