@@ -119,8 +119,8 @@ def test_turtlebot3_runs_through_the_whole_graph_from_its_preset(tmp_path):
     trajectories = load_trajectories(out, ['/odom', '/odometry/filtered'])
     errors = trajectory_errors(*trajectories['/odom'], *trajectories['/odometry/filtered'])
     figures = errors.summary()
-    # The target: 0.03 m and 0.5 deg RMS. Measured 0.0138 m and 0.24 deg (final
-    # 0.013 m), below the scan matcher alone (0.016 m, 0.36 deg): docs/robots.md.
+    # The target: 0.03 m and 0.5 deg RMS. Measured 0.0126 m and 0.18 deg (final
+    # 0.006 m), below the scan matcher alone (0.016 m, 0.36 deg): docs/robots.md.
     assert figures['rms_heading_error_deg'] < 0.5, figures
     assert figures['rms_position_error_m'] < 0.03, figures
     assert figures['final_position_error_m'] < 0.05, figures
