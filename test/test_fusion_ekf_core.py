@@ -15,6 +15,7 @@ from sensing_nodes.core.ekf_fusion import (
 QUIET = EkfSettings(pose_noise_density=0.0, accel_noise_density=1e-9,
                     angular_accel_noise_density=1e-9, initial_velocity_std=1e-9)
 T0 = 1_000_000_000
+MS = 1_000_000
 
 
 def absolute(name, *quantities, **kw):
@@ -176,26 +177,33 @@ def test_input_config_from_parameters_and_its_problems():
     assert {field for field, _, _ in bad.problems()} == {'pose_mode', 'covariance', 'mask'}
 
 
-def test_a_match_moves_the_pose_not_its_already_published_keyframe():
-    """Wheels (differential, 1 cm per 0.1 m) and a keyframe between two wheel messages: a tight
-    match 5 cm off the wheels' motion puts the pose at keyframe ⊕ match, and the keyframe stays
-    the pose published at its scan (the optimal update would move it too: the wheels' increment
-    across its stamp ties it to the motion after it)."""
+def _wheels_and_a_keyframe_match(match=(0.30, 0.05, 0.02)):
+    """Wheels (differential, 1 cm per 0.1 m) along x at 0.1 m per 100 ms, a keyframe at 250 ms
+    between two wheel messages, and at 500 ms (a wheel message's stamp) a tight match against
+    it 5 cm off the wheels' motion: the filter, the pose published at the keyframe and the
+    match's outcome."""
     wheel = InputConfig('wheel_odom', mask=(True, True, True, False, False, False),
                         covariance='model', noise=NoiseModel(1e-3, 1e-3, 1e-3))
     scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
                        keyframes=True, covariance='message')
     ekf = EkfFusion((wheel, scan))
-    ms = 1_000_000
-    for k in range(3):   # 0.1 m per 100 ms along x
-        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
-    ekf.update('scan_match', Reading(T0 + 250 * ms, new_keyframe=True))
+    for k in range(3):
+        ekf.update('wheel_odom', Reading(T0 + k * 100 * MS, (0.1 * k, 0.0, 0.0)))
+    ekf.update('scan_match', Reading(T0 + 250 * MS, new_keyframe=True))
     published = ekf.state.pose
     for k in range(3, 6):
-        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
-    match = (0.30, 0.05, 0.02)       # the wheels say about (0.25, 0, 0)
-    outcome = ekf.update('scan_match', Reading(T0 + 500 * ms, match, np.diag([1e-6] * 3),
-                                               keyframe_ns=T0 + 250 * ms))
+        ekf.update('wheel_odom', Reading(T0 + k * 100 * MS, (0.1 * k, 0.0, 0.0)))
+    outcome = ekf.update('scan_match', Reading(T0 + 500 * MS, match, np.diag([1e-6] * 3),
+                                               keyframe_ns=T0 + 250 * MS))
+    return ekf, published, outcome
+
+
+def test_a_match_moves_the_pose_not_its_already_published_keyframe():
+    """A match the wheels say should be about (0.25, 0, 0) puts the pose at keyframe ⊕ match,
+    and the keyframe stays the pose published at its scan (the optimal update would move it
+    too: the wheels' increment across its stamp ties it to the motion after it)."""
+    match = (0.30, 0.05, 0.02)
+    ekf, published, outcome = _wheels_and_a_keyframe_match(match)
     assert outcome.fused
     slot = ekf._slots['scan_match']
     assert tuple(ekf.x[slot.offset:slot.offset + 3]) == pytest.approx(published, abs=1e-12)
@@ -203,29 +211,16 @@ def test_a_match_moves_the_pose_not_its_already_published_keyframe():
 
 
 def test_a_keyframe_correction_moves_the_clones_taken_since_the_keyframe_with_the_pose():
-    """As above, with a wheel message at the match's stamp (its clone is the pose before the
-    update). The keyframe's kept correction moves the pose and the wheel clone together, and the
-    next straight 0.1 m wheel increment is fused as 0.1008 m, 0.0008 m, 0.00008 rad. (Before
-    2026-11-25 the clone stayed behind, 7 mm, 10 mm and 0.0166 rad from the pose, and the
-    increment was fused as (0.094, -0.010 m, -0.0154 rad): 93 % of the heading shift taken
-    back.)"""
-    wheel = InputConfig('wheel_odom', mask=(True, True, True, False, False, False),
-                        covariance='model', noise=NoiseModel(1e-3, 1e-3, 1e-3))
-    scan = InputConfig('scan_match', mask=(True, True, True, False, False, False),
-                       keyframes=True, covariance='message')
-    ekf = EkfFusion((wheel, scan))
-    ms = 1_000_000
-    for k in range(3):
-        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
-    ekf.update('scan_match', Reading(T0 + 250 * ms, new_keyframe=True))
-    for k in range(3, 6):
-        ekf.update('wheel_odom', Reading(T0 + k * 100 * ms, (0.1 * k, 0.0, 0.0)))
-    ekf.update('scan_match', Reading(T0 + 500 * ms, (0.30, 0.05, 0.02),
-                                     np.diag([1e-6] * 3), keyframe_ns=T0 + 250 * ms))
+    """As above (the wheel clone is the pose before the match's update). The keyframe's kept
+    correction moves the pose and the wheel clone together, and the next straight 0.1 m wheel
+    increment is fused as 0.1008 m, 0.0008 m, 0.00008 rad. (Before 2026-11-25 the clone stayed
+    behind, 7 mm, 10 mm and 0.0166 rad from the pose, and the increment was fused as (0.094,
+    -0.010 m, -0.0154 rad): 93 % of the heading shift taken back.)"""
+    ekf, _, _ = _wheels_and_a_keyframe_match()
     after = ekf.state.pose
     at = ekf._slots['wheel_odom'].offset
     clone = tuple(float(v) for v in ekf.x[at:at + 3])
-    ekf.update('wheel_odom', Reading(T0 + 600 * ms, (0.6, 0.0, 0.0)))
+    ekf.update('wheel_odom', Reading(T0 + 600 * MS, (0.6, 0.0, 0.0)))
     assert se2.between(clone, after) == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
     assert se2.between(after, ekf.state.pose) == pytest.approx((0.1008, 0.0008, 0.0001),
                                                                abs=2e-4)
