@@ -195,7 +195,7 @@ class Target:
     def tree(self) -> cKDTree:
         """k-d tree over the points: the neighbour search with search='kd_tree' or without a
         bearing index."""
-        return _kd_tree(self.points)
+        return cKDTree(self.points)
 
 
 @dataclass
@@ -298,7 +298,7 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
     half = min(NORMAL_WINDOW, bearing_index.pad - 1) if bearing_index is not None else 0
     tree = None
     if bearing_index is None or k > 2 * half + 1:
-        tree = _kd_tree(points)
+        tree = cKDTree(points)
         dx, dy, present = _tree_neighbourhoods(points, tree, k, radius, points)
         return dx, dy, present, tree
     position = bearing_index.slot
@@ -320,7 +320,7 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
     dx, dy = offset.real.copy(), offset.imag.copy()
     uncertain = np.flatnonzero(np.minimum(kth, radius) > bound)
     if uncertain.size:
-        tree = _kd_tree(points)           # also answers the matches' uncertain queries
+        tree = cKDTree(points)           # also answers the matches' uncertain queries
         sub_dx, sub_dy, sub_present = _tree_neighbourhoods(points, tree, k, radius,
                                                            points.take(uncertain, axis=0))
         dx[:, uncertain] = 0.0
@@ -328,12 +328,6 @@ def _neighbourhoods(points: NDArray[np.float64], bearing_index: BearingIndex | N
         present[:, uncertain] = False
         dx[:k, uncertain], dy[:k, uncertain], present[:k, uncertain] = sub_dx, sub_dy, sub_present
     return dx, dy, present, tree
-
-
-def _kd_tree(points: NDArray[np.float64]) -> cKDTree:
-    """k-d tree over points (N, 2), m, split at the middle of each box's extent (at a scan's few
-    hundred points the median split costs more to build than it saves the queries: ~15 %)."""
-    return cKDTree(points, balanced_tree=False)
 
 
 def _tree_neighbourhoods(points: NDArray[np.float64], tree: cKDTree, k: int, radius: float,
