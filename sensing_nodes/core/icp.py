@@ -30,9 +30,9 @@ DEGENERATE_VARIANCE = 100.0
 # gap to the window's edges certifies it, else it is sought among all points).
 ANGULAR_WINDOW = 10
 # Queries the bearing window cannot certify are answered by computing every distance while
-# they are fewer than this many query-target pairs (a k-d tree's call costs ~12 us and ~0.13 us
-# a query, every distance ~0.003 us a pair), else by the target's k-d tree.
-BRUTE_FORCE_PAIRS = 4000
+# they are fewer than this many query-target pairs (a k-d tree's call costs more: ~40 us), else
+# by the target's k-d tree.
+BRUTE_FORCE_PAIRS = 8000
 # Neighbouring points each side of a target point among which its normal_neighbours nearest are
 # taken (a scan's neighbouring beams).
 NORMAL_WINDOW = 8
@@ -510,14 +510,12 @@ def _nearest(target: Target, points: NDArray[np.complex128],
         query = points.take(uncertain)
         count = bearing_index.index.shape[0] - 2 * bearing_index.pad
         if uncertain.size * count <= BRUTE_FORCE_PAIRS:
-            every = bearing_index.points[bearing_index.pad:count + bearing_index.pad] \
-                - query[:, None]
-            parts = every.view(np.float64)
-            np.square(parts, out=parts)
-            every_sq = parts[:, 0::2] + parts[:, 1::2]
-            nearest = every_sq.argmin(axis=1)
+            every = np.abs(bearing_index.points[bearing_index.pad:count + bearing_index.pad]
+                           - query[:, None])
+            nearest = every.argmin(axis=1)
             index[uncertain] = bearing_index.index.take(nearest + bearing_index.pad)
-            distance_sq[uncertain] = every_sq.take(nearest + _row_starts(*every_sq.shape))
+            distance_sq[uncertain] = np.square(every.take(nearest
+                                                          + _row_starts(*every.shape)))
         else:
             distance, found = target.tree.query(np.column_stack((query.real, query.imag)),
                                                 k=1, distance_upper_bound=gate)
