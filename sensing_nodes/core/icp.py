@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, fields, replace
 from functools import cached_property, lru_cache
 
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
@@ -146,16 +147,20 @@ class BearingIndex:
     entries at each end (bearings shifted by ∓2π) so that a window of up to `pad` entries each
     side of any bearing in [-π, π] stays inside the arrays: bearing, point as x + iy (m) and
     point index per entry. A query sorted at c (bearings[c-1] < its bearing <= bearings[c]) is
-    searched in the window c + offsets; `edge_sin_sq[c]` is sin² of the smallest bearing gap
-    (capped at π/2) between it and the nearest entry outside that window: a query at range ρ is
-    at least ρ·√edge_sin_sq[c] from every point outside, which certifies the window's nearest
-    point as the nearest of all. `slot`: each point's entry in the padded arrays."""
+    searched among the `half` entries each side, windows[c - half] (entries c - half ..
+    c + half - 1; a strided view of `points`, no copy); `edge_sin_sq[c]` is sin² of the
+    smallest bearing gap (capped at π/2) between it and the nearest entry outside that window:
+    a query at range ρ is at least ρ·√edge_sin_sq[c] from every point outside, which certifies
+    the window's nearest point as the nearest of all. `slot`: each point's entry in the padded
+    arrays."""
 
     bearings: NDArray[np.float64]
     points: NDArray[np.complex128]
     index: NDArray[np.intp]
     pad: int
-    offsets: NDArray[np.intp] = field(repr=False, compare=False)      # -w .. w-1, (2·w, 1)
+    half: int
+    # (size - 2·half + 1, 2·half)
+    windows: NDArray[np.complex128] = field(repr=False, compare=False)
     edge_sin_sq: NDArray[np.float64] = field(repr=False, compare=False)
     slot: NDArray[np.intp] = field(repr=False, compare=False)
 
@@ -474,8 +479,10 @@ def _bearing_index(points: NDArray[np.float64], pad: int, window: int) -> Bearin
     edge_sin_sq = np.square(np.sin(np.minimum(np.maximum(gap, 0.0), 0.5 * math.pi)))
     slot = np.empty(n, dtype=np.intp)
     slot[order] = np.arange(pad, n + pad)
-    return BearingIndex(bearings, _complex(points).take(extended), extended, pad,
-                        np.arange(-window, window)[:, None], edge_sin_sq, slot)
+    padded = _complex(points).take(extended)
+    windows = as_strided(padded, (size - 2 * window + 1, 2 * window), 2 * padded.strides,
+                         writeable=False)
+    return BearingIndex(bearings, padded, extended, pad, window, windows, edge_sin_sq, slot)
 
 
 def _complex(points: NDArray[np.float64]) -> NDArray[np.complex128]:
@@ -525,29 +532,24 @@ def _bearing_nearest(bearing_index: BearingIndex, points: NDArray[np.complex128]
     of the nearest target point among the window's entries each side of its bearing, and the
     squared distance (m²) within which that point is certainly the nearest of all (every point
     outside the window is at least that far)."""
-    size = bearing_index.points.shape[0]
-    centre = np.searchsorted(bearing_index.bearings, np.arctan2(points.imag, points.real))
+    start = np.searchsorted(bearing_index.bearings, np.arctan2(points.imag, points.real))
     # A finite bearing's window lies between the pads; a NaN one sorts past the end and is
     # pulled back into the arrays (its distance is NaN: no correspondence).
-    np.minimum(centre, size - bearing_index.pad, out=centre)
-    offsets = bearing_index.offsets
+    np.minimum(start, bearing_index.points.shape[0] - bearing_index.pad, out=start)
     certain_sq = points.real * points.real
     certain_sq += points.imag * points.imag
-    certain_sq *= bearing_index.edge_sin_sq.take(centre)
-    # Offsets (window, count): each operation runs over contiguous rows of queries, not over
-    # short windows; squared distances (no hypot) written with the queries as rows for argmin.
-    offset = bearing_index.points.take(offsets + centre)
-    offset -= points
+    certain_sq *= bearing_index.edge_sin_sq.take(start)
+    start -= bearing_index.half
+    # (count, window): one fancy index copies each query's window out of the strided view.
+    offset = bearing_index.windows[start]
+    offset -= points[:, None]
     parts = offset.view(np.float64)
     np.square(parts, out=parts)
-    count, width = points.shape[0], offsets.shape[0]
-    distance_sq = np.empty((count, width))
-    np.add(parts[:, 0::2], parts[:, 1::2], out=distance_sq.T)
+    distance_sq = parts[:, 0::2] + parts[:, 1::2]
     best = distance_sq.argmin(axis=1)
-    position = offsets.take(best)
-    position += centre
-    best += _row_starts(count, width)
-    return distance_sq.take(best), bearing_index.index.take(position), certain_sq
+    start += best
+    best += _row_starts(*distance_sq.shape)
+    return distance_sq.take(best), bearing_index.index.take(start), certain_sq
 
 
 @lru_cache(maxsize=16)
