@@ -395,6 +395,10 @@ def test_lockstep_into_the_fusion_and_every_record_topic(tmp_path):
     result = _replay([str(bag), str(out), '--launch', '--nodes', 'complementary_fusion',
                       '--expect', '/wheel/odom=/odometry/filtered',
                       '--record', '/odometry/filtered', '--record', '/diagnostics',
+                      # The silent IMU and matcher are not waited for after 0.5 s of stamps (25
+                      # messages, fewer than the replay lets be outstanding): each answer comes
+                      # by the watermark, not by the 2 s idle flush (15 s -> 6.5 s for the test).
+                      '--param', 'complementary_fusion:input_timeout_s:=0.5',
                       '--timeout', '60'], timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
     assert 'MISSING' not in result.stdout and 'warning' not in result.stderr, result.stderr
