@@ -304,7 +304,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"{row['scan']['rms_heading_deg']:.4f} wheel "
                   f"{row['wheel']['rms_heading_deg']:.4f} | within 3 / beyond 1: position "
                   f"{e['position_within_3']:.3f} / {e['position_beyond_1']:.3f}, heading "
-                  f"{e['heading_within_3']:.3f} / {e['heading_beyond_1']:.3f}", flush=True)
+                  f"{e['heading_within_3']:.3f} / {e['heading_beyond_1']:.3f} | heading steps "
+                  f"beyond 3 sigma {100 * e['chatter_beyond_3']:.3f} %, largest "
+                  f"{e['chatter_max_sigma']:.1f} sigma", flush=True)
             if args.inputs:
                 imu = next(c for c in run_configs if c.name == 'imu')
                 # As the filter reads them: delay-compensated (InputConfig.heading_delay_s).
