@@ -278,3 +278,6 @@ def test_heading_step_variance_counts_both_ends_and_their_correlation():
     assert ekf.state.pose[2] == pytest.approx(0.25, abs=1e-9)
     assert ekf.heading_step_variance() == pytest.approx(0.01, abs=1e-9)
     assert ekf.heading_step_variance() == pytest.approx(0.0, abs=1e-12)  # starts again
+    ekf.update('b', Reading(T0 + 2_000_000_000, (0.0, 0.0, 0.4), np.diag([1.0, 1.0, 0.02])))
+    ekf.set_pose((0.0, 0.0, 1.0), np.diag([1.0, 1.0, 0.5]))   # followed on from the new start
+    assert ekf.heading_step_variance() == pytest.approx(0.0, abs=1e-12)

@@ -133,8 +133,8 @@ class InputConfig:
 
 @dataclass(frozen=True)
 class EkfSettings:
-    """Process noise (white-noise densities), the initial uncertainty of what no input has
-    told yet (velocities, bias), and where a kept keyframe's correction goes."""
+    """Process noise (white-noise densities) and the initial uncertainty of what no input has
+    told yet (velocities, bias)."""
 
     pose_noise_density: float = 1e-4       # m/sqrt(s) and rad/sqrt(s) on the pose itself
     accel_noise_density: float = 1.0       # m/s^2/sqrt(Hz): how fast vx, vy may change
@@ -287,6 +287,10 @@ class EkfFusion:
         # The rows of F (predict) that differ from the identity's: x, y and yaw.
         self._f = np.zeros((3, BASE))
         self._f[YAW, YAW] = 1.0
+        # follow_heading_steps: covariance of the state's error with the heading error at the
+        # last heading_step_variance() (n,), and that heading's variance; None: not followed.
+        self._step_cross: NDArray[np.float64] | None = None
+        self._step_variance = 0.0
         self._q_diagonal = np.array([self.settings.pose_noise_density ** 2] * 3
                                     + [self.settings.accel_noise_density ** 2] * 2
                                     + [self.settings.angular_accel_noise_density ** 2,
@@ -314,10 +318,8 @@ class EkfFusion:
         self._initialized = False                # an absolute reading has set the state
         self.updates = 0
         self.gated: dict[str, int] = {}          # readings refused by the Mahalanobis gate
-        # follow_heading_steps: covariance of the state's error with the heading error at the
-        # last heading_step_variance() (n,), and that heading's variance; None: not followed.
-        self._step_cross: NDArray[np.float64] | None = None
-        self._step_variance = 0.0
+        if self._step_cross is not None:
+            self.follow_heading_steps()              # a new start: no step across it
 
     def set_pose(self, pose: Pose2, covariance: NDArray[np.float64]) -> None:
         """Put the robot at pose with the given covariance; velocities and bias are kept, every
