@@ -171,6 +171,8 @@ def track_errors(truth_t, truth_pose, t, poses, covariances=None,
         # what the prediction added, and the two errors cancel too.
         est_step = se2.wrap_angle(np.diff(estimate[:, 2]))
         true_step = se2.wrap_angle(np.diff(reference[:, 2]))
+        # (Outputs outside the truth's span are dropped above; the route's truth covers every
+        # output, so consecutive kept outputs are consecutive outputs.)
         step_variance = heading_step_variance[keep][1:]
         step_sigma = np.sqrt(np.maximum(step_variance, 0.0) + 1e-30)
         z_step = np.abs(est_step - true_step) / step_sigma
