@@ -241,6 +241,7 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
     # The outputs carry the input's header stamp, which a bag recorded by ROS tools has apart
     # from its bag time (the time of receipt).
     stamped = stamped_topics(bag, inputs)
+    published_as = {t: publisher.topic_name for t, publisher in replayer.publishers.items()}
     first_stamp = todo[0][1] if todo else 0
     next_report = next_discovery = started + 2.0
     deferred_pending: list[tuple[str, int]] = []   # (output, stamp) of outputs that answer later
@@ -255,7 +256,7 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
         replayer.publishers[topic].publish(raw)
         stamp = leading_stamp_ns(raw) if topic in stamped else stamp   # what the outputs carry
         replayer.input_stamp_ns = stamp
-        published = replayer.publishers[topic].topic_name
+        published = published_as[topic]
         replayer.latest_stamp_ns[published] = max(stamp, replayer.latest_stamp_ns.get(published,
                                                                                    stamp))
         result.inputs_published += 1

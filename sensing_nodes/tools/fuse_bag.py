@@ -44,8 +44,7 @@ def fuse_bag(bag: str | Path, params: dict) -> dict:
     counts of messages read, rejected and gated per input."""
     configs = inputs_from_params(params)
     ekf_params = params.get('ekf', {})
-    settings = EkfSettings(**{k: v if isinstance(v, bool) else float(v)
-                              for k, v in ekf_params.items()
+    settings = EkfSettings(**{k: float(v) for k, v in ekf_params.items()
                               if k in EkfSettings.__dataclass_fields__})
     fusion = EkfFusion(configs, settings)
     imu = params.get('imu', {})
