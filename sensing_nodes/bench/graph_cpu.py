@@ -95,9 +95,11 @@ def _load_average() -> float:
 
 def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: float,
             rate: float = 1.0, start_timeout_s: float = 60.0, one_process: bool = False,
-            executor: str | None = None) -> dict:
+            executor: str | None = None, with_sim: bool = True) -> dict:
     """Run sensor_sim and `nodes` as processes (the nodes in one sensing_graph process with
     one_process, spun by `executor`); CPU per process over window_s wall seconds, and memory.
+    Without with_sim the nodes run with no input at all: what their processes cost idle
+    (executor, timers, /diagnostics, DDS), the floor under any per-message work.
 
     Returns {'processes': {name: {'core_percent_per_1x', 'cpu_us_per_message', 'rss_mb',
     'peak_rss_mb'}}, 'total...'}.
@@ -106,7 +108,7 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
     bin_dir = Path(sys.executable).parent
     env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
            'ROS_DOMAIN_ID': str(pid_domain_id('bench'))}
-    scan_consumers = sum(n in nodes for n in ('line_extractor', 'icp_matcher'))
+    scan_consumers = sum(n in nodes for n in ('line_extractor', 'icp_matcher')) if with_sim else 0
     sim_args = ['-p', f'real_time_factor:={rate}', '-p', 'duration_s:=3600.0',
                 '-p', f'wait_for_scan_subscribers:={scan_consumers}']
     for name, value in sim_overrides.items():
@@ -121,8 +123,10 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
                 commands = {ONE_PROCESS: [sys.executable, '-m', 'sensing_nodes.tools.graph',
                                           '--nodes', ','.join(nodes),
                                           *(['--executor', executor] if executor else [])]}
-            commands['sensor_sim'] = [str(bin_dir / 'sensor_sim'), '--ros-args', '--params-file',
-                                      str(config_file('sensor_sim.yaml')), *sim_args]
+            if with_sim:
+                commands['sensor_sim'] = [str(bin_dir / 'sensor_sim'), '--ros-args',
+                                          '--params-file', str(config_file('sensor_sim.yaml')),
+                                          *sim_args]
             for name, command in commands.items():
                 logs[name] = Path(tmp) / f'{name}.log'
                 procs[name] = subprocess.Popen(
@@ -171,7 +175,8 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
             total_pss += memory[name]['pss_mb']
         out['processes'][name] = {
             'core_percent_per_1x': round(percent, 2),
-            'cpu_us_per_message': round(1e6 * cpu / (wall * rate * rates[name]), 1),
+            'cpu_us_per_message': (round(1e6 * cpu / (wall * rate * rates[name]), 1)
+                                   if with_sim else None),
             'messages_per_s_at_1x': rates[name], **memory[name]}
     out['processing_graph_core_percent_per_1x'] = round(total, 2)
     out['processing_graph_rss_mb'] = round(total_rss, 1)
@@ -279,6 +284,12 @@ def run(quick: bool = False) -> dict:
     # The same nodes in one sensing_graph process: its memory and CPU against the sum above.
     one = measure(PROCESSING_NODES, {}, window, one_process=True)
     figures['one_process_graph_core_percent_per_1x'] = one['processing_graph_core_percent_per_1x']
+    # The floor under both: the same processes with no input (no simulator; 10 s: a 10 ms
+    # clock tick is 0.1 % of it).
+    for key, one_process in (('processing_graph', False), ('one_process_graph', True)):
+        idle = measure(PROCESSING_NODES, {}, min(window, 10.0), one_process=one_process,
+                       with_sim=False)
+        figures[f'{key}_idle_core_percent'] = idle['processing_graph_core_percent_per_1x']
     figures['one_process_graph_rss_mb'] = one['processing_graph_rss_mb']
     figures['one_process_graph_peak_rss_mb'] = one['processes'].get(ONE_PROCESS, {}).get(
         'peak_rss_mb')
@@ -311,6 +322,8 @@ if __name__ == '__main__':
                         help='the processing nodes in one sensing_graph process')
     parser.add_argument('--executor', choices=('events', 'single', 'multi'), default=None,
                         help='with --one-process: sensing_graph\'s executor')
+    parser.add_argument('--idle', action='store_true',
+                        help='the processing nodes with no simulator: their cost without input')
     parser.add_argument('--relay', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.relay:
@@ -320,7 +333,7 @@ if __name__ == '__main__':
         result = relay_floor(args.floor, args.window)
     elif args.imu_rate is None:
         result = measure(PROCESSING_NODES, {}, args.window, args.rate, one_process=args.one_process,
-                         executor=args.executor)
+                         executor=args.executor, with_sim=not args.idle)
     else:
         result = measure(GYRO_1KHZ_NODES, {'imu_rate_hz': args.imu_rate}, args.window, args.rate)
     print(json.dumps(result, indent=2))
