@@ -186,7 +186,9 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
 
 class _RelayNode:
     """A node that takes each Imu on /bench/relay_in (raw) and publishes the same bytes on
-    /bench/relay_out: one message in, one out, no work, through run_node's executor."""
+    /bench/relay_out: one message in, one out, no work, through run_node's executor. With
+    RELAY_ANSWER_EVERY=N in the environment it answers the first message and every N-th only
+    (a sink: what taking a message costs without answering it)."""
 
     def __new__(cls):
         from rclpy.node import Node
@@ -196,13 +198,22 @@ class _RelayNode:
 
         node = Node('bench_relay')
         publisher = node.create_publisher(Imu, '/bench/relay_out', ESTIMATE_QOS)
-        node.create_subscription(Imu, '/bench/relay_in', publisher.publish, SENSOR_QOS, raw=True)
+        every = int(os.environ.get('RELAY_ANSWER_EVERY', '1'))
+        taken = [0]
+
+        def on_message(raw: bytes) -> None:
+            if taken[0] % every == 0:
+                publisher.publish(raw)
+            taken[0] += 1
+
+        node.create_subscription(Imu, '/bench/relay_in', on_message, SENSOR_QOS, raw=True)
         return node
 
 
-def relay_floor(rate_hz: float, window_s: float) -> dict:
+def relay_floor(rate_hz: float, window_s: float, answer_every: int = 1) -> dict:
     """CPU per message of a relay process (_RelayNode): what DDS, rclpy and the executor cost
-    for one message in and one out, the floor under any node that answers every input."""
+    for one message in and one out, the floor under any node that answers every input; with
+    answer_every=N, one answer per N messages taken."""
     import rclpy
     from rclpy.node import Node
     from rclpy.serialization import serialize_message
@@ -211,7 +222,8 @@ def relay_floor(rate_hz: float, window_s: float) -> dict:
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
     env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
-           'ROS_DOMAIN_ID': str(pid_domain_id('bench', 1))}
+           'ROS_DOMAIN_ID': str(pid_domain_id('bench', 1)),
+           'RELAY_ANSWER_EVERY': str(answer_every)}
     os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
     proc = subprocess.Popen([sys.executable, '-m', 'sensing_nodes.bench.graph_cpu', '--relay'],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
@@ -303,6 +315,9 @@ def run(quick: bool = False) -> dict:
     floor = relay_floor(1000.0, window)
     figures['relay_floor_1khz_core_percent'] = floor['core_percent']
     figures['relay_floor_cpu_us_per_message'] = floor['cpu_us_per_message']
+    # Taking a message without answering it (one answer per 100): a subscription's share.
+    sink = relay_floor(1000.0, min(window, 10.0), answer_every=100)
+    figures['sink_floor_cpu_us_per_message'] = sink['cpu_us_per_message']
     figures['load_average_1min_end'] = _load_average()
     return figures
 
@@ -318,6 +333,8 @@ if __name__ == '__main__':
                         'its consumer, complementary_fusion')
     parser.add_argument('--floor', type=float, default=None, metavar='HZ',
                         help='measure the relay floor (one Imu in, one out) at this rate')
+    parser.add_argument('--answer-every', type=int, default=1, metavar='N',
+                        help='with --floor: the relay answers one message in N')
     parser.add_argument('--one-process', action='store_true',
                         help='the processing nodes in one sensing_graph process')
     parser.add_argument('--executor', choices=('events', 'single', 'multi'), default=None,
@@ -330,7 +347,7 @@ if __name__ == '__main__':
         from sensing_nodes.ros.run import run_node
         sys.exit(run_node(_RelayNode, []))
     if args.floor is not None:
-        result = relay_floor(args.floor, args.window)
+        result = relay_floor(args.floor, args.window, args.answer_every)
     elif args.imu_rate is None:
         result = measure(PROCESSING_NODES, {}, args.window, args.rate, one_process=args.one_process,
                          executor=args.executor, with_sim=not args.idle)
