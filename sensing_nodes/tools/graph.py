@@ -24,7 +24,8 @@ def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list
     from rclpy.executors import ExternalShutdownException
 
     from sensing_nodes.ros.graph import make_node, node_arguments
-    from sensing_nodes.ros.run import _PARAMETER_ERRORS, EXIT_BAD_PARAMETER, make_executor
+    from sensing_nodes.ros.run import (_PARAMETER_ERRORS, EXIT_BAD_PARAMETER, make_executor,
+                                       spin_until_shutdown)
 
     faulthandler.enable()
     # Never this tool's argv: its options are not ROS arguments, and every node gets its own.
@@ -44,10 +45,7 @@ def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list
             executor.add_node(node)
         print(f'sensing_graph: {", ".join(names)} in one process ({type(executor).__name__})',
               file=sys.stderr, flush=True)
-        # spin_once in a loop, as run_node: EventsExecutor.spin() of rclpy 7.1 neither fires
-        # timers nor returns on shutdown.
-        while rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
+        spin_until_shutdown(executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
