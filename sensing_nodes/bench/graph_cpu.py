@@ -343,6 +343,8 @@ if __name__ == '__main__':
                         help='the processing nodes with no simulator: their cost without input')
     parser.add_argument('--relay', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.answer_every < 1:
+        parser.error(f'--answer-every {args.answer_every}: one answer per N >= 1 messages')
     if args.relay:
         from sensing_nodes.ros.run import run_node
         sys.exit(run_node(_RelayNode, []))
