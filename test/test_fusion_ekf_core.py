@@ -8,7 +8,7 @@ import pytest
 from sensing_nodes.core import se2
 from sensing_nodes.core.ekf_fusion import (
     EkfFusion, EkfSettings, InputConfig, NoiseModel, Reading, input_config, mask_from_names,
-    adjoint, carried_to_start, relative_jacobian,
+    adjoint, relative_jacobian,
 )
 
 # Nearly no process noise and exactly known velocities: the numbers are the measurements'.
@@ -58,20 +58,6 @@ def test_adjoint_carries_a_body_error_across_a_motion():
     left = se2.compose(motion, tuple(error))
     right = se2.compose(tuple(adjoint(motion) @ error), motion)
     assert left == pytest.approx(right, abs=1e-12)
-
-
-def test_carried_to_start_is_the_adjoint_of_the_inverse_motion():
-    """From (0, 0, 0) to (1, 0, 90°): ⊖(1, 0, 90°) = (0, 1, -90°), whose adjoint is
-    [[0, 1, 1], [-1, 0, 0], [0, 0, 1]]; and on random poses the plain-float form equals
-    adjoint(inverse(between(a, b)))."""
-    expected = np.array([[0.0, 1.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    assert carried_to_start((0.0, 0.0, 0.0), (1.0, 0.0, math.pi / 2)) == pytest.approx(
-        expected, abs=1e-15)
-    rng = np.random.default_rng(3)
-    for _ in range(100):
-        a, b = tuple(rng.normal(size=3) * 4), tuple(rng.normal(size=3) * 4)
-        assert carried_to_start(a, b) == pytest.approx(
-            adjoint(se2.inverse(se2.between(a, b))), abs=1e-12)
 
 
 def test_matches_against_one_keyframe_do_not_shrink_its_own_error():

@@ -213,17 +213,6 @@ def adjoint(motion: Pose2) -> NDArray[np.float64]:
     return np.array([[c, -s, motion[1]], [s, c, -motion[0]], [0.0, 0.0, 1.0]])
 
 
-def carried_to_start(start: Pose2, end: Pose2) -> NDArray[np.float64]:
-    """adjoint(⊖between(start, end)) in plain floats (3x3): a body-frame error e at start is
-    the error carried_to_start(start, end) @ e at end, both poses fixed."""
-    c0, s0 = math.cos(start[2]), math.sin(start[2])
-    dx, dy = end[0] - start[0], end[1] - start[1]
-    mx, my = c0 * dx + s0 * dy, -s0 * dx + c0 * dy       # between(start, end)
-    c, s = math.cos(end[2] - start[2]), math.sin(end[2] - start[2])
-    # ⊖(mx, my, θ) = (-c·mx - s·my, s·mx - c·my, -θ), and its adjoint.
-    return np.array([[c, s, s * mx - c * my], [-s, c, c * mx + s * my], [0.0, 0.0, 1.0]])
-
-
 def relative_jacobian(clone: Pose2, pose: Pose2) -> tuple[Pose2, NDArray[np.float64],
                                                           NDArray[np.float64]]:
     """between(clone, pose) and its Jacobians with respect to the body-frame errors of pose and
@@ -475,8 +464,8 @@ class EkfFusion:
                            if other is not slot and other.stamp_ns is not None
                            and other.stamp_ns >= slot.stamp_ns]
             for to in moved:
-                gain[to:to + 3] -= carried_to_start(keyframe, (x[to], x[to + 1], x[to + 2])) \
-                    @ undone
+                motion = se2.between(keyframe, (x[to], x[to + 1], x[to + 2]))
+                gain[to:to + 3] -= adjoint(se2.inverse(motion)) @ undone
             gain[at:at + 3] = 0.0
 
     def _inject(self, error: NDArray[np.float64]) -> None:
