@@ -209,16 +209,12 @@ class Replayer:
     def wait_for_flush(self, wait: FlushWait, timeout_s: float = 60.0) -> None:
         """Until wait.output carries a stamp at least the latest of wait.sources (the buffering
         node has answered everything it holds), or nothing has arrived for wait.quiet_s."""
+        from sensing_nodes.ros.run import spin_until_quiet
+
         latest = [self.latest_stamp_ns[t] for t in wait.sources if t in self.latest_stamp_ns]
         target = max(latest) if latest else math.inf
-        deadline = time.monotonic() + timeout_s
-        quiet_since, seen = time.monotonic(), self.arrivals
-        while self.latest_stamp_ns.get(wait.output, -1) < target \
-                and time.monotonic() - quiet_since < wait.quiet_s \
-                and time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.01)
-            if self.arrivals != seen:
-                quiet_since, seen = time.monotonic(), self.arrivals
+        spin_until_quiet(self.executor, lambda: self.arrivals, wait.quiet_s, timeout_s,
+                         done=lambda: self.latest_stamp_ns.get(wait.output, -1) >= target)
 
     def close(self) -> None:
         self.node.destroy_node()

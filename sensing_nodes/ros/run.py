@@ -51,14 +51,16 @@ def make_executor(kind: str | None = None, threads: int | None = None):
 
 
 def spin_until_quiet(executor, arrivals: Callable[[], int], quiet_s: float, timeout_s: float,
-                     step_s: float = 0.01) -> None:
+                     step_s: float = 0.01, done: Callable[[], bool] | None = None) -> None:
     """Spin until arrivals() has not changed for quiet_s wall seconds, or timeout_s has passed:
-    the graph's last answers are in (the tools' drain after the last input)."""
+    the graph's last answers are in (the tools' drain after the last input); or, sooner, until
+    done() holds."""
     import time
 
     deadline = time.monotonic() + timeout_s
     quiet_since, seen = time.monotonic(), arrivals()
-    while time.monotonic() - quiet_since < quiet_s and time.monotonic() < deadline:
+    while time.monotonic() - quiet_since < quiet_s and time.monotonic() < deadline \
+            and not (done is not None and done()):
         executor.spin_once(timeout_sec=step_s)
         if arrivals() != seen:
             quiet_since, seen = time.monotonic(), arrivals()
