@@ -35,3 +35,16 @@ def test_memory_of_this_process_grows_with_an_allocation_and_none_when_gone():
     assert after['peak_rss_mb'] >= after['rss_mb'] and after['pss_mb'] <= after['rss_mb']
     del block
     assert _memory_mb(2 ** 22 + 12345) is None
+
+
+def test_relay_answering_fewer_than_every_message_is_refused_at_start():
+    """--answer-every N: one answer per N messages; N below 1 has no meaning (and would divide
+    by zero in the relay): exit 2 naming the option, before any process is started."""
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, '-m', 'sensing_nodes.bench.graph_cpu', '--floor',
+                             '10', '--answer-every', '0'], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2
+    assert '--answer-every 0' in result.stderr
