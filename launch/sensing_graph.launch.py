@@ -8,10 +8,11 @@ Each node reads its parameter file from this package's share/sensing_nodes/confi
 import os
 
 from ament_index_python.packages import get_package_share_directory
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+
+from launch import LaunchDescription
 
 NODES = ['sensor_sim', 'wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
          'complementary_fusion']

@@ -2,7 +2,7 @@
 
 import os
 
-from sensing_nodes.ros.graph import pid_domain_id   # (imports no rclpy)
+from sensing_nodes.graph.processes import pid_domain_id
 
 # Before rclpy creates a context: stay on this machine, and use a domain of this run's own so
 # parallel runs (and other developers' runs) on one machine never see each other.

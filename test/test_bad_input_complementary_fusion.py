@@ -13,14 +13,14 @@ import math
 
 import numpy as np
 import pytest
-from harness import Collector, NodeProcess, spin_until, assert_every_kind_warned
+from harness import Collector, NodeProcess, assert_every_kind_warned, spin_until
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.fusion import ComplementaryFusion, FusionSettings
+from sensing_nodes.core.fusion.complementary import ComplementaryFusion, FusionSettings
+from sensing_nodes.core.geometry import se2
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import (
     make_odometry,

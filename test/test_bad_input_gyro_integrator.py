@@ -12,13 +12,20 @@ import math
 
 import numpy as np
 import pytest
-from harness import Collector, NodeProcess, publish_paced, publish_until, spin_until, assert_every_kind_warned
+from harness import (
+    Collector,
+    NodeProcess,
+    assert_every_kind_warned,
+    publish_paced,
+    publish_until,
+    spin_until,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sensor_msgs.msg import Imu
 
+from sensing_nodes.core.geometry.se2 import wrap_angle
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
-from sensing_nodes.core.se2 import wrap_angle
 from sensing_nodes.ros.conversions import ns_to_stamp, quaternion_to_yaw, stamp_to_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 

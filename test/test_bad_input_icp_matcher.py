@@ -12,14 +12,22 @@ import math
 
 import numpy as np
 import pytest
-from harness import Collector, NodeProcess, publish_paced, publish_until, spin_until, assert_every_kind_warned, laser_scan
+from harness import (
+    Collector,
+    NodeProcess,
+    assert_every_kind_warned,
+    laser_scan,
+    publish_paced,
+    publish_until,
+    spin_until,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import LaserScan
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.core.geometry import se2
+from sensing_nodes.core.sim.world import load_world, raycast
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import odometry_pose, stamp_to_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS

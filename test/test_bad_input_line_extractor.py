@@ -13,14 +13,22 @@ import math
 import numpy as np
 import pytest
 import yaml
-from harness import Collector, NodeProcess, publish_paced, publish_until, spin_until, assert_every_kind_warned, laser_scan
+from harness import (
+    Collector,
+    NodeProcess,
+    assert_every_kind_warned,
+    laser_scan,
+    publish_paced,
+    publish_until,
+    spin_until,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sensor_msgs.msg import LaserScan, PointCloud2
 
+from sensing_nodes.core.geometry.scan import beam_angles
 from sensing_nodes.core.lines import extract_lines
-from sensing_nodes.core.scan import beam_angles
-from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.core.sim.world import load_world, raycast
 from sensing_nodes.nodes.line_extractor import TABLE_DTYPE
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import stamp_to_ns

@@ -11,13 +11,20 @@ import math
 
 import numpy as np
 import pytest
-from harness import Collector, NodeProcess, publish_paced, publish_until, spin_until, assert_every_kind_warned
+from harness import (
+    Collector,
+    NodeProcess,
+    assert_every_kind_warned,
+    publish_paced,
+    publish_until,
+    spin_until,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import JointState
 
-from sensing_nodes.core import se2
+from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.wheel_odometry import WheelOdometry, WheelOdometryConfig
 from sensing_nodes.ros.conversions import ns_to_stamp, odometry_pose, odometry_twist, stamp_to_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS

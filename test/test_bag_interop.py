@@ -23,7 +23,7 @@ import yaml
 from harness import REPO, run_to_exit
 from rclpy.serialization import deserialize_message
 
-from sensing_nodes.ros.bag import BagReader, BagWriter, canonical_cdr, message_class
+from sensing_nodes.bags.storage import BagReader, BagWriter, canonical_cdr, message_class
 
 CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'
 ROSBAG2 = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'ros' / 'rosbag2-resources'
@@ -80,7 +80,7 @@ def test_every_message_decodes_with_rosbags_mcap_ros2_and_rclpy(written_bags, na
     from mcap_ros2.decoder import DecoderFactory
     from rosbags.highlevel import AnyReader
 
-    from sensing_nodes.ros.bag import TYPESTORE
+    from sensing_nodes.bags.storage import TYPESTORE
 
     if name not in written_bags:
         pytest.skip(f'CARMEN logs not found in {CARMEN}')

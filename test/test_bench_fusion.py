@@ -3,10 +3,10 @@ bag's recorded inputs takes every input the node takes and gives what sensing_pi
 
 from pathlib import Path
 
+from sensing_nodes.bags.input_bag import load_bag
+from sensing_nodes.bags.storage import topic_counts
 from sensing_nodes.bench.fusion import fusion_pass
-from sensing_nodes.ros.bag import topic_counts
-from sensing_nodes.ros.input_bag import load_bag
-from sensing_nodes.tools import pipeline
+from sensing_nodes.graph import pipeline
 
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'nominal'
 

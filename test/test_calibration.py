@@ -11,12 +11,12 @@ import pytest
 import yaml
 from harness import NodeProcess, carmen_pipeline
 
-from sensing_nodes.ros.bag import BagWriter, read_messages
-from sensing_nodes.core import sim
+from sensing_nodes.bags.storage import BagWriter, read_messages
+from sensing_nodes.core.sim import simulator as sim
+from sensing_nodes.core.sim.world import load_world
 from sensing_nodes.core.wheel_odometry import integrate_path
-from sensing_nodes.core.world import load_world
-from sensing_nodes.ros.sim_robot import NodeSettings, record
 from sensing_nodes.paths import config_file
+from sensing_nodes.ros.sim_robot import NodeSettings, record
 from sensing_nodes.tools import calibrate
 
 # The issue's case: right wheel +1 %, left -0.5 %, separation +2 %, laser yaw +2 deg, x +3 cm.
@@ -254,7 +254,7 @@ def _delayed_streams(delay_s, seed=1):
 def test_odometry_delay_is_found_to_the_millisecond(delay_s):
     """Worked numbers: odometry lagging 80 ms (or 0, or 50 ms early) is estimated within 2.5 ms,
     one-sided, with a std under 5 ms."""
-    from sensing_nodes.core.calibration import odometry_delay
+    from sensing_nodes.core.evaluation.calibration import odometry_delay
 
     result = odometry_delay(*_delayed_streams(delay_s))
     assert result.delay_s == pytest.approx(delay_s, abs=0.0025)
@@ -264,7 +264,7 @@ def test_odometry_delay_is_found_to_the_millisecond(delay_s):
 
 
 def test_odometry_delay_refuses_a_recording_without_turning():
-    from sensing_nodes.core.calibration import CalibrationError, odometry_delay
+    from sensing_nodes.core.evaluation.calibration import CalibrationError, odometry_delay
 
     odom_t, _, match_t, _ = _delayed_streams(0.0)
     with pytest.raises(CalibrationError, match='needs turning'):

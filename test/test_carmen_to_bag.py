@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from harness import run_to_exit
 
-from sensing_nodes.ros.bag import read_messages, topic_counts
-from sensing_nodes.core.carmen import read_carmen
+from sensing_nodes.bags.carmen import read_carmen
+from sensing_nodes.bags.storage import read_messages, topic_counts
 from sensing_nodes.ros.conversions import odometry_pose, scan_arrays
 from sensing_nodes.tools.carmen_to_bag import convert
 

@@ -9,7 +9,7 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Imu, JointState
 
-from sensing_nodes.ros.bag import canonical_cdr
+from sensing_nodes.bags.storage import canonical_cdr
 from sensing_nodes.ros.cdr import cdr_decoder, imu_cdr, odometry_cdr
 from sensing_nodes.ros.conversions import make_odometry, ros_covariance_to_planar
 
@@ -74,7 +74,7 @@ def test_decoder_big_endian_and_bad_bytes():
     raw = serialize_message(msg)
     decode = cdr_decoder(Odometry)
     little = decode(raw)
-    from sensing_nodes.ros.bag import TYPESTORE
+    from sensing_nodes.bags.storage import TYPESTORE
     big = TYPESTORE.serialize_cdr(TYPESTORE.deserialize_cdr(raw, 'nav_msgs/msg/Odometry'),
                                   'nav_msgs/msg/Odometry', little_endian=False)
     assert bytes(big[:2]) == b'\x00\x00'
@@ -88,7 +88,7 @@ def test_decoder_big_endian_and_bad_bytes():
 @pytest.mark.parametrize('parent', ['', 'odom', 'abc', 'ünï'])
 @pytest.mark.parametrize('child', ['', 'a', 'abcd', 'base_link'])
 def test_transform_cdr_is_rclpys_tf_message(parent, child):
-    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.core.geometry.transform import Transform
     from sensing_nodes.ros.cdr import transform_cdr
     from sensing_nodes.ros.tf import transform_message
 
@@ -102,7 +102,7 @@ def test_transform_cdr_is_rclpys_tf_message(parent, child):
 
 def _rosbags_round_trip(raw: bytes, msgtype: str) -> bytes:
     """The definition canonical_cdr keeps: rosbags decodes the message and encodes it again."""
-    from sensing_nodes.ros.bag import TYPESTORE
+    from sensing_nodes.bags.storage import TYPESTORE
 
     if len(raw) < 4 or raw[:2] not in (b'\x00\x00', b'\x00\x01'):
         raise ValueError('not a CDR message')
@@ -159,7 +159,7 @@ def test_canonical_cdr_is_rosbags_round_trip():
     failure) must be the round trip's, also on bytes it should not take: padding left as rclpy
     left it, trailing bytes, truncations, and single bytes changed (a bool of 2, a string
     without its terminator, a signalling NaN float32, an impossible sequence length)."""
-    from sensing_nodes.ros.bag import TYPESTORE, type_name
+    from sensing_nodes.bags.storage import TYPESTORE, type_name
 
     rng = np.random.default_rng(15)
     checked = 0

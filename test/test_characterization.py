@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from sensing_nodes.ros.bag import BagWriter
-from sensing_nodes.core import characterization as ch
-from sensing_nodes.core import sim
-from sensing_nodes.core.world import load_world
-from sensing_nodes.ros.sim_robot import NodeSettings, record
+from sensing_nodes.bags.storage import BagWriter
+from sensing_nodes.core.evaluation import characterization as ch
+from sensing_nodes.core.sim import simulator as sim
+from sensing_nodes.core.sim.world import load_world
 from sensing_nodes.paths import config_file
+from sensing_nodes.ros.sim_robot import NodeSettings, record
 from sensing_nodes.tools import characterize
 
 RATE = 200.0

@@ -6,11 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.carmen import read_carmen
-from sensing_nodes.core.scan import scan_to_points, valid_ranges
+from sensing_nodes.bags.carmen import read_carmen
+from sensing_nodes.core.geometry import se2
+from sensing_nodes.core.geometry.scan import scan_to_points, valid_ranges
+from sensing_nodes.core.sim.world import load_world, raycast, world_from_dict
 from sensing_nodes.core.timing import StampStep, classify_step
-from sensing_nodes.core.world import load_world, raycast, world_from_dict
 from sensing_nodes.paths import config_file
 
 

@@ -7,7 +7,7 @@ import subprocess
 import pytest
 from harness import BIN, REPO
 
-from sensing_nodes.ros.bag import topic_counts
+from sensing_nodes.bags.storage import topic_counts
 
 
 @pytest.fixture(scope='module')
@@ -79,7 +79,7 @@ def test_a_short_still_run_works_and_its_bag_is_canonical(tmp_path):
     is canonical CDR (the recorder writes what arrives over DDS, padding zeroed)."""
     from rosbags.highlevel import AnyReader
 
-    from sensing_nodes.ros.bag import TYPESTORE, canonical_cdr
+    from sensing_nodes.bags.storage import TYPESTORE, canonical_cdr
 
     out = tmp_path / 'run'
     result = subprocess.run(

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 from harness import REPO, run_to_exit
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.evaluation import (
+from sensing_nodes.core.evaluation.metrics import (
     Relations,
     absolute_trajectory_error,
     align_rigid_2d,
@@ -18,6 +17,7 @@ from sensing_nodes.core.evaluation import (
     relations_from_trajectory,
     relative_pose_errors,
 )
+from sensing_nodes.core.geometry import se2
 from sensing_nodes.tools.eval import evaluate
 
 BAGS = REPO / 'bags'

@@ -20,7 +20,7 @@ from nav_msgs.msg import Odometry
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from sensing_nodes.core import se2
+from sensing_nodes.core.geometry import se2
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import odometry_pose, stamp_to_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS

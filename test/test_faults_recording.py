@@ -8,7 +8,7 @@ import time
 import numpy as np
 from harness import BIN
 
-from sensing_nodes.ros.bag import read_messages, topic_counts
+from sensing_nodes.bags.storage import read_messages, topic_counts
 from sensing_nodes.ros.conversions import stamp_to_ns
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from harness import run_to_exit
 
-from sensing_nodes.ros.bag import BagError, BagReader, read_messages
+from sensing_nodes.bags.storage import BagError, BagReader, read_messages
 from sensing_nodes.ros.conversions import odometry_pose
 
 ROS_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'ros'
@@ -100,7 +100,7 @@ def test_turtlebot3_runs_through_the_whole_graph_from_its_preset(tmp_path):
     against the bag's /odom (Gazebo's world pose: the laser alone agrees with it to 0.016 m RMS,
     the wheels' dead reckoning ends 67 deg off after slipping), anchored at its first stamp
     (REP 105)."""
-    from sensing_nodes.core.evaluation import trajectory_errors
+    from sensing_nodes.core.evaluation.metrics import trajectory_errors
     from sensing_nodes.tools.eval import load_trajectories
 
     out = tmp_path / 'tb3'

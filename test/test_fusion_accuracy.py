@@ -3,16 +3,16 @@ package's own wheel odometry, gyro integrator and keyframe scan matcher over cor
 sensors, then the EKF as config/complementary_fusion.yaml sets it; no DDS).
 
 Figures over all 8 seeds of both configurations are in docs/fusion.md (measured with
-`python -m sensing_nodes.core.fusion_eval`); these tests pin what holds: the strong_errors route
+`python -m sensing_nodes.core.evaluation.fusion`); these tests pin what holds: the strong_errors route
 on 8 seeds and the default route on seed 0.
 """
 
 import numpy as np
 import pytest
 
-from sensing_nodes.core import fusion_eval as fe
-from sensing_nodes.core.sim import load_params_file, params_from_dict
-from sensing_nodes.core.sim_pipeline import simulated_inputs
+from sensing_nodes.core.evaluation import fusion as fe
+from sensing_nodes.core.sim.inputs import simulated_inputs
+from sensing_nodes.core.sim.simulator import load_params_file, params_from_dict
 from sensing_nodes.paths import config_file
 
 

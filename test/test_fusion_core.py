@@ -5,17 +5,18 @@ import math
 import numpy as np
 import pytest
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.fusion import (
+from sensing_nodes.core.fusion.complementary import (
     ComplementaryFusion,
     FusionSettings,
     StampOrderedBuffer,
     auto_alpha,
     complementary_heading,
+    compounded_increment_covariance,
     fuse_information,
-    compounded_increment_covariance, increment_covariance,
+    increment_covariance,
     inverse_variance,
 )
+from sensing_nodes.core.geometry import se2
 
 
 def test_inverse_variance_worked_numbers():
@@ -152,7 +153,10 @@ def test_an_input_that_sent_nothing_does_not_claim_the_robot_stood_still():
 def test_covariance_problem_judges_the_eigenvalues_not_the_path(eigenvalues, verdict):
     """The plain-float positive-definite test (_plainly_positive_definite) and the
     eigendecomposition give one verdict: a rotated diagonal, eigenvalues known exactly enough."""
-    from sensing_nodes.core.fusion import _plainly_positive_definite, covariance_problem
+    from sensing_nodes.core.fusion.complementary import (
+        _plainly_positive_definite,
+        covariance_problem,
+    )
 
     c, s = math.cos(0.7), math.sin(0.7)
     rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ \

@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import Imu
 
-from sensing_nodes.core.ekf_fusion import EkfFusion, EkfSettings, input_config
-from sensing_nodes.core.fusion import InputRecord
+from sensing_nodes.core.fusion.complementary import InputRecord
+from sensing_nodes.core.fusion.ekf import EkfFusion, EkfSettings, input_config
 from sensing_nodes.ros.conversions import (
-    keyframe_frame_id, make_odometry, ns_to_stamp,
+    keyframe_frame_id,
+    make_odometry,
+    ns_to_stamp,
 )
 from sensing_nodes.ros.fusion_readings import IMU, SCAN, WHEEL, ReadingConverter
 

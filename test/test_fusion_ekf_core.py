@@ -1,15 +1,22 @@
-"""EKF core (core/ekf_fusion.py): worked numbers, Jacobians, cloning, gates, masks, noise model."""
+"""EKF core (core/fusion/ekf.py): worked numbers, Jacobians, cloning, gates, masks, noise model."""
 
 import math
 
 import numpy as np
 import pytest
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.ekf_fusion import (
-    EkfFusion, EkfSettings, InputConfig, NoiseModel, Reading, input_config, mask_from_names,
-    adjoint, relative_jacobian,
+from sensing_nodes.core.fusion.ekf import (
+    EkfFusion,
+    EkfSettings,
+    InputConfig,
+    NoiseModel,
+    Reading,
+    adjoint,
+    input_config,
+    mask_from_names,
+    relative_jacobian,
 )
+from sensing_nodes.core.geometry import se2
 
 # Nearly no process noise and exactly known velocities: the numbers are the measurements'.
 QUIET = EkfSettings(pose_noise_density=0.0, accel_noise_density=1e-9,

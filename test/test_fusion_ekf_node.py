@@ -17,8 +17,13 @@ from sensor_msgs.msg import Imu
 
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import (
-    keyframe_frame_id, make_odometry, ns_to_stamp, odometry_pose, planar_covariance_to_ros,
-    stamp_to_ns, yaw_to_quaternion,
+    keyframe_frame_id,
+    make_odometry,
+    ns_to_stamp,
+    odometry_pose,
+    planar_covariance_to_ros,
+    stamp_to_ns,
+    yaw_to_quaternion,
 )
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
@@ -37,7 +42,7 @@ def truth(k):
 
 
 def between(a, b):
-    from sensing_nodes.core.se2 import between as b_
+    from sensing_nodes.core.geometry.se2 import between as b_
     return b_(a, b)
 
 
@@ -209,8 +214,8 @@ def test_imu_rate_mount_from_parameters_or_tf_static(probe, mount_from):
     and counted (tf_static_rejected) and the node keeps running."""
     from rclpy.node import Node
 
-    from sensing_nodes.core import quaternion
-    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.core.geometry import quaternion
+    from sensing_nodes.core.geometry.transform import Transform
     from sensing_nodes.ros.tf import StaticTransformBroadcaster
 
     params = dict(RATE_PARAMS)
@@ -329,8 +334,8 @@ def test_a_late_imu_mount_restarts_the_orientation_input_without_a_jump():
     from rclpy.serialization import deserialize_message
     from tf2_msgs.msg import TFMessage
 
-    from sensing_nodes.core import quaternion
-    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.core.geometry import quaternion
+    from sensing_nodes.core.geometry.transform import Transform
     from sensing_nodes.nodes.complementary_fusion import ComplementaryFusionNode
     from sensing_nodes.ros.conversions import make_transform_stamped
 

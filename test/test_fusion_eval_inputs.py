@@ -5,8 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from sensing_nodes.core.fusion_eval import (
-    heading_increment_consistency, keyframe_match_consistency, stop_corrections,
+from sensing_nodes.core.evaluation.fusion import (
+    heading_increment_consistency,
+    keyframe_match_consistency,
+    stop_corrections,
 )
 
 T0 = 1_700_000_000 * 10 ** 9

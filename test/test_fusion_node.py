@@ -12,9 +12,13 @@ from harness import Collector, NodeProcess, run_to_exit, spin_until
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 
-from sensing_nodes.core.fusion import ComplementaryFusion, FusionSettings
+from sensing_nodes.core.fusion.complementary import ComplementaryFusion, FusionSettings
 from sensing_nodes.ros.conversions import (
-    make_odometry, ns_to_stamp, odometry_pose, stamp_to_ns, yaw_to_quaternion,
+    make_odometry,
+    ns_to_stamp,
+    odometry_pose,
+    stamp_to_ns,
+    yaw_to_quaternion,
 )
 from sensing_nodes.ros.qos import ESTIMATE_QOS
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sensing_nodes.core.geometry.imu_mount import mount_rotation, to_base
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator, integrate_rate
-from sensing_nodes.core.imu_mount import mount_rotation, to_base
 from sensing_nodes.paths import config_file
 
 DATASETS = Path(__file__).resolve().parents[1] / '..' / 'shared' / 'datasets' / 'ros'
@@ -114,8 +114,8 @@ def test_gyro_integrator_node_with_an_upside_down_mount(probe, mount_from):
 
     from rclpy.node import Node
 
-    from sensing_nodes.core import quaternion
-    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.core.geometry import quaternion
+    from sensing_nodes.core.geometry.transform import Transform
     from sensing_nodes.ros.tf import StaticTransformBroadcaster
 
     pub = probe.create_publisher(Imu, '/imu/data_raw', SENSOR_QOS)

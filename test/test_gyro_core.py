@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 
+from sensing_nodes.core.geometry.se2 import wrap_angle
 from sensing_nodes.core.gyro import (
     GyroConfig,
     GyroIntegrator,
@@ -14,7 +15,6 @@ from sensing_nodes.core.gyro import (
     still_mask,
     window_statistics,
 )
-from sensing_nodes.core.se2 import wrap_angle
 from sensing_nodes.core.timing import StampStep
 from sensing_nodes.core.wheel_odometry import WheelOdometry, WheelOdometryConfig
 
@@ -224,8 +224,8 @@ def test_config_problems_name_the_field():
 
 def simulated_heading(route, duration_s, seed, use_wheels, **gyro):
     """Run wheel odometry and the gyro integrator over one simulated run in stamp order."""
-    from sensing_nodes.core.sim import SimParams, simulate
-    from sensing_nodes.core.world import load_world
+    from sensing_nodes.core.sim.simulator import SimParams, simulate
+    from sensing_nodes.core.sim.world import load_world
     from sensing_nodes.paths import config_file
 
     params = SimParams() if route is None else SimParams(route=route)
@@ -283,8 +283,8 @@ def test_honest_heading_uncertainty_on_the_simulated_route():
 def test_batch_update_equals_per_sample_updates():
     """update_batch (vectorised windows and moving runs) gives the per-sample numbers, whatever
     the chunking, including a wheel veto frozen over the batch and bad samples (per-sample path)."""
-    from sensing_nodes.core.sim import SimParams, simulate
-    from sensing_nodes.core.world import load_world
+    from sensing_nodes.core.sim.simulator import SimParams, simulate
+    from sensing_nodes.core.sim.world import load_world
     from sensing_nodes.paths import config_file
 
     run = simulate(SimParams(), load_world(config_file('default_world.yaml')), 60.0, seed=2)

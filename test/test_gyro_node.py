@@ -7,13 +7,18 @@ import time
 import numpy as np
 import pytest
 import rclpy
-from harness import REPO, Collector, NodeProcess, run_to_exit, spin_until, publish_until
+from harness import REPO, Collector, NodeProcess, publish_until, run_to_exit, spin_until
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger
 
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
-from sensing_nodes.ros.conversions import make_odometry, ns_to_stamp, quaternion_to_yaw, stamp_to_ns
+from sensing_nodes.ros.conversions import (
+    make_odometry,
+    ns_to_stamp,
+    quaternion_to_yaw,
+    stamp_to_ns,
+)
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
 T0 = 1_700_000_000 * 1_000_000_000
@@ -186,9 +191,9 @@ def test_calibrated_scale_factor_and_bias_correct_the_heading(probe):
     error against the truth drops several-fold; without them it is the scale error's."""
     from rclpy.node import Node
 
-    from sensing_nodes.core.imu_mount import mount_rotation
-    from sensing_nodes.core.sim import SimParams, simulate
-    from sensing_nodes.core.world import load_world
+    from sensing_nodes.core.geometry.imu_mount import mount_rotation
+    from sensing_nodes.core.sim.simulator import SimParams, simulate
+    from sensing_nodes.core.sim.world import load_world
     from sensing_nodes.nodes.gyro_integrator import GyroIntegratorProcessor, ImuMount
     from sensing_nodes.paths import config_file
     from sensing_nodes.ros.diagnostics import Diagnostics

@@ -7,9 +7,15 @@ import numpy as np
 import pytest
 
 from sensing_nodes.core import icp
-from sensing_nodes.core.scan import beam_angles, scan_to_points
-from sensing_nodes.core.se2 import compose, inverse, rotation, transform_points, wrap_angle
-from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.core.geometry.scan import beam_angles, scan_to_points
+from sensing_nodes.core.geometry.se2 import (
+    compose,
+    inverse,
+    rotation,
+    transform_points,
+    wrap_angle,
+)
+from sensing_nodes.core.sim.world import load_world, raycast
 from sensing_nodes.paths import config_file
 
 WORLD = load_world(config_file('default_world.yaml'))

@@ -12,12 +12,16 @@ from harness import Collector, NodeProcess, run_to_exit, spin_until
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import LaserScan
 
-from sensing_nodes.core.scan import beam_angles
-from sensing_nodes.core.se2 import between, compose, wrap_angle
-from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.core.geometry.scan import beam_angles
+from sensing_nodes.core.geometry.se2 import between, compose, wrap_angle
+from sensing_nodes.core.sim.world import load_world, raycast
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import (
-    float32_array, make_odometry, ns_to_stamp, odometry_pose, stamp_to_ns,
+    float32_array,
+    make_odometry,
+    ns_to_stamp,
+    odometry_pose,
+    stamp_to_ns,
 )
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
@@ -236,13 +240,12 @@ def test_bad_scans_and_backwards_time_keep_the_node_running(probe, pubs):
 def test_laser_mount_from_tf_static_and_odom_to_base_link_on_tf(probe, pubs):
     """The laser sits turned 30 deg and 5 cm left, which /tf_static says and the parameters do
     not: the node warns, matches with the TF mount, and broadcasts its pose on /tf."""
+    from rclpy.node import Node
     from tf2_msgs.msg import TFMessage
 
-    from sensing_nodes.core.transform import Transform
+    from sensing_nodes.core.geometry.transform import Transform
     from sensing_nodes.ros.qos import TF_QOS
     from sensing_nodes.ros.tf import StaticTransformBroadcaster
-
-    from rclpy.node import Node
 
     mount = (0.10, 0.05, math.radians(30.0))
     # Its own node, destroyed at the end: a latched /tf_static left on the session's probe would

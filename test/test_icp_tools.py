@@ -8,10 +8,10 @@ import pytest
 from harness import REPO, run_to_exit
 from sensor_msgs.msg import LaserScan
 
-from sensing_nodes.ros.bag import BagWriter
-from sensing_nodes.core.scan import beam_angles
-from sensing_nodes.core.se2 import compose
-from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.bags.storage import BagWriter
+from sensing_nodes.core.geometry.scan import beam_angles
+from sensing_nodes.core.geometry.se2 import compose
+from sensing_nodes.core.sim.world import load_world, raycast
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import float32_array, ns_to_stamp
 

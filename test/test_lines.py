@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
+from sensing_nodes.core.geometry.se2 import inverse, transform_points, wrap_angle
 from sensing_nodes.core.lines import Line, extract_lines, fit_line
-from sensing_nodes.core.se2 import inverse, transform_points, wrap_angle
-from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.core.sim.world import load_world, raycast
 from sensing_nodes.paths import config_file
 
 WORKED = np.array([(0, 0.1), (1, -0.1), (2, 0.0), (3, 0.1), (4, -0.1)], dtype=float)
@@ -328,7 +328,8 @@ def test_deterministic(simulated):
 
 # ---------------------------------------------------------------- properties on random input
 
-from hypothesis import given, settings, strategies as st  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st
 
 
 @settings(max_examples=150, deadline=None)

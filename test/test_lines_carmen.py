@@ -8,10 +8,10 @@ import pytest
 from harness import run_to_exit
 from sensor_msgs.msg import LaserScan
 
-from sensing_nodes.ros.bag import BagWriter
-from sensing_nodes.core.carmen import read_carmen
+from sensing_nodes.bags.carmen import read_carmen
+from sensing_nodes.bags.storage import BagWriter
 from sensing_nodes.core.lines import extract_lines
-from sensing_nodes.core.world import raycast
+from sensing_nodes.core.sim.world import raycast
 from sensing_nodes.ros.conversions import ns_to_stamp
 
 CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'

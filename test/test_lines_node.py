@@ -10,7 +10,7 @@ from sensor_msgs.msg import LaserScan, PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
 from sensing_nodes.core.lines import extract_lines
-from sensing_nodes.core.world import raycast
+from sensing_nodes.core.sim.world import raycast
 from sensing_nodes.ros.conversions import ns_to_stamp, scan_arrays, stamp_to_ns
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 

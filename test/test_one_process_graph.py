@@ -15,7 +15,7 @@ from harness import BIN, spin_until
 from rcl_interfaces.srv import GetParameters
 from rclpy.parameter import parameter_value_to_python
 
-from sensing_nodes.ros.graph import PROCESSING_NODES
+from sensing_nodes.topics import PROCESSING_NODES
 
 GRAPH = [sys.executable, '-m', 'sensing_nodes.tools.graph']
 

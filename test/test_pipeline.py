@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from harness import REPO, run_to_exit
 
-from sensing_nodes.ros.bag import BagReader, read_messages, topic_counts
-from sensing_nodes.ros.compare import compare_outputs, output_messages
+from sensing_nodes.bags.storage import BagReader, read_messages, topic_counts
+from sensing_nodes.graph.compare import compare_outputs, output_messages
 
 BAGS = REPO / 'bags'
 CARMEN = REPO.parent / 'shared' / 'datasets' / 'carmen'
@@ -136,7 +136,7 @@ def test_bad_input_exits_2_naming_the_file(tmp_path):
     # A bag whose /scan holds another type.
     from nav_msgs.msg import Odometry
 
-    from sensing_nodes.ros.bag import BagWriter
+    from sensing_nodes.bags.storage import BagWriter
 
     wrong = tmp_path / 'wrong'
     with BagWriter(wrong) as bag:

@@ -15,16 +15,16 @@ import pytest
 from harness import REPO, run_to_exit
 from rclpy.serialization import deserialize_message
 
-from sensing_nodes.ros.bag import BagWriter, message_class, topic_counts
-from sensing_nodes.ros.cdr import first_element_stamp_ns
-from sensing_nodes.ros.compare import (
+from sensing_nodes.bags.input_bag import load_bag
+from sensing_nodes.bags.stamps import first_element_stamp_ns
+from sensing_nodes.bags.storage import BagWriter, message_class, topic_counts
+from sensing_nodes.graph.compare import (
     REPRODUCE_ATOL,
     REPRODUCE_RTOL,
     compare_outputs,
     output_messages,
 )
-from sensing_nodes.ros.input_bag import load_bag
-from sensing_nodes.ros.replayer import DEFAULT_EXPECTATIONS
+from sensing_nodes.graph.replayer import DEFAULT_EXPECTATIONS
 
 BAGS = REPO / 'bags'
 # Every output of the graph that is a function of the inputs (not /diagnostics: wall-clock timer).
@@ -156,7 +156,7 @@ def test_tolerance_tells_a_changed_output_from_blas_noise():
     from nav_msgs.msg import Odometry
     from visualization_msgs.msg import Marker
 
-    from sensing_nodes.ros.compare import message_difference
+    from sensing_nodes.graph.compare import message_difference
 
     a = Odometry()
     a.pose.pose.position.x = 3.0
@@ -310,8 +310,8 @@ def test_bag_order_is_stamp_order_with_ties_as_stored():
 
 
 def test_marker_array_stamp_is_read_from_the_first_marker():
-    from visualization_msgs.msg import Marker, MarkerArray
     from rclpy.serialization import serialize_message
+    from visualization_msgs.msg import Marker, MarkerArray
 
     msg = MarkerArray(markers=[Marker(), Marker()])
     msg.markers[0].header.stamp.sec, msg.markers[0].header.stamp.nanosec = 17, 250
@@ -356,7 +356,7 @@ def test_a_node_failing_at_start_up_is_an_error_without_output(tmp_path):
 def _subset_bag(path: Path, source: Path, keep) -> Path:
     """A copy of `source` with only the messages keep(topic, stamp) accepts (topics kept with
     their type and QoS)."""
-    from sensing_nodes.ros.bag import BagReader
+    from sensing_nodes.bags.storage import BagReader
 
     reader = BagReader(source)
     with BagWriter(path) as bag:

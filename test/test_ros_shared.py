@@ -7,7 +7,7 @@ import pytest
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import LaserScan
 
-from sensing_nodes.ros.bag import BagWriter, read_messages, topic_counts, type_name
+from sensing_nodes.bags.storage import BagWriter, read_messages, topic_counts, type_name
 from sensing_nodes.ros import conversions as conv
 
 
@@ -61,7 +61,7 @@ def test_bag_round_trip_with_both_readers(tmp_path):
 def test_pid_domains_of_tools_benches_and_tests_never_meet():
     """Each kind of user takes its pid-derived ROS domain from its own range, within Fast DDS's
     0-232: a demo never joins a running benchmark's or test run's domain."""
-    from sensing_nodes.ros.graph import DOMAIN_RANGES, pid_domain_id
+    from sensing_nodes.graph.processes import DOMAIN_RANGES, pid_domain_id
 
     taken = {kind: {pid_domain_id(kind, offset) for offset in range(300)}
              for kind in DOMAIN_RANGES}

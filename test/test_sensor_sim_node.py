@@ -8,8 +8,8 @@ import pytest
 import yaml
 from harness import REPO, Collector, NodeProcess, run_to_exit, spin_until
 
-from sensing_nodes.core import sim
-from sensing_nodes.core.world import load_world
+from sensing_nodes.core.sim import simulator as sim
+from sensing_nodes.core.sim.world import load_world
 from sensing_nodes.ros.sim_robot import NodeSettings
 
 SECOND = 10**9
@@ -34,11 +34,15 @@ def live_run(probe):
     from nav_msgs.msg import Odometry
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import Imu, JointState, LaserScan
-
     from tf2_msgs.msg import TFMessage
 
-    from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS, TF_QOS, \
-        TF_STATIC_READER_QOS
+    from sensing_nodes.ros.qos import (
+        CLOCK_QOS,
+        ESTIMATE_QOS,
+        SENSOR_QOS,
+        TF_QOS,
+        TF_STATIC_READER_QOS,
+    )
 
     collectors = {
         '/tf': Collector(probe, TFMessage, '/tf', TF_QOS),

@@ -1,5 +1,5 @@
 """The simulated robot's core without ROS: ray casting, noise statistics, IMU, encoders, route,
-determinism and parameter validation (sensing_nodes.core.sim / core.route)."""
+determinism and parameter validation (sensing_nodes.core.sim.simulator / core.route)."""
 
 import dataclasses
 import math
@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from sensing_nodes.core import sim
-from sensing_nodes.core.route import Route, parse_leg
-from sensing_nodes.core.se2 import wrap_angle
-from sensing_nodes.core.world import load_world, raycast, world_from_dict
+from sensing_nodes.core.geometry.se2 import wrap_angle
+from sensing_nodes.core.sim import simulator as sim
+from sensing_nodes.core.sim.route import Route, parse_leg
+from sensing_nodes.core.sim.world import load_world, raycast, world_from_dict
 from sensing_nodes.paths import config_file
 
 DEFAULT_WORLD = load_world(config_file('default_world.yaml'))

@@ -10,9 +10,9 @@ import pytest
 import yaml
 from harness import REPO, run_to_exit
 
-from sensing_nodes.ros.bag import read_messages, topic_counts, type_name
-from sensing_nodes.core import sim
-from sensing_nodes.core.world import load_world
+from sensing_nodes.bags.storage import read_messages, topic_counts, type_name
+from sensing_nodes.core.sim import simulator as sim
+from sensing_nodes.core.sim.world import load_world
 
 DURATION = 8.0
 RATES = {'/clock': 100.0, '/ground_truth/odom': 100.0, '/imu/data_raw': 200.0,

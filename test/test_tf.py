@@ -9,11 +9,14 @@ from harness import spin_until
 from rclpy.node import Node
 from tf2_msgs.msg import TFMessage
 
-from sensing_nodes.core import quaternion as quat
-from sensing_nodes.core.transform import Transform
+from sensing_nodes.core.geometry import quaternion as quat
+from sensing_nodes.core.geometry.transform import Transform
 from sensing_nodes.ros.qos import TF_QOS
-from sensing_nodes.ros.tf import StaticTransformBroadcaster, StaticTransformBuffer, \
-    TransformBroadcaster
+from sensing_nodes.ros.tf import (
+    StaticTransformBroadcaster,
+    StaticTransformBuffer,
+    TransformBroadcaster,
+)
 
 # `ros2 interface` of ROS 2 Jazzy reports this hash for tf2_msgs/msg/TFMessage.
 JAZZY_TF_MESSAGE_HASH = 'RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087'

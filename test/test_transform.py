@@ -1,4 +1,4 @@
-"""Quaternions and rigid transforms (core/quaternion.py, core/transform.py): worked numbers."""
+"""Quaternions and rigid transforms (core/geometry/quaternion.py, core/geometry/transform.py): worked numbers."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from sensing_nodes.core import quaternion as quat
-from sensing_nodes.core.transform import Transform
+from sensing_nodes.core.geometry import quaternion as quat
+from sensing_nodes.core.geometry.transform import Transform
 
 
 def close(a, b, tol=1e-12):

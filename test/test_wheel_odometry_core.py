@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from sensing_nodes.core.se2 import between, wrap_angle
+from sensing_nodes.core.geometry.se2 import between, wrap_angle
+from sensing_nodes.core.reference import integrate_step, propagate_covariance, step_jacobians
 from sensing_nodes.core.timing import StampStep
-from sensing_nodes.core.textbook import integrate_step, propagate_covariance, step_jacobians
 from sensing_nodes.core.wheel_odometry import (
     METHODS,
     Rejection,
@@ -79,8 +79,8 @@ def test_one_percent_radius_error_curves_believed_straight_driving():
 def test_one_percent_radius_error_in_the_simulator():
     """The simulator drives truly straight with a 1 % larger right wheel: nominal odometry
     believes it turns right by d (1/1.01 - 1) / L; the calibrated multiplier removes that."""
-    from sensing_nodes.core.sim import SimParams, simulate
-    from sensing_nodes.core.world import load_world
+    from sensing_nodes.core.sim.simulator import SimParams, simulate
+    from sensing_nodes.core.sim.world import load_world
     from sensing_nodes.paths import config_file
 
     params = SimParams(route=('straight 2.0 0.25', 'wait 100'), slip_noise_sqrt_m=0.0)
@@ -356,8 +356,8 @@ def test_config_problems_name_the_field():
 # -- honest uncertainty on the simulated robot --------------------------------------------------
 
 def consistency(seeds, **config):
-    from sensing_nodes.core.sim import SimParams, simulate
-    from sensing_nodes.core.world import load_world
+    from sensing_nodes.core.sim.simulator import SimParams, simulate
+    from sensing_nodes.core.sim.world import load_world
     from sensing_nodes.paths import config_file
 
     world = load_world(config_file('default_world.yaml'))

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 import rclpy
-from harness import REPO, Collector, NodeProcess, run_to_exit, spin_until, publish_until
+from harness import REPO, Collector, NodeProcess, publish_until, run_to_exit, spin_until
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger

@@ -12,8 +12,8 @@ import time
 
 import numpy as np
 
-from sensing_nodes.core import characterization as ch
-from sensing_nodes.core.sim import GyroBiasProcess
+from sensing_nodes.core.evaluation import characterization as ch
+from sensing_nodes.core.sim.simulator import GyroBiasProcess
 
 RATE_HZ = 200.0
 N_TRUE = 7.1e-5         # rad/s/sqrt(Hz): sensor_sim's 0.001 rad/s per sample at 200 Hz

@@ -19,16 +19,16 @@ from pathlib import Path
 import numpy as np
 
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator, integrate_rate, still_mask
-from sensing_nodes.core.sim import SimParams, simulate
+from sensing_nodes.core.sim.simulator import SimParams, simulate
+from sensing_nodes.core.sim.world import load_world
 from sensing_nodes.core.wheel_odometry import (
     WheelOdometry,
     WheelOdometryConfig,
     integrate_path,
     wheel_increments,
 )
-from sensing_nodes.core.world import load_world
+from sensing_nodes.graph.processes import pid_domain_id
 from sensing_nodes.paths import config_file
-from sensing_nodes.ros.graph import pid_domain_id
 
 JOINTS = ('left_wheel_joint', 'right_wheel_joint')
 

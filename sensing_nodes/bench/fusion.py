@@ -26,8 +26,8 @@ PASSES = 3
 
 def fusion_pass(messages: list[tuple[str, bytes]]) -> tuple[float, int, int]:
     """One fresh fusion node over (topic, CDR bytes) in order: (CPU s, inputs, outputs)."""
+    from sensing_nodes.graph.pipeline import build_nodes, close
     from sensing_nodes.ros.cdr import cdr_decoder
-    from sensing_nodes.tools.pipeline import build_nodes, close
 
     built = build_nodes(('complementary_fusion',), [], {})
     try:
@@ -47,7 +47,7 @@ def fusion_pass(messages: list[tuple[str, bytes]]) -> tuple[float, int, int]:
 
 def run(quick: bool = False) -> dict:
     """Record the bag, make the fusion's inputs, time the fusion's processor over them."""
-    from sensing_nodes.ros.input_bag import load_bag
+    from sensing_nodes.bags.input_bag import load_bag
 
     duration_s = 60.0 if quick else 300.0
     with tempfile.TemporaryDirectory() as tmp:

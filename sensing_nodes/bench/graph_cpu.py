@@ -27,9 +27,9 @@ from pathlib import Path
 
 import yaml
 
+from sensing_nodes.graph.processes import ONE_PROCESS, pid_domain_id
 from sensing_nodes.paths import config_file
-
-from sensing_nodes.ros.graph import ONE_PROCESS, PROCESSING_NODES, pid_domain_id
+from sensing_nodes.topics import PROCESSING_NODES
 
 
 def input_rates(sim_overrides: dict[str, float] | None = None) -> dict[str, float]:

@@ -19,10 +19,10 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from sensing_nodes.bags.carmen import read_carmen
 from sensing_nodes.core import icp
-from sensing_nodes.core.carmen import read_carmen
-from sensing_nodes.core.scan import scan_to_points
-from sensing_nodes.core.se2 import Pose2, between, wrap_angle
+from sensing_nodes.core.geometry.scan import scan_to_points
+from sensing_nodes.core.geometry.se2 import Pose2, between, wrap_angle
 
 # Range reported for "no return" in each log (see the dataset README); ranges at or above it are
 # invalid, not walls 50 m away.

@@ -7,11 +7,11 @@ import json
 
 import numpy as np
 
-from sensing_nodes.core.scan import scan_to_points
+from sensing_nodes.core.geometry.scan import scan_to_points
+from sensing_nodes.core.geometry.se2 import between, wrap_angle
 from sensing_nodes.core.scan_matching import KeyframeScanMatcher, ScanMatcherSettings
-from sensing_nodes.core.se2 import between, wrap_angle
-from sensing_nodes.core.sim import SimParams, make_route, simulate
-from sensing_nodes.core.world import load_world
+from sensing_nodes.core.sim.simulator import SimParams, make_route, simulate
+from sensing_nodes.core.sim.world import load_world
 from sensing_nodes.paths import config_file
 
 

@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from sensing_nodes.core.lines import Line, extract_lines
-from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.core.sim.world import load_world, raycast
 from sensing_nodes.paths import config_file
 
 POSES = [(-3.0, -2.0, 0.3), (3.0, -2.0, 2.0), (-3.0, 2.5, -1.0), (2.5, 1.5, 0.7), (0.0, 2.0, 3.0),

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sensing_nodes.core import sim
-from sensing_nodes.core.world import load_world, raycast
+from sensing_nodes.core.sim import simulator as sim
+from sensing_nodes.core.sim.world import load_world, raycast
 from sensing_nodes.paths import config_file
 
 

@@ -23,7 +23,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sensing_nodes.core.se2 import wrap_angle
+from sensing_nodes.core.geometry.se2 import wrap_angle
 from sensing_nodes.core.timing import SampleOutcome, StampStep, classify_step
 
 

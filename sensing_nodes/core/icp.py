@@ -16,7 +16,6 @@ from numpy.lib.stride_tricks import as_strided
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-
 # Variance (m², rad²) put on the diagonal of a failed match's covariance: large enough that any
 # fusion ignores it, finite so arithmetic stays sane.
 FAILED_VARIANCE = 1.0e6

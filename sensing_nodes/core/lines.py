@@ -25,7 +25,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-
 # cos²(incidence) is floored here: at grazing incidence the real error is dominated by beam width
 # and mixed returns, not by the range noise (which would give a vanishing distance variance).
 _MIN_COS2 = 0.05

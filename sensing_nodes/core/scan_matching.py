@@ -13,8 +13,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core import icp
-from sensing_nodes.core.se2 import (
-    Pose2, between, compose, compose_jacobians, compose_with_covariance, interpolate, inverse,
+from sensing_nodes.core.geometry.se2 import (
+    Pose2,
+    between,
+    compose,
+    compose_jacobians,
+    compose_with_covariance,
+    interpolate,
+    inverse,
     wrap_angle,
 )
 from sensing_nodes.core.timing import StampStep, classify_step

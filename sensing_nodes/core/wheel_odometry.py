@@ -25,7 +25,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sensing_nodes.core.se2 import Pose2, wrap_angle
+from sensing_nodes.core.geometry.se2 import Pose2, wrap_angle
 from sensing_nodes.core.timing import SampleOutcome, StampStep, classify_step
 
 METHODS = ('exact_arc', 'euler')
@@ -129,7 +129,7 @@ def step_columns(yaw, ds_left, ds_right, wheel_separation_m: float, method: str 
     The step's pose Jacobian is the shear I + u e3^T with u = (-dy, dx, 0), so with these
     columns G = [[gl_x, gr_x], [gl_y, gr_y], [-1/L, 1/L]] the covariance step is
     P' = F P F^T + G diag(var_l, var_r) G^T; the per-message (WheelOdometry) and the batch
-    (integrate_path) propagation both build on this, and core.textbook writes it as 3x3 products.
+    (integrate_path) propagation both build on this, and core.reference writes it as 3x3 products.
     """
     ds, dtheta = body_increments(ds_left, ds_right, wheel_separation_m)
     inv_l = 1.0 / wheel_separation_m

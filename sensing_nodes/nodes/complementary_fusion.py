@@ -23,20 +23,35 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 from tf2_msgs.msg import TFMessage
 
-from sensing_nodes.core.ekf_fusion import (
-    INPUT_DEFAULTS, EkfFusion, EkfSettings, InputConfig, input_config, with_mask,
+from sensing_nodes.core.fusion.complementary import (
+    ComplementaryMethod,
+    FusionSettings,
+    InputRecord,
+    StampOrderedBuffer,
+    pose_problem,
+    watermark,
 )
-from sensing_nodes.core.fusion import (
-    ComplementaryMethod, FusionSettings, InputRecord, StampOrderedBuffer, pose_problem, watermark,
+from sensing_nodes.core.fusion.ekf import (
+    INPUT_DEFAULTS,
+    EkfFusion,
+    EkfSettings,
+    InputConfig,
+    input_config,
+    with_mask,
 )
-from sensing_nodes.core.imu_mount import mount_rotation
-from sensing_nodes.core.transform import Transform
-from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_planar
-from sensing_nodes.ros.fusion_readings import (
-    IMU, IMU_SOURCES, SCAN, WHEEL, ReadingConverter, unit_quaternion,
-)
+from sensing_nodes.core.geometry.imu_mount import mount_rotation
+from sensing_nodes.core.geometry.transform import Transform
 from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
+from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_planar
 from sensing_nodes.ros.diagnostics import Diagnostics
+from sensing_nodes.ros.fusion_readings import (
+    IMU,
+    IMU_SOURCES,
+    SCAN,
+    WHEEL,
+    ReadingConverter,
+    unit_quaternion,
+)
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire

@@ -11,20 +11,20 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger
 
-from sensing_nodes.core import quaternion
+from sensing_nodes.core.geometry import quaternion
+from sensing_nodes.core.geometry.imu_mount import to_base
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
-from sensing_nodes.core.imu_mount import to_base
 from sensing_nodes.core.timing import StampStep
-from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.cdr import imu_cdr
+from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
-from sensing_nodes.ros.graph import IMU, IMU_RAW, WHEEL_ODOM
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import ImuMount, imu_mount
+from sensing_nodes.topics import IMU, IMU_RAW, WHEEL_ODOM
 
 _HEADING_ONLY = (0.0,) * 8   # orientation covariance: only yaw's variance (last) is known
 

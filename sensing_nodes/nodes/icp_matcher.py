@@ -8,31 +8,37 @@ import math
 import sys
 
 import numpy as np
-
 from diagnostic_msgs.msg import DiagnosticStatus
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import LaserScan
 from tf2_msgs.msg import TFMessage
 
+from sensing_nodes.core.geometry.scan import scan_to_points
+from sensing_nodes.core.geometry.transform import Transform
 from sensing_nodes.core.icp import Convergence, Correspondences, IcpOptions
-from sensing_nodes.core.scan import scan_to_points
 from sensing_nodes.core.scan_matching import (
-    ZERO, KeyframeScanMatcher, OdometryBuffer, ScanMatcherSettings, ScanStep,
-)
-from sensing_nodes.ros.conversions import (
-    keyframe_frame_id, odometry_pose, scan_arrays, stamp_to_ns,
+    ZERO,
+    KeyframeScanMatcher,
+    OdometryBuffer,
+    ScanMatcherSettings,
+    ScanStep,
 )
 from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
-from sensing_nodes.core.transform import Transform
+from sensing_nodes.ros.conversions import (
+    keyframe_frame_id,
+    odometry_pose,
+    scan_arrays,
+    stamp_to_ns,
+)
 from sensing_nodes.ros.diagnostics import Diagnostics
-from sensing_nodes.ros.graph import SCAN, SCAN_MATCH, SCAN_MATCH_KEYFRAME
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TF_TOPIC, SensorMount, StaticTransformBuffer
+from sensing_nodes.topics import SCAN, SCAN_MATCH, SCAN_MATCH_KEYFRAME
 
 
 def keyframe_odometry(step: ScanStep, base_frame: str) -> bytes:

@@ -18,17 +18,17 @@ from sensor_msgs.msg import LaserScan, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from sensing_nodes.core.geometry.scan import valid_ranges
 from sensing_nodes.core.lines import Line, extract_lines
-from sensing_nodes.core.scan import valid_ranges
 from sensing_nodes.core.timing import StampStep, classify_step
 from sensing_nodes.ros.conversions import scan_arrays, stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
-from sensing_nodes.ros.graph import SCAN, SCAN_LINES, SCAN_LINES_TABLE
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import ParameterError, declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
+from sensing_nodes.topics import SCAN, SCAN_LINES, SCAN_LINES_TABLE
 
 # (name, PointField datatype, numpy type) of each table column, in order, little endian.
 TABLE_FIELDS = (

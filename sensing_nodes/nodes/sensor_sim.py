@@ -4,7 +4,7 @@ Live:    sensor_sim --ros-args --params-file config/sensor_sim.yaml [-p real_tim
 Record:  sensor_sim --record DIR --duration S [--seed N] [--params-file F] [--ros-args -p N:=V]
          (a rosbag2 MCAP bag of every topic, no DDS, as fast as the CPU allows)
 
-Both run the same engine (sensing_nodes.core.sim.SensorSim) and the same message conversion,
+Both run the same engine (sensing_nodes.core.sim.simulator.SensorSim) and the same message conversion,
 so a recorded bag holds exactly the messages the live node publishes for the same seed.
 """
 
@@ -28,17 +28,23 @@ from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState, LaserScan
 
-from sensing_nodes.core import sim as core
-from sensing_nodes.core.transform import Transform
+from sensing_nodes.core.geometry.transform import Transform
+from sensing_nodes.core.sim import simulator as core
 from sensing_nodes.ros.diagnostics import Diagnostics
-from sensing_nodes.ros.graph import CMD_VEL, SCAN
 from sensing_nodes.ros.params import ParameterError, declare
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.sim_robot import (
-    NODE_DOCS, NODE_RANGES, TOPICS, NodeSettings, SimMessages, record, settings_from_values,
+    NODE_DOCS,
+    NODE_RANGES,
+    TOPICS,
+    NodeSettings,
+    SimMessages,
+    record,
+    settings_from_values,
 )
 from sensing_nodes.ros.tf import StaticTransformBroadcaster, TransformBroadcaster
+from sensing_nodes.topics import CMD_VEL, SCAN
 
 NODE_NAME = 'sensor_sim'
 EXIT_BAD_PARAMETER = 2

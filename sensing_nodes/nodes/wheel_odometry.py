@@ -11,19 +11,20 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 
+from sensing_nodes.core.geometry.transform import Transform
 from sensing_nodes.core.timing import StampStep
-from sensing_nodes.core.transform import Transform
 from sensing_nodes.core.wheel_odometry import METHODS, WheelOdometry, WheelOdometryConfig
-from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
+from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
-from sensing_nodes.ros.graph import JOINT_STATES, WHEEL_ODOM
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TF_TOPIC
+from sensing_nodes.topics import JOINT_STATES, WHEEL_ODOM
+
 
 class WheelOdometryNode(Node):
     # long: the parameter declarations (descriptors, ranges), then validation and wiring.

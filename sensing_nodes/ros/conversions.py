@@ -15,10 +15,10 @@ from geometry_msgs.msg import Quaternion, TransformStamped
 from nav_msgs.msg import Odometry
 from numpy.typing import ArrayLike, NDArray
 
-from sensing_nodes.core import quaternion
-from sensing_nodes.core.scan import beam_angles
-from sensing_nodes.core.se2 import Pose2
-from sensing_nodes.core.transform import Transform
+from sensing_nodes.core.geometry import quaternion
+from sensing_nodes.core.geometry.scan import beam_angles
+from sensing_nodes.core.geometry.se2 import Pose2
+from sensing_nodes.core.geometry.transform import Transform
 
 # Indices of x, y and yaw in a row-major 6x6 ROS covariance (x, y, z, roll, pitch, yaw), and
 # of their 3x3 block's entries (row-major) among the 36 values.

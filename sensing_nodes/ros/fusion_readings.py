@@ -17,11 +17,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core.ekf_fusion import InputConfig, Reading
-from sensing_nodes.core.fusion import InputRecord, covariance_problem, pose_problem
-from sensing_nodes.core.imu_mount import base_orientation, to_base
+from sensing_nodes.core.fusion.complementary import InputRecord, covariance_problem, pose_problem
+from sensing_nodes.core.fusion.ekf import InputConfig, Reading
+from sensing_nodes.core.geometry.imu_mount import base_orientation, to_base
 from sensing_nodes.ros.conversions import (
-    NO_KEYFRAME, keyframe_stamp, odometry_pose, odometry_twist, quaternion_to_yaw, stamp_to_ns,
+    NO_KEYFRAME,
+    keyframe_stamp,
+    odometry_pose,
+    odometry_twist,
+    quaternion_to_yaw,
+    stamp_to_ns,
 )
 
 WHEEL, IMU, SCAN = 'wheel_odom', 'imu', 'scan_match'

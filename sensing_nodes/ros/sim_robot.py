@@ -16,11 +16,11 @@ from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState, LaserScan
 
-from sensing_nodes.core import sim as core
-from sensing_nodes.core.world import World, load_world
+from sensing_nodes.core.sim import simulator as core
+from sensing_nodes.core.sim.world import World, load_world
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import float32_array, yaw_to_quaternion
-from sensing_nodes.ros.graph import CLOCK, GROUND_TRUTH, IMU_RAW, JOINT_STATES, SCAN, TOPIC_TYPES
+from sensing_nodes.topics import CLOCK, GROUND_TRUTH, IMU_RAW, JOINT_STATES, SCAN, TOPIC_TYPES
 
 TOPICS = {kind: (topic, TOPIC_TYPES[topic]) for kind, topic in (
     (core.CLOCK, CLOCK), (core.TRUTH, GROUND_TRUTH), (core.IMU, IMU_RAW),
@@ -187,7 +187,7 @@ class SimMessages:
 def record(out_dir: str | Path, duration_s: float, params: core.SimParams, settings: NodeSettings,
            world: World, progress: bool = False) -> dict[str, int]:
     """Write a rosbag2 MCAP bag of every topic for duration_s simulated seconds; topic -> count."""
-    from sensing_nodes.ros.bag import BagWriter
+    from sensing_nodes.bags.storage import BagWriter
 
     sim = core.SensorSim(params, world, settings.seed)
     convert = SimMessages(params, settings)

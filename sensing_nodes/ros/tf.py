@@ -15,13 +15,13 @@ import numpy as np
 from rclpy.node import Node
 from tf2_msgs.msg import TFMessage
 
-from sensing_nodes.core import quaternion as quat
-from sensing_nodes.core.imu_mount import is_identity, mount_rotation
-from sensing_nodes.core.transform import Transform
+from sensing_nodes.core.geometry import quaternion as quat
+from sensing_nodes.core.geometry.imu_mount import is_identity, mount_rotation
+from sensing_nodes.core.geometry.transform import Transform
 from sensing_nodes.ros.conversions import make_transform_stamped, transform_of
-from sensing_nodes.ros.graph import TF, TF_STATIC
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.qos import TF_QOS, TF_STATIC_QOS, TF_STATIC_READER_QOS
+from sensing_nodes.topics import TF, TF_STATIC
 
 TF_TOPIC = TF
 TF_STATIC_TOPIC = TF_STATIC

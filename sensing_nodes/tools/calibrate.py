@@ -27,13 +27,17 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sensing_nodes.core import calibration as cal
-from sensing_nodes.core.scan import scan_to_points
-from sensing_nodes.paths import config_file
-from sensing_nodes.ros.sensor_bag import (
-    EXIT_BAD_INPUT, SensorBagError, atomic_write, read_sensor_bag, read_yaw_track,
+from sensing_nodes.bags.sensor_streams import (
+    EXIT_BAD_INPUT,
+    SensorBagError,
+    atomic_write,
+    read_sensor_bag,
+    read_yaw_track,
     stderr_progress,
 )
+from sensing_nodes.core.evaluation import calibration as cal
+from sensing_nodes.core.geometry.scan import scan_to_points
+from sensing_nodes.paths import config_file
 
 PROG = 'sensing_calibrate'
 
@@ -280,7 +284,7 @@ def delay_yaml(result: cal.TimeOffset, bag: str, odom_topic: str, match_topic: s
 
 
 def run_delay(args: argparse.Namespace) -> int:
-    """--odom-delay: the odometry topic's delay against the scan matches (core/calibration.py)."""
+    """--odom-delay: the odometry topic's delay against the scan matches (core/evaluation/calibration.py)."""
     odom_t, odom_yaw = read_yaw_track(args.bag, args.odom_topic)
     match_t, match_yaw = read_yaw_track(args.bag, args.match_topic)
     print(f'{args.bag}: {len(odom_t)} odometry poses on {args.odom_topic}, {len(match_t)} scan '

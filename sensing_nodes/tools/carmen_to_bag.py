@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.carmen import CarmenLog, read_carmen
-from sensing_nodes.ros.graph import GROUND_TRUTH, SCAN
+from sensing_nodes.bags.carmen import CarmenLog, read_carmen
+from sensing_nodes.core.geometry import se2
+from sensing_nodes.topics import GROUND_TRUTH, SCAN
 
 EXIT_BAD_INPUT = 2
 NS = 1_000_000_000
@@ -100,7 +100,7 @@ def convert(log_path: str | Path, out: str | Path, laser_x_m: float = 0.0,
     from nav_msgs.msg import Odometry  # noqa: F401  (rclpy message classes load here)
     from sensor_msgs.msg import LaserScan
 
-    from sensing_nodes.ros.bag import BagWriter
+    from sensing_nodes.bags.storage import BagWriter
     from sensing_nodes.ros.conversions import float32_array, make_odometry
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 

@@ -19,14 +19,19 @@ from pathlib import Path
 
 import numpy as np
 
-from sensing_nodes.core import characterization as ch
-from sensing_nodes.core.lines import extract_lines
-from sensing_nodes.core.se2 import wrap_angle
-from sensing_nodes.paths import config_file
-from sensing_nodes.ros.sensor_bag import (
-    EXIT_BAD_INPUT, SensorBagError, SensorData, atomic_write, describe_topics, read_sensor_bag,
+from sensing_nodes.bags.sensor_streams import (
+    EXIT_BAD_INPUT,
+    SensorBagError,
+    SensorData,
+    atomic_write,
+    describe_topics,
+    read_sensor_bag,
     stderr_progress,
 )
+from sensing_nodes.core.evaluation import characterization as ch
+from sensing_nodes.core.geometry.se2 import wrap_angle
+from sensing_nodes.core.lines import extract_lines
+from sensing_nodes.paths import config_file
 
 PROG = 'sensing_characterize'
 AXES = ('x', 'y', 'z')
@@ -160,7 +165,7 @@ def characterize_imu(data: SensorData, png_dir: Path | None) -> bool:
 
 
 def _truth_ranges(data: SensorData, world_file: Path, laser, every: int):
-    from sensing_nodes.core.world import load_world, raycast
+    from sensing_nodes.core.sim.world import load_world, raycast
 
     world = load_world(world_file)
     scans = data.scans

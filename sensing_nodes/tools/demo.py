@@ -17,16 +17,30 @@ from pathlib import Path
 
 import numpy as np
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.evaluation import path_length, sigma_consistency, trajectory_errors
+from sensing_nodes.core.evaluation.metrics import path_length, sigma_consistency, trajectory_errors
+from sensing_nodes.core.geometry import se2
+from sensing_nodes.graph.cli import GraphArgumentError, new_run_folder, parse_node_params
+from sensing_nodes.graph.processes import Graph, isolated_environment
 from sensing_nodes.paths import config_file
-from sensing_nodes.ros.graph import (
-    CLOCK, DIAGNOSTICS, FUSED, GROUND_TRUTH, IMU, NODES, PROCESSING_NODES, SCAN, SCAN_LINES,
-    SCAN_MATCH, SCAN_MATCH_KEYFRAME, SENSOR_TOPICS, SIMULATOR_TOPICS, TOPIC_TYPES,
-    WALL_PERIODIC_TOPICS, WHEEL_ODOM, Graph, GraphArgumentError, isolated_environment,
-    new_run_folder, parse_node_params,
-)
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.topics import (
+    CLOCK,
+    DIAGNOSTICS,
+    FUSED,
+    GROUND_TRUTH,
+    IMU,
+    NODES,
+    PROCESSING_NODES,
+    SCAN,
+    SCAN_LINES,
+    SCAN_MATCH,
+    SCAN_MATCH_KEYFRAME,
+    SENSOR_TOPICS,
+    SIMULATOR_TOPICS,
+    TOPIC_TYPES,
+    WALL_PERIODIC_TOPICS,
+    WHEEL_ODOM,
+)
 
 # Estimate name -> (topic, what it estimates)
 ESTIMATES = {
@@ -115,7 +129,7 @@ class Collected:
 
     def load(self, bag_path: Path) -> None:
         """Estimates, ground truth and final diagnostics from the recorded bag."""
-        from sensing_nodes.ros.bag import read_messages
+        from sensing_nodes.bags.storage import read_messages
         from sensing_nodes.ros.conversions import odometry_pose, quaternion_to_yaw
 
         odometry = {GROUND_TRUTH, WHEEL_ODOM, SCAN_MATCH, FUSED}
@@ -146,8 +160,8 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
     import rclpy
     from rclpy.node import Node
 
-    from sensing_nodes.ros.bag import BagWriter
-    from sensing_nodes.ros.recorder import TopicRecorder
+    from sensing_nodes.bags.storage import BagWriter
+    from sensing_nodes.graph.recorder import TopicRecorder
     from sensing_nodes.ros.run import make_executor, spin_until_quiet
 
     env = isolated_environment(args.domain_id)
@@ -337,8 +351,8 @@ def plot(report: dict, collected: Collected, out: Path) -> list[Path]:
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    from sensing_nodes.core.evaluation import express_in_reference_frame, interpolate_poses
-    from sensing_nodes.core.world import load_world
+    from sensing_nodes.core.evaluation.metrics import express_in_reference_frame, interpolate_poses
+    from sensing_nodes.core.sim.world import load_world
 
     world = load_world(config_file('default_world.yaml'))
     t_ref, truth = collected.arrays(GROUND_TRUTH)

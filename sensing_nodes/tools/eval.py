@@ -18,13 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from sensing_nodes.core.evaluation import (
+from sensing_nodes.bags.sensor_streams import atomic_write
+from sensing_nodes.core.evaluation.metrics import (
     absolute_trajectory_error,
     read_relations,
     relations_from_trajectory,
     relative_pose_errors,
 )
-from sensing_nodes.ros.sensor_bag import atomic_write
 
 EXIT_BAD_INPUT = 2
 ODOMETRY = 'nav_msgs/msg/Odometry'
@@ -38,7 +38,7 @@ class EvalError(Exception):
 def load_trajectories(bag: Path, topics: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """topic -> (stamps ns, poses (N, 3)) from Odometry topics (header stamps, sorted, the last
     message of a repeated stamp kept)."""
-    from sensing_nodes.ros.bag import read_messages, topic_counts
+    from sensing_nodes.bags.storage import read_messages, topic_counts
     from sensing_nodes.ros.conversions import odometry_pose, stamp_to_ns
 
     if not bag.exists():
@@ -75,7 +75,7 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
              time_offset_s: float = 0.0) -> dict:
     """{'reference': ..., 'estimates': {topic: RPE and ATE figures}} (ATE needs the reference
     trajectory in the bag)."""
-    from sensing_nodes.ros.bag import topic_counts
+    from sensing_nodes.bags.storage import topic_counts
 
     bag = Path(bag)
     if not bag.exists():
@@ -144,8 +144,8 @@ def plot(report: dict, path: Path, reference: str = REFERENCE) -> None:
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    from sensing_nodes.core import se2
-    from sensing_nodes.core.evaluation import align_rigid_2d, interpolate_poses
+    from sensing_nodes.core.evaluation.metrics import align_rigid_2d, interpolate_poses
+    from sensing_nodes.core.geometry import se2
 
     trajectories = report['_trajectories']
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 5.5))

@@ -22,10 +22,10 @@ import numpy as np
 import yaml
 from rosbags.highlevel import AnyReader
 
-from sensing_nodes.core.ekf_fusion import EkfFusion, EkfSettings
-from sensing_nodes.core.fusion import InputRecord
-from sensing_nodes.core.fusion_eval import inputs_from_params
-from sensing_nodes.core.imu_mount import mount_rotation
+from sensing_nodes.core.evaluation.fusion import inputs_from_params
+from sensing_nodes.core.fusion.complementary import InputRecord
+from sensing_nodes.core.fusion.ekf import EkfFusion, EkfSettings
+from sensing_nodes.core.geometry.imu_mount import mount_rotation
 from sensing_nodes.ros.fusion_readings import IMU, SCAN, WHEEL, ReadingConverter
 
 RANK = {WHEEL: 0, IMU: 1, SCAN: 2}

@@ -23,9 +23,14 @@ def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    from sensing_nodes.ros.graph import make_node, node_arguments
-    from sensing_nodes.ros.run import (_PARAMETER_ERRORS, EXIT_BAD_PARAMETER, make_executor,
-                                       spin_until_shutdown)
+    from sensing_nodes.graph.cli import node_arguments
+    from sensing_nodes.nodes.registry import make_node
+    from sensing_nodes.ros.run import (
+        _PARAMETER_ERRORS,
+        EXIT_BAD_PARAMETER,
+        make_executor,
+        spin_until_shutdown,
+    )
 
     faulthandler.enable()
     # Never this tool's argv: its options are not ROS arguments, and every node gets its own.
@@ -56,8 +61,8 @@ def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    from sensing_nodes.ros.graph import PROCESSING_NODES
     from sensing_nodes.ros.run import EXECUTORS
+    from sensing_nodes.topics import PROCESSING_NODES
 
     parser = argparse.ArgumentParser(prog='sensing_graph', description=__doc__.split('\n\n')[0])
     parser.add_argument('--nodes', default=','.join(PROCESSING_NODES),
@@ -82,8 +87,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sensing_nodes.ros.graph import (
-        GraphArgumentError, params_file_path, parse_node_params, parse_nodes,
+    from sensing_nodes.graph.cli import (
+        GraphArgumentError,
+        params_file_path,
+        parse_node_params,
+        parse_nodes,
     )
 
     args = parse_args(argv)

@@ -19,11 +19,11 @@ from pathlib import Path
 
 from numpy.typing import NDArray
 
+from sensing_nodes.bags.carmen import read_carmen
+from sensing_nodes.bags.sensor_streams import add_scan_source
 from sensing_nodes.core import icp
-from sensing_nodes.core.carmen import read_carmen
-from sensing_nodes.core.scan import scan_to_points
-from sensing_nodes.core.se2 import Pose2, between, transform_points
-from sensing_nodes.ros.sensor_bag import add_scan_source
+from sensing_nodes.core.geometry.scan import scan_to_points
+from sensing_nodes.core.geometry.se2 import Pose2, between, transform_points
 
 
 def carmen_pair(path: str | Path, index: int, step: int
@@ -47,7 +47,7 @@ def carmen_pair(path: str | Path, index: int, step: int
 def bag_pair(path: str | Path, topic: str, index: int, step: int
              ) -> tuple[NDArray, NDArray, None, str]:
     """Target and source points of LaserScan messages index and index + step in a rosbag2."""
-    from sensing_nodes.ros.bag import read_messages
+    from sensing_nodes.bags.storage import read_messages
     from sensing_nodes.ros.conversions import scan_arrays
 
     wanted = {index: None, index + step: None}

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core.carmen import read_carmen
+from sensing_nodes.bags.carmen import read_carmen
+from sensing_nodes.bags.sensor_streams import add_scan_source
 from sensing_nodes.core.lines import Line, extract_lines
-from sensing_nodes.ros.sensor_bag import add_scan_source
 
 
 def carmen_scan(path: str | Path, index: int) -> tuple[NDArray, NDArray, dict, str]:
@@ -32,7 +32,7 @@ def carmen_scan(path: str | Path, index: int) -> tuple[NDArray, NDArray, dict, s
 
 def bag_scan(path: str | Path, topic: str, index: int) -> tuple[NDArray, NDArray, dict, str]:
     """(ranges, angles, extraction limits, title) of message `index` on `topic` in a rosbag2."""
-    from sensing_nodes.ros.bag import read_messages
+    from sensing_nodes.bags.storage import read_messages
     from sensing_nodes.ros.conversions import scan_arrays, stamp_to_ns
 
     count = 0

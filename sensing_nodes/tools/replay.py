@@ -6,8 +6,8 @@ causes (the expectation table: input topic -> output topics, each carrying the i
 then the next; deterministic. Timed: respects the stamps, scaled by --rate, and publishes /clock.
 With --launch the package's processing nodes are started (with their config/ parameter files)
 and stopped by the tool itself; --make-bags DIR regenerates the project's bags in bags/.
-The replay itself is ros/replayer.py, the input and output bags ros/input_bag.py, the
-comparison (--check) ros/compare.py.
+The replay itself is graph/replayer.py, the input and output bags bags/input_bag.py, the
+comparison (--check) graph/compare.py.
 """
 
 from __future__ import annotations
@@ -20,15 +20,23 @@ import sys
 import tempfile
 from pathlib import Path
 
-from sensing_nodes.ros.compare import check_against
-from sensing_nodes.ros.graph import (
-    PROCESSING_NODES, GraphArgumentError, executable, parse_node_params, parse_nodes,
+from sensing_nodes.bags.input_bag import InputBagError, discard
+from sensing_nodes.graph.cli import (
+    GraphArgumentError,
+    parse_node_params,
+    parse_nodes,
     parse_remaps,
 )
-from sensing_nodes.ros.input_bag import InputBagError, discard
-from sensing_nodes.ros.replayer import (
-    DEFAULT_EXTRA_OUTPUTS, DEFAULT_SETTLE_AFTER, DEFAULT_SETTLE_BEFORE, ReplayError, replay,
+from sensing_nodes.graph.compare import check_against
+from sensing_nodes.graph.processes import executable
+from sensing_nodes.graph.replayer import (
+    DEFAULT_EXTRA_OUTPUTS,
+    DEFAULT_SETTLE_AFTER,
+    DEFAULT_SETTLE_BEFORE,
+    ReplayError,
+    replay,
 )
+from sensing_nodes.topics import PROCESSING_NODES
 
 # The project's bags: name -> (sensor_sim parameter file in config/, seed, simulated seconds).
 BAG_SPECS = {
@@ -55,7 +63,7 @@ def parse_expectations(specs: list[str]) -> dict[str, tuple[str, ...]]:
 
 def _find_executables_next_to_python() -> None:
     """`python -m sensing_nodes.tools.replay` from a venv: its bin/ holds the node executables
-    (ros.graph.executable looks next to sys.argv[0], then on PATH)."""
+    (graph.processes.executable looks next to sys.argv[0], then on PATH)."""
     bin_dir = Path(sys.executable).parent
     if (bin_dir / 'wheel_odometry').is_file() and str(bin_dir) not in os.environ['PATH'].split(os.pathsep):
         os.environ['PATH'] = str(bin_dir) + os.pathsep + os.environ.get('PATH', '')

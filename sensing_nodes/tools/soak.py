@@ -19,9 +19,18 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-from sensing_nodes.ros.graph import (
-    DIAGNOSTICS, FUSED, NODES, PROCESSING_NODES, SCAN, SCAN_LINES_TABLE, SCAN_MATCH, SENSOR_TOPICS,
-    TOPIC_TYPES, Graph, isolated_environment, new_run_folder,
+from sensing_nodes.graph.cli import new_run_folder
+from sensing_nodes.graph.processes import Graph, isolated_environment
+from sensing_nodes.topics import (
+    DIAGNOSTICS,
+    FUSED,
+    NODES,
+    PROCESSING_NODES,
+    SCAN,
+    SCAN_LINES_TABLE,
+    SCAN_MATCH,
+    SENSOR_TOPICS,
+    TOPIC_TYPES,
 )
 
 NS = 1_000_000_000
@@ -75,8 +84,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
 
-    from sensing_nodes.ros.bag import message_class
-    from sensing_nodes.ros.cdr import leading_stamp_ns
+    from sensing_nodes.bags.stamps import leading_stamp_ns
+    from sensing_nodes.bags.storage import message_class
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
     from sensing_nodes.ros.run import make_executor, spin_until_quiet
 

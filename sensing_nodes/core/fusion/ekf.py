@@ -35,9 +35,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.fusion import compounded_increment_covariance, increment_covariance
-from sensing_nodes.core.se2 import Pose2
+from sensing_nodes.core.fusion.complementary import (
+    compounded_increment_covariance,
+    increment_covariance,
+)
+from sensing_nodes.core.geometry import se2
+from sensing_nodes.core.geometry.se2 import Pose2
 
 QUANTITIES = ('x', 'y', 'yaw', 'vx', 'vy', 'vyaw')
 POSE_MODES = ('absolute', 'relative', 'differential')

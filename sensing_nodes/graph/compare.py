@@ -7,8 +7,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from sensing_nodes.ros.graph import WALL_PERIODIC_TOPICS
-from sensing_nodes.ros.input_bag import PassResult
+from sensing_nodes.bags.input_bag import PassResult
+from sensing_nodes.topics import WALL_PERIODIC_TOPICS
 
 # A replay on another CPU (another OpenBLAS kernel: OPENBLAS_CORETYPE) sums in another order, so
 # its floats may differ from the recording's in the last bits, and a difference can grow through
@@ -24,7 +24,7 @@ REPRODUCE_ATOL = 1e-11
 
 def output_messages(path: str | Path, topics: set[str]) -> dict[str, list[tuple[int, bytes]]]:
     """topic -> [(bag time ns, CDR bytes)] in bag order, for the given topics."""
-    from sensing_nodes.ros.bag import BagReader
+    from sensing_nodes.bags.storage import BagReader
 
     out: dict[str, list[tuple[int, bytes]]] = {t: [] for t in topics}
     for topic, stamp, raw in BagReader(path).raw(topics):
@@ -142,7 +142,7 @@ def compare_outputs(expected: dict[str, list[tuple[int, bytes]]],
     reproduced) and whether the topic is reproduced (same count, every message within it)."""
     from rclpy.serialization import deserialize_message
 
-    from sensing_nodes.ros.bag import canonical_cdr, message_class
+    from sensing_nodes.bags.storage import canonical_cdr, message_class
 
     report = {}
     for topic in sorted(set(expected) | set(actual)):
@@ -175,7 +175,7 @@ def check_against(recorded: Path, results: list[PassResult]) -> bool:
     outputs (the topics both have, /diagnostics aside): floats within the tolerance (the bag may
     come from another CPU), the rest exactly. Passes after the first must equal the first byte
     for byte (canonical CDR): one process on one CPU is deterministic. True when all hold."""
-    from sensing_nodes.ros.bag import topic_counts
+    from sensing_nodes.bags.storage import topic_counts
 
     types = {t: v[0] for t, v in topic_counts(recorded).items()}
     topics = {t for r in results for t in r.outputs} & set(types) - WALL_PERIODIC_TOPICS

@@ -16,8 +16,8 @@ from typing import Callable
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from sensing_nodes.ros.bag import BagWriter, message_class
-from sensing_nodes.ros.cdr import leading_stamp_ns
+from sensing_nodes.bags.stamps import leading_stamp_ns
+from sensing_nodes.bags.storage import BagWriter, message_class
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
 # Graph-internal topics nobody wants in a data bag.

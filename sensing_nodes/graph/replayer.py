@@ -4,7 +4,7 @@
 Lockstep (default): publish one input message, wait until the nodes have published what it
 causes (the expectation table: input topic -> output topics, each carrying the input's stamp),
 then the next; deterministic. Timed: respects the stamps, scaled by rate, and publishes /clock.
-With launch the package's processing nodes are started (ros/graph.py) and stopped here.
+With launch the package's processing nodes are started (graph/processes.py) and stopped here.
 """
 
 from __future__ import annotations
@@ -19,15 +19,34 @@ from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 
-from sensing_nodes.ros.cdr import SEQUENCE_OF_STAMPED, first_element_stamp_ns, leading_stamp_ns
-from sensing_nodes.ros.graph import (
-    ANSWERS, CLOCK, DIAGNOSTICS, FUSED, JOINT_STATES, NODES, PROCESSING_NODES, SCAN, SCAN_MATCH,
-    SENSOR_TOPICS, TF, WALL_PERIODIC_TOPICS, WHEEL_ODOM, Graph, GraphArgumentError,
-    params_file_path,
+from sensing_nodes.bags.input_bag import (
+    InputBag,
+    InputBagError,
+    PassResult,
+    check_inputs,
+    discard,
+    load_bag,
+    stamped_topics,
+    warm_up_bag,
+    write_output_bag,
 )
-from sensing_nodes.ros.input_bag import (
-    InputBag, InputBagError, PassResult, check_inputs, discard, load_bag, stamped_topics,
-    warm_up_bag, write_output_bag,
+from sensing_nodes.bags.stamps import SEQUENCE_OF_STAMPED, first_element_stamp_ns, leading_stamp_ns
+from sensing_nodes.graph.cli import GraphArgumentError, params_file_path
+from sensing_nodes.graph.processes import Graph
+from sensing_nodes.topics import (
+    ANSWERS,
+    CLOCK,
+    DIAGNOSTICS,
+    FUSED,
+    JOINT_STATES,
+    NODES,
+    PROCESSING_NODES,
+    SCAN,
+    SCAN_MATCH,
+    SENSOR_TOPICS,
+    TF,
+    WALL_PERIODIC_TOPICS,
+    WHEEL_ODOM,
 )
 
 # Input topic -> output topics that carry its stamp (one message each), for this package's graph.
@@ -82,8 +101,8 @@ class Replayer:
         import rclpy
         from rclpy.node import Node
 
-        from sensing_nodes.ros.bag import message_class
-        from sensing_nodes.ros.recorder import TopicRecorder
+        from sensing_nodes.bags.storage import message_class
+        from sensing_nodes.graph.recorder import TopicRecorder
         from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
         from sensing_nodes.ros.run import make_executor
 

@@ -24,9 +24,9 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from sensing_nodes.core.route import Motion, Route
-from sensing_nodes.core.se2 import wrap_angle
-from sensing_nodes.core.world import World, raycast
+from sensing_nodes.core.geometry.se2 import wrap_angle
+from sensing_nodes.core.sim.route import Motion, Route
+from sensing_nodes.core.sim.world import World, raycast
 
 NS_PER_S = 1_000_000_000
 

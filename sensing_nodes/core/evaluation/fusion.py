@@ -10,13 +10,18 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.ekf_fusion import (
-    INPUT_DEFAULTS, EkfFusion, EkfSettings, InputConfig, Reading, input_config,
+from sensing_nodes.core.evaluation.metrics import express_in_reference_frame, interpolate_poses
+from sensing_nodes.core.fusion.complementary import ComplementaryFusion, FusionSettings
+from sensing_nodes.core.fusion.ekf import (
+    INPUT_DEFAULTS,
+    EkfFusion,
+    EkfSettings,
+    InputConfig,
+    Reading,
+    input_config,
 )
-from sensing_nodes.core.evaluation import express_in_reference_frame, interpolate_poses
-from sensing_nodes.core.fusion import ComplementaryFusion, FusionSettings
-from sensing_nodes.core.sim_pipeline import FusionInputs
+from sensing_nodes.core.geometry import se2
+from sensing_nodes.core.sim.inputs import FusionInputs
 from sensing_nodes.paths import config_file
 
 WHEEL, GYRO, SCAN = 0, 1, 2   # processing rank at equal stamps (as the node)
@@ -270,8 +275,8 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import json
 
-    from sensing_nodes.core.sim import load_params_file, params_from_dict
-    from sensing_nodes.core.sim_pipeline import simulated_inputs
+    from sensing_nodes.core.sim.inputs import simulated_inputs
+    from sensing_nodes.core.sim.simulator import load_params_file, params_from_dict
 
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument('--seeds', type=int, default=8)

@@ -9,8 +9,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from sensing_nodes.core import quaternion as quat
-from sensing_nodes.core.se2 import Pose2, wrap_angle
+from sensing_nodes.core.geometry import quaternion as quat
+from sensing_nodes.core.geometry.se2 import Pose2, wrap_angle
 
 
 @dataclass(frozen=True)

@@ -14,14 +14,16 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from sensing_nodes.core.geometry.scan import scan_to_points
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
-from sensing_nodes.core.scan import scan_to_points
 from sensing_nodes.core.scan_matching import (
-    KeyframeScanMatcher, OdometryBuffer, ScanMatcherSettings,
+    KeyframeScanMatcher,
+    OdometryBuffer,
+    ScanMatcherSettings,
 )
-from sensing_nodes.core.sim import SimParams, SimRun, make_route, simulate
+from sensing_nodes.core.sim.simulator import SimParams, SimRun, make_route, simulate
+from sensing_nodes.core.sim.world import load_world
 from sensing_nodes.core.wheel_odometry import WheelOdometry, WheelOdometryConfig
-from sensing_nodes.core.world import load_world
 from sensing_nodes.paths import config_file
 
 JOINTS = ('left_wheel_joint', 'right_wheel_joint')

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sensing_nodes.core import se2
-from sensing_nodes.core.se2 import Pose2
+from sensing_nodes.core.geometry import se2
+from sensing_nodes.core.geometry.se2 import Pose2
 
 # Smallest variance an input may claim: keeps information matrices finite when a source
 # reports an exactly known (static, zero) covariance for an increment.

@@ -216,7 +216,12 @@ def bag_qos(profile: Any) -> Any:
     """rclpy QoSProfile -> the rosbags QoS record of a bag's offered_qos_profiles (a rosbags
     record, e.g. read from another bag, is kept as it is)."""
     from rosbags.interfaces import (
-        Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime,
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
     )
 
     if isinstance(profile, Qos):

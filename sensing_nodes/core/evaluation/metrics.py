@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core import se2
+from sensing_nodes.core.geometry import se2
 
 
 def interpolate_poses(

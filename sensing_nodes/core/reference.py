@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sensing_nodes.core.se2 import wrap_angle
+from sensing_nodes.core.geometry.se2 import wrap_angle
 from sensing_nodes.core.wheel_odometry import _displacement
 
 

@@ -15,7 +15,7 @@ against the scan-matched rotation over the same intervals.
 
 Units: m, rad, s; times int64 ns; wheel angles rad [left, right]; scan points (N, 2) m in the
 laser frame; parameters [left radius m, right radius m, separation m, laser x m, laser y m,
-laser yaw rad]; poses (x, y, yaw) as in core/se2.py.
+laser yaw rad]; poses (x, y, yaw) as in core/geometry/se2.py.
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from sensing_nodes.core import icp
+from sensing_nodes.core.geometry.se2 import Pose2, wrap_angle
 from sensing_nodes.core.scan_matching import mount_transform
-from sensing_nodes.core.se2 import Pose2, wrap_angle
 from sensing_nodes.core.wheel_odometry import body_increments, integrate_path, step_columns
 
 PARAMETERS = ('left_radius_m', 'right_radius_m', 'wheel_separation_m', 'laser_x_m',

@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.ros.graph import SCAN
+from sensing_nodes.topics import SCAN
 
 JOINT_STATE = ('sensor_msgs/msg/JointState', 'sensor_msgs/JointState')
 LASER_SCAN = ('sensor_msgs/msg/LaserScan', 'sensor_msgs/LaserScan')
@@ -101,7 +101,7 @@ def _choose(topics: dict[str, tuple[str, int]], types: tuple[str, ...], wanted: 
 def _open(path: Path):
     """(topics: topic -> (type, count), messages(topics) -> iterator of (topic, bag ns, msg)):
     a rosbag2 folder or a ROS 1 .bag file, through the package's one bag reader."""
-    from sensing_nodes.ros.bag import BagError, BagReader
+    from sensing_nodes.bags.storage import BagError, BagReader
 
     try:
         reader = BagReader(path)
@@ -226,7 +226,7 @@ def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
 def read_yaw_track(path: str | Path, topic: str) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
     """Header stamps (int64 ns) and yaw (rad) of an Odometry topic, in bag order; a missing or
     non-Odometry topic, or a non-finite yaw, is SensorBagError."""
-    from sensing_nodes.core.quaternion import yaw as quaternion_yaw
+    from sensing_nodes.core.geometry.quaternion import yaw as quaternion_yaw
 
     path = Path(path)
     if not path.exists():

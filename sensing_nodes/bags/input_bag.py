@@ -9,8 +9,8 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sensing_nodes.ros.cdr import first_field_type, shifted_stamp
-from sensing_nodes.ros.graph import NODE_INPUT_TYPES
+from sensing_nodes.bags.stamps import first_field_type, shifted_stamp
+from sensing_nodes.topics import NODE_INPUT_TYPES
 
 
 class InputBagError(Exception):
@@ -41,7 +41,7 @@ class PassResult:
 
 def load_bag(path: str | Path) -> InputBag:
     """Read a whole rosbag2 bag; ReplayError (naming the file) when it is missing or unreadable."""
-    from sensing_nodes.ros.bag import BagError, BagReader
+    from sensing_nodes.bags.storage import BagError, BagReader
 
     path = Path(path)
     try:
@@ -109,7 +109,7 @@ def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types
                      offered: dict[str, list] | None = None) -> dict[str, int]:
     """The input bag's topics (all but the graph's outputs) plus what the graph published, each
     with the QoS it was offered with (`offered`: topic -> profiles; else the input bag's)."""
-    from sensing_nodes.ros.bag import BagWriter
+    from sensing_nodes.bags.storage import BagWriter
 
     offered = offered or {}
     with BagWriter(path, compress=compress) as out:

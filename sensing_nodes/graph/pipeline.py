@@ -1,0 +1,240 @@
+"""The processing nodes driven over a bag without DDS (sensing_pipeline's work), written into a new bag.
+
+Each node is built as its executable builds it (its class, with config/<node>.yaml, then
+--params-file files, then --param overrides: the same defaults and validation), but never spun:
+the pipeline drives the node's per-message processor (ros/processor.py) itself, in bag order,
+one input at a time, and hands every output at once to the processors that take its topic
+(depth first), as a lockstep `sensing_replay --launch` does over DDS. Outputs are written with
+the bag's other topics, as the replay writes them. Documented in docs/pipeline.md.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+EXIT_BAD_INPUT = 2
+
+DISCOVERY_RANGE = 'ROS_AUTOMATIC_DISCOVERY_RANGE'
+PROGRESS_AFTER_S = 1.0   # no progress display for bags done sooner
+
+
+class PipelineError(Exception):
+    """Bad input or parameters: the message names the file, topic or parameter."""
+
+
+def build_nodes(names: tuple[str, ...], params_files: list[Path],
+                node_params: dict[str, list[str]]) -> dict[str, Any]:
+    """The named nodes, each constructed with the arguments its executable gets from a launch
+    (--params-file config/<node>.yaml, then `params_files`, then its `-p NAME:=VALUE`
+    overrides, as its own cli_args: the same precedence and parsing as a separate process),
+    in one rclpy context that is never spun, with discovery off: nothing goes over DDS.
+    PipelineError on a bad parameter."""
+    import rclpy
+
+    from sensing_nodes.graph.cli import node_arguments
+    from sensing_nodes.nodes.registry import make_node
+    from sensing_nodes.ros.run import _PARAMETER_ERRORS
+
+    # The nodes exist only to hold their parameters, logger and diagnostics: no peer should
+    # ever see them (a robot's graph on the same domain has nodes of the same names).
+    # Only while the context and nodes are made: the caller's environment (a test session
+    # that starts graphs afterwards) keeps its own discovery range.
+    previous = os.environ.get(DISCOVERY_RANGE)
+    os.environ[DISCOVERY_RANGE] = 'OFF'
+    try:
+        # A context of its own: a caller that already has rclpy running (a test session)
+        # keeps its default context.
+        context = rclpy.Context()
+        rclpy.init(args=['sensing_pipeline'], context=context)   # never the tool's own argv
+        nodes = {}
+        for name in names:
+            try:
+                nodes[name] = make_node(name, node_arguments(name, params_files,
+                                                             node_params.get(name, [])),
+                                        context)
+            except _PARAMETER_ERRORS as exc:
+                close(nodes, context)
+                raise PipelineError(f'{name}: invalid parameter: {exc}') from None
+    finally:
+        if previous is None:
+            os.environ.pop(DISCOVERY_RANGE, None)
+        else:
+            os.environ[DISCOVERY_RANGE] = previous
+    return nodes
+
+
+def close(nodes: dict[str, Any], context=None) -> None:
+    """Destroy the nodes and shut their context down."""
+    import rclpy
+
+    for node in nodes.values():
+        context = node.context
+        node.destroy_node()
+    if context is not None:
+        rclpy.try_shutdown(context=context)
+
+
+class Progress:
+    """A progress bar with the bag time done, the speed and an ETA, on stderr (a line every
+    5 s when stderr is not a terminal); nothing for bags done within PROGRESS_AFTER_S."""
+
+    def __init__(self, first_ns: int, last_ns: int, enabled: bool) -> None:
+        self.first_ns, self.span_ns = first_ns, max(last_ns - first_ns, 1)
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty()
+        self.started = time.monotonic()
+        self.next_s = self.started + PROGRESS_AFTER_S
+        self.shown = False
+
+    def update(self, stamp_ns: int, force: bool = False) -> None:
+        now = time.monotonic()
+        if not self.enabled or (now < self.next_s and not force) or (force and not self.shown):
+            return
+        self.next_s = now + (0.25 if self.tty else 5.0)
+        self.shown = True
+        done = min(max((stamp_ns - self.first_ns) / self.span_ns, 0.0), 1.0)
+        elapsed = now - self.started
+        bag_s = (stamp_ns - self.first_ns) * 1e-9
+        speed = bag_s / elapsed if elapsed > 0 else 0.0
+        eta = elapsed * (1.0 - done) / done if done > 0 else float('inf')
+        bar = '#' * int(30 * done) + '.' * (30 - int(30 * done))
+        text = (f'[{bar}] {100 * done:3.0f} % {bag_s:8.1f} / {self.span_ns * 1e-9:.1f} s of bag, '
+                f'{speed:6.1f}x real time, ETA {eta:5.0f} s')
+        print(('\r' + text) if self.tty else ('sensing_pipeline: ' + text), file=sys.stderr,
+              end='' if self.tty else '\n', flush=True)
+
+    def finish(self, stamp_ns: int) -> None:
+        self.update(stamp_ns, force=True)
+        if self.enabled and self.shown and self.tty:
+            print(file=sys.stderr, flush=True)
+
+
+def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
+        params_files: list[Path] | None = None,
+        node_params: dict[str, list[str]] | None = None,
+        remaps: dict[str, str] | None = None, progress: bool = True,
+        compress: bool = False) -> dict[str, int]:
+    """Run the nodes over the bag and write OUT (the bag's topics, with the nodes' outputs in
+    place of earlier copies); returns the number of messages per output topic."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from sensing_nodes.bags.input_bag import (
+        InputBagError,
+        PassResult,
+        load_bag,
+        write_output_bag,
+    )
+    from sensing_nodes.bags.stamps import stamp_reader
+    from sensing_nodes.bags.storage import type_name
+    from sensing_nodes.ros.cdr import cdr_decoder
+    from sensing_nodes.topics import DIAGNOSTICS, NODE_INPUT_TYPES
+
+    remaps = dict(remaps or {})
+    out = Path(out)
+    if out.exists():
+        raise PipelineError(f'{out}: already exists; choose a new output folder')
+    try:
+        bag = load_bag(bag_path)
+    except InputBagError as exc:
+        raise PipelineError(str(exc)) from None
+    built = build_nodes(nodes, list(params_files or []), dict(node_params or {}))
+    try:
+        handlers: dict[str, list] = defaultdict(list)   # topic -> handlers, in node order
+        input_types: dict[str, type] = {}
+        decoders: dict[tuple[str, bool], Any] = {}      # (topic, decoded) -> CDR bytes -> msg
+        outputs: dict[str, Any] = {}                    # topic -> Output
+        for name in nodes:
+            processor = built[name].processor
+            for i in processor.inputs():
+                # What the node's subscription gives it: a `decoded` input a rosbags-decoded
+                # message (ros/cdr.py), any other an rclpy message.
+                handlers[i.topic].append((i.handler, i.decoded))
+                input_types[i.topic] = i.msg_type
+                decoders[i.topic, i.decoded] = cdr_decoder(i.msg_type) if i.decoded else \
+                    (lambda raw, cls=i.msg_type: deserialize_message(raw, cls))
+            for o in processor.outputs():
+                outputs[o.topic] = o
+        output_types = {t: type_name(o.msg_type) for t, o in outputs.items()}
+        stamp_of = {t: stamp_reader(kind) for t, kind in output_types.items()}
+        # Bag topics fed to the nodes: those a node takes (after --remap) and no node produces.
+        feeds = {t: remaps.get(t, t) for t in bag.types
+                 if remaps.get(t, t) in handlers and remaps.get(t, t) not in outputs}
+        if not feeds:
+            raise PipelineError(f'{bag.path}: no topic the nodes take (' + ', '.join(sorted(
+                t for t in handlers if t not in outputs)) + '); it has: '
+                + ', '.join(sorted(bag.types)) + ' (--remap BAG_TOPIC:=TOPIC)')
+        for topic, fed in feeds.items():
+            wanted = type_name(input_types[fed])
+            if bag.types[topic] != wanted:
+                raise PipelineError(f'{bag.path}: topic {topic} holds {bag.types[topic]}, but the '
+                                    f'nodes take {wanted} on {fed}')
+        unused = sorted(t for t, wanted in NODE_INPUT_TYPES.items()
+                        if t in handlers and t not in outputs and t not in feeds.values())
+        if unused:
+            print(f'sensing_pipeline: warning: nothing in {bag.path} feeds {", ".join(unused)} '
+                  f'(bag topics: {", ".join(sorted(bag.types))}; --remap BAG_TOPIC:=TOPIC)',
+                  file=sys.stderr)
+        result = PassResult()
+        recorded = result.outputs
+
+        def receive(topic: str, raw: bytes, stamp_ns: int) -> None:
+            # CDR bytes on a topic to each of its handlers, decoded once per kind of decoding.
+            decoded: dict[bool, Any] = {}
+            for handler, kind in handlers[topic]:
+                msg = decoded.get(kind)
+                if msg is None:
+                    msg = decoded[kind] = decoders[topic, kind](raw)
+                deliver(handler(msg), stamp_ns)
+
+        def deliver(produced, stamp_ns: int) -> None:
+            # Depth first: an output reaches its consumers before the next output, as a
+            # lockstep replay waits for one input's outputs (and lets them land) first.
+            for topic, msg in produced:
+                if isinstance(msg, bytes):     # packed by the node itself (ros/cdr.py)
+                    raw = msg
+                    recorded[topic].append((stamp_of[topic](raw, stamp_ns), raw))
+                    if topic in handlers:
+                        receive(topic, raw, stamp_ns)
+                    continue
+                raw = serialize_message(msg)   # now: a node may refill its message in place
+                recorded[topic].append((stamp_of[topic](raw, stamp_ns), raw))
+                for handler, _ in handlers.get(topic, ()):
+                    deliver(handler(msg), stamp_ns)
+
+        inputs = [(t, s, raw) for t, s, raw in bag.messages if t in feeds]
+        bar = Progress(inputs[0][1] if inputs else 0, inputs[-1][1] if inputs else 0, progress)
+        for topic, stamp_ns, raw in inputs:
+            receive(feeds[topic], raw, stamp_ns)
+            result.inputs_published += 1
+            bar.update(stamp_ns)
+        last_ns = inputs[-1][1] if inputs else 0
+        for name in nodes:   # the end of the bag: what a node holds (the fusion's reorder buffer)
+            flush = getattr(built[name].processor, 'flush', None)
+            if flush is not None:
+                deliver(flush(), last_ns)
+        bar.finish(last_ns)
+        # Each output topic in bag-time order, ties in production order (as the replay records
+        # them: its recorder stamps each message with its header stamp).
+        for topic in recorded:
+            recorded[topic].sort(key=lambda row: row[0])
+        # /diagnostics: published by every node on a wall-clock timer, not produced here (see
+        # docs/pipeline.md); the input bag's copy is dropped (it describes another run).
+        replaced = set(outputs) | {DIAGNOSTICS}
+        staging = out.with_name(f'.{out.name}.partial')
+        shutil.rmtree(staging, ignore_errors=True)
+        staging.mkdir(parents=True)
+        try:
+            write_output_bag(staging / out.name, bag, result, output_types, replaced, compress,
+                             {t: [o.qos] for t, o in outputs.items()})
+            (staging / out.name).rename(out)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+        return {t: len(v) for t, v in sorted(recorded.items())}
+    finally:
+        close(built)
