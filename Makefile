@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 READY := $(VENV)/.ready
 
-.PHONY: venv demo test bench clean
+.PHONY: venv demo test lint bench clean
 
 venv: $(READY)
 
@@ -24,7 +24,11 @@ demo: $(READY)
 	$(BIN)/sensing_demo
 
 test: $(READY)
+	$(BIN)/ruff check .
 	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(BIN)/python -m pytest -q
+
+lint: $(READY)
+	$(BIN)/ruff check .
 
 bench: $(READY)
 	$(BIN)/sensing_bench

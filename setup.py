@@ -33,7 +33,9 @@ def bag_files():
     folders = {}
     for path in glob('bags/**/*', recursive=True):
         if os.path.isfile(path):
-            folders.setdefault(os.path.join('share', PACKAGE, os.path.dirname(path)), []).append(path)
+            folders.setdefault(os.path.join('share', PACKAGE, os.path.dirname(path)), []).append(
+                path
+            )
     return sorted(folders.items())
 
 

@@ -109,7 +109,9 @@ def make_bad(spec, last_t, pose):
                                   int(some.sum()))
         return scan(t, ranges)
     if kind == 'all_ranges_invalid':
-        return scan(t, np.full(BEAMS, spec['bad'] if math.isnan(spec['bad']) else spec['negative']))
+        return scan(
+            t, np.full(BEAMS, spec['bad'] if math.isnan(spec['bad']) else spec['negative'])
+        )
     if kind == 'empty_ranges':
         return scan(t, [])
     if kind == 'intensities_mismatch':

@@ -118,7 +118,9 @@ def make_bad(spec, last_t):
                                   int(some.sum()))
         return scan(t, ranges)
     if kind == 'all_ranges_invalid':
-        return scan(t, np.full(BEAMS, spec['bad'] if math.isnan(spec['bad']) else spec['negative']))
+        return scan(
+            t, np.full(BEAMS, spec['bad'] if math.isnan(spec['bad']) else spec['negative'])
+        )
     if kind == 'empty_ranges':
         return scan(t, [])
     if kind == 'intensities_mismatch':
@@ -205,7 +207,9 @@ def run_example(s: Stream, specs, poses) -> None:
     publish_paced(s.probe, s.publisher, burst, pause_s=0.005)
     publish_paced(s.probe, s.publisher, valid, pause_s=0.005)
     last = s.t
-    spin_until(s.probe, lambda: any(stamp_to_ns(m.header.stamp) == last for m in s.out.messages), 5)
+    spin_until(
+        s.probe, lambda: any(stamp_to_ns(m.header.stamp) == last for m in s.out.messages), 5
+    )
     assert s.node.alive(), s.node.output()
 
     for msg in s.out.messages:           # every answer, to bad scans too, is a finite table

@@ -157,7 +157,9 @@ def run_example(s: Stream, specs, speeds) -> None:
     publish_paced(s.probe, s.publisher, burst)
     publish_paced(s.probe, s.publisher, [joint_state(t, JOINTS, p) for t, p in valid])
     last = valid[-1][0]
-    spin_until(s.probe, lambda: any(stamp_to_ns(m.header.stamp) == last for m in s.out.messages), 5)
+    spin_until(
+        s.probe, lambda: any(stamp_to_ns(m.header.stamp) == last for m in s.out.messages), 5
+    )
     assert s.node.alive(), s.node.output()
 
     by_stamp = {stamp_to_ns(m.header.stamp): m for m in s.out.messages}

@@ -118,16 +118,29 @@ def test_every_message_decodes_with_rosbags_mcap_ros2_and_rclpy(written_bags, na
 
 # rosbag2's own test bags: (folder, {topic: (type, messages)}).
 ROSBAG2_BAGS = {
-    'mcap_talker': ('rosbag2_py/test/resources/mcap/talker',
-                    {'/topic': ('std_msgs/msg/String', 10), '/rosout': ('rcl_interfaces/msg/Log', 10),
-                     '/parameter_events': ('rcl_interfaces/msg/ParameterEvent', 0)}),
-    'sqlite3_talker': ('rosbag2_py/test/resources/sqlite3/talker',
-                       {'/topic': ('std_msgs/msg/String', 10),
-                        '/rosout': ('rcl_interfaces/msg/Log', 10),
-                        '/parameter_events': ('rcl_interfaces/msg/ParameterEvent', 0)}),
-    'cdr_test': ('rosbag2_tests/resources/mcap/cdr_test',
-                 {'/test_topic': ('test_msgs/msg/BasicTypes', 3),
-                  '/array_topic': ('test_msgs/msg/Arrays', 4)}),
+    'mcap_talker': (
+        'rosbag2_py/test/resources/mcap/talker',
+        {
+            '/topic': ('std_msgs/msg/String', 10),
+            '/rosout': ('rcl_interfaces/msg/Log', 10),
+            '/parameter_events': ('rcl_interfaces/msg/ParameterEvent', 0),
+        },
+    ),
+    'sqlite3_talker': (
+        'rosbag2_py/test/resources/sqlite3/talker',
+        {
+            '/topic': ('std_msgs/msg/String', 10),
+            '/rosout': ('rcl_interfaces/msg/Log', 10),
+            '/parameter_events': ('rcl_interfaces/msg/ParameterEvent', 0),
+        },
+    ),
+    'cdr_test': (
+        'rosbag2_tests/resources/mcap/cdr_test',
+        {
+            '/test_topic': ('test_msgs/msg/BasicTypes', 3),
+            '/array_topic': ('test_msgs/msg/Arrays', 4),
+        },
+    ),
 }
 
 
@@ -191,7 +204,9 @@ def test_metadata_follows_rosbag2_version_9(written_bags, name, probe):
         assert set(entry) == FILE_KEYS and (bag / entry['path']).is_file()
         assert entry['message_count'] == info['message_count']
         assert entry['starting_time'] == info['starting_time']
-    assert sum(t['message_count'] for t in info['topics_with_message_count']) == info['message_count']
+    assert (
+        sum(t['message_count'] for t in info['topics_with_message_count']) == info['message_count']
+    )
     for topic in info['topics_with_message_count']:
         assert set(topic) == {'topic_metadata', 'message_count'}
         meta = topic['topic_metadata']

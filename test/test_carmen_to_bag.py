@@ -76,7 +76,9 @@ def test_laser_offset_moves_the_reference_back_to_base_link(tmp_path):
     truth = next(m for t, _, m in read_messages(out, ['/ground_truth/odom']))
     (x, y, yaw), _ = odometry_pose(truth)
     lx, ly, lyaw = log.scans[0].pose
-    assert (x, y, yaw) == pytest.approx((lx - 0.5 * math.cos(lyaw), ly - 0.5 * math.sin(lyaw), lyaw))
+    assert (x, y, yaw) == pytest.approx(
+        (lx - 0.5 * math.cos(lyaw), ly - 0.5 * math.sin(lyaw), lyaw)
+    )
 
 
 def _write_log(path: Path, lines: list[str]) -> Path:
@@ -113,7 +115,8 @@ def test_odometry_reanchored_on_the_reference_is_chained_without_the_jump(tmp_pa
 def test_shared_logs_odometry_carries_no_reference(tmp_path):
     """Freiburg 101 re-anchors its ODOM on the reference after every scan: read as logged, the
     odometry at the last scan is 0.017 m from the last reference pose. Chained, it keeps its own
-    drift: 65.6 m and 163 deg off at the last of its 292 scans (both in the reference's frame, where
+    drift: 65.6 m and 163 deg off at the last of its 292 scans (both in the reference's frame,
+    where
     the log's odometry starts)."""
     out = tmp_path / 'bag'
     convert(CARMEN / 'freiburg-101-corrected.log.gz', out)

@@ -27,7 +27,9 @@ def test_compose_inverse_between_round_trip():
     assert se2.compose(a, se2.inverse(a)) == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
     assert se2.compose(a, se2.between(a, b)) == pytest.approx(b)
     # Driving 1 m forward after turning left by 90 degrees ends at (0, 1).
-    assert se2.compose((0.0, 0.0, math.pi / 2), (1.0, 0.0, 0.0)) == pytest.approx((0.0, 1.0, math.pi / 2))
+    assert se2.compose((0.0, 0.0, math.pi / 2), (1.0, 0.0, 0.0)) == pytest.approx(
+        (0.0, 1.0, math.pi / 2)
+    )
 
 
 def test_transform_points_matches_compose():
@@ -42,8 +44,9 @@ def test_compose_covariance_matches_numerical_jacobian():
     j_a, j_b = se2.compose_jacobians(a, b)
     eps = 1e-7
     for i in range(3):
-        da = list(a); da[i] += eps
-        db = list(b); db[i] += eps
+        da, db = list(a), list(b)
+        da[i] += eps
+        db[i] += eps
         num_a = (np.array(se2.compose(da, b)) - se2.compose(a, b)) / eps
         num_b = (np.array(se2.compose(a, db)) - se2.compose(a, b)) / eps
         assert j_a[:, i] == pytest.approx(num_a, abs=1e-6)

@@ -22,7 +22,14 @@ def demo_run(tmp_path_factory):
 
 def test_report_has_the_documented_shape(demo_run):
     out, stdout, report = demo_run
-    for key in ('distance_m', 'duration_s', 'real_time_factor', 'estimates', 'nodes', 'latency_ms'):
+    for key in (
+        'distance_m',
+        'duration_s',
+        'real_time_factor',
+        'estimates',
+        'nodes',
+        'latency_ms',
+    ):
         assert key in report
     for name in ('wheel_odometry', 'scan_matching', 'fused'):
         assert set(report['estimates'][name]) >= {
@@ -103,7 +110,9 @@ def test_a_short_still_run_works_and_its_bag_is_canonical(tmp_path):
 def test_launch_file_describes_the_same_graph():
     if importlib.util.find_spec('launch_ros') is None:
         pytest.skip('ROS 2 launch (launch, launch_ros) is not on PyPI; this runs on a ROS machine')
-    spec = importlib.util.spec_from_file_location('graph', REPO / 'launch' / 'sensing_graph.launch.py')
+    spec = importlib.util.spec_from_file_location(
+        'graph', REPO / 'launch' / 'sensing_graph.launch.py'
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     description = module.generate_launch_description()

@@ -43,8 +43,13 @@ def test_rpe_worked_example():
 def test_rpe_is_independent_of_the_estimate_frame_and_interpolates():
     rng = np.random.default_rng(3)
     t = np.arange(50) * S // 10
-    ref = np.column_stack([np.cumsum(rng.uniform(0, 0.1, 50)), np.cumsum(rng.uniform(-0.05, 0.05, 50)),
-                           se2.wrap_angle(np.cumsum(rng.uniform(-0.1, 0.1, 50)))])
+    ref = np.column_stack(
+        [
+            np.cumsum(rng.uniform(0, 0.1, 50)),
+            np.cumsum(rng.uniform(-0.05, 0.05, 50)),
+            se2.wrap_angle(np.cumsum(rng.uniform(-0.1, 0.1, 50))),
+        ]
+    )
     relations = relations_from_trajectory(t, ref, delta_s=0.5)
     assert np.all(relations.t2 - relations.t1 == S // 2)
     # The same trajectory in another frame (odometry starts anywhere) has zero relative error.
@@ -112,7 +117,10 @@ def test_eval_on_the_bags_separates_nominal_from_strong_errors(tmp_path):
     assert set(nominal) == {'/wheel/odom', '/scan_match/odom', '/odometry/filtered'}
     # Slip, a 3 % radius error and a large gyro bias: wheel odometry's heading error per second
     # grows several-fold, its trajectory error more than tenfold.
-    assert strong['/wheel/odom']['rpe_rotation_mean_deg'] > 5 * nominal['/wheel/odom']['rpe_rotation_mean_deg']
+    assert (
+        strong['/wheel/odom']['rpe_rotation_mean_deg']
+        > 5 * nominal['/wheel/odom']['rpe_rotation_mean_deg']
+    )
     assert strong['/wheel/odom']['ate_rmse_m'] > 10 * nominal['/wheel/odom']['ate_rmse_m']
     for report in (nominal, strong):
         # The scan matcher and the fusion hold the trajectory to centimetres over the 22 s.
@@ -130,7 +138,10 @@ def test_relations_file_gives_the_same_errors_as_the_reference(tmp_path):
     offset = int(t_ref[0])  # seconds since the first stamp keep full precision in the file
     with path.open('w') as handle:
         for a, b, (x, y, yaw) in zip(relations.t1, relations.t2, relations.motion):
-            handle.write(f'{(a - offset) / 1e9:.9f} {(b - offset) / 1e9:.9f} {x:.17g} {y:.17g} 0 0 0 {yaw:.17g}\n')
+            handle.write(
+                f'{(a - offset) / 1e9:.9f} {(b - offset) / 1e9:.9f} '
+                f'{x:.17g} {y:.17g} 0 0 0 {yaw:.17g}\n'
+            )
     via_file = evaluate(BAGS / 'nominal', ['/wheel/odom'], relations_file=str(path),
                         time_offset_s=offset / 1e9)
     a, b = direct['estimates']['/wheel/odom'], via_file['estimates']['/wheel/odom']

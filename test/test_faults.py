@@ -50,7 +50,9 @@ class Graph:
             self.logs()
         # The probe is the ground truth's only subscriber: simulated time starts once it matched,
         # so the truth is complete from the first stamp.
-        self.nodes['sensor_sim'] = start('sensor_sim', real_time_factor=RATE, wait_for_subscribers=1)
+        self.nodes['sensor_sim'] = start(
+            'sensor_sim', real_time_factor=RATE, wait_for_subscribers=1
+        )
 
     def logs(self):
         return '\n'.join(f'--- {n}\n{p.output()[-1500:]}' for n, p in self.nodes.items())
@@ -95,8 +97,9 @@ def truth_pose(graph, stamp):
 
 
 def test_graph_runs(graph):
-    assert graph.wait_fusion(lambda message, values: message == 'all enabled inputs present', 60), \
-        graph.logs()
+    assert graph.wait_fusion(
+        lambda message, values: message == 'all enabled inputs present', 60
+    ), graph.logs()
     assert spin_until(graph.probe, lambda: len(graph.fused.messages) > 50, 30), graph.logs()
 
 
@@ -137,7 +140,9 @@ def test_kill_and_restart(graph, victim):
     back = graph.newest_fused_stamp()
     assert spin_until(probe, lambda: graph.newest_fused_stamp() > back + 2e9, 30), graph.logs()
     for name, proc in graph.nodes.items():
-        assert proc.alive(), f'{name} is not running (exit {proc.proc.returncode}):\n{graph.logs()}'
+        assert proc.alive(), (
+            f'{name} is not running (exit {proc.proc.returncode}):\n{graph.logs()}'
+        )
     graph.outages = getattr(graph, 'outages', []) + [(victim, killed_at, back)]
 
 
@@ -209,4 +214,6 @@ def test_killing_fusion_itself_leaves_the_rest_running(graph):
     fused = [odometry_pose(m)[0] for m in graph.fused.messages]
     assert all(np.all(np.isfinite(p)) for p in fused)
     for name, proc in graph.nodes.items():
-        assert proc.alive(), f'{name} is not running (exit {proc.proc.returncode}):\n{graph.logs()}'
+        assert proc.alive(), (
+            f'{name} is not running (exit {proc.proc.returncode}):\n{graph.logs()}'
+        )

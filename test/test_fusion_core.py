@@ -53,7 +53,9 @@ def test_increment_covariance_recovers_the_added_noise():
     pose_prev, cov_prev = (1.0, 2.0, 0.7), np.diag([0.02, 0.03, 0.01])
     step, step_cov = (0.3, 0.05, 0.1), np.diag([1e-4, 4e-4, 9e-4])
     pose_now, cov_now = se2.compose_with_covariance(pose_prev, cov_prev, step, step_cov)
-    assert increment_covariance(pose_prev, cov_prev, pose_now, cov_now) == pytest.approx(step_cov, abs=1e-12)
+    assert increment_covariance(pose_prev, cov_prev, pose_now, cov_now) == pytest.approx(
+        step_cov, abs=1e-12
+    )
 
 
 def test_a_covariance_that_grows_with_distance_alone_does_not_compound():
@@ -95,7 +97,8 @@ def test_buffer_refuses_and_counts_late_items():
 
 
 def _straight_run(settings, wheel_scale=1.0, steps=200):
-    """Robot driving straight at 0.5 m/s, 10 Hz; wheels overestimate by wheel_scale, scan is exact."""
+    """Robot driving straight at 0.5 m/s, 10 Hz; wheels overestimate by wheel_scale, scan is
+    exact."""
     fusion = ComplementaryFusion(settings)
     wheel_cov, scan_cov = np.zeros((3, 3)), np.zeros((3, 3))
     for k in range(steps + 1):

@@ -26,7 +26,8 @@ STEP_NS = 20_000_000  # 50 Hz wheel and gyro; scan match every 5th step (10 Hz)
 
 
 def _inputs(count=60, start_ns=1_000_000_000):
-    """A gently turning robot: wheel odometry drifting outwards, gyro and scan matching near truth."""
+    """A gently turning robot: wheel odometry drifting outwards, gyro and scan matching near
+    truth."""
     events = []
     for k in range(count):
         t = start_ns + k * STEP_NS
@@ -35,7 +36,14 @@ def _inputs(count=60, start_ns=1_000_000_000):
         events.append(('wheel', t, (0.021 * k, 0.001 * k * k / 60, yaw * 1.05), wheel_cov))
         events.append(('imu', t, yaw + 0.0005 * k, 1e-6 * (k + 1)))
         if k % 5 == 0:
-            events.append(('scan', t, (0.02 * k, 0.001 * k * k / 60, yaw), np.diag([4e-5, 4e-5, 4e-6]) * (k + 1)))
+            events.append(
+                (
+                    'scan',
+                    t,
+                    (0.02 * k, 0.001 * k * k / 60, yaw),
+                    np.diag([4e-5, 4e-5, 4e-6]) * (k + 1),
+                )
+            )
     return events
 
 
@@ -51,7 +59,8 @@ def _message(kind, t, value, cov):
 
 
 def _expected(events):
-    """The core fed in stamp order (wheel, imu, scan at equal stamps), published as the node does."""
+    """The core fed in stamp order (wheel, imu, scan at equal stamps), published as the node
+    does."""
     fusion = ComplementaryFusion(FusionSettings())
     out = []
     rank = {'wheel': 0, 'imu': 1, 'scan': 2}
@@ -81,7 +90,9 @@ def publishers(probe):
 
 def _send(probe, publishers, events, sent=None):
     """Publish events in the given order; sent (a list) gets each stamp once published."""
-    assert spin_until(probe, lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), 20)
+    assert spin_until(
+        probe, lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), 20
+    )
     # Our writers see the node's readers; give the node's readers a moment to see our writers
     # too (discovery is not symmetric in time), or the first samples can be missed.
     spin_until(probe, lambda: False, 1.0)
@@ -148,7 +159,9 @@ def test_bad_covariances_are_rejected_and_fusion_carries_on(probe, publishers):
            ('imu', events[20][1] + 3, 0.0, -1.0)]
     messages, log = _run(probe, publishers, events[:20] + bad + events[20:],
                          expected_count=len(_expected(events)))
-    assert 'wheel_odom: rejected' in log and 'scan_match: rejected' in log and 'imu: rejected' in log
+    assert (
+        'wheel_odom: rejected' in log and 'scan_match: rejected' in log and 'imu: rejected' in log
+    )
     expected = _expected(events)
     assert len(messages) == len(expected)
     assert odometry_pose(messages[-1])[0] == pytest.approx(expected[-1][1], abs=1e-12)
@@ -175,7 +188,9 @@ def test_missing_input_is_reported_in_diagnostics(probe, publishers):
     messages, _ = _run(probe, publishers, events, params={'reorder_window_s': 0.05},
                        before_stop=wait_for_diagnostics)
     assert len(messages) == 100
-    statuses = [s for m in diagnostics.messages for s in m.status if s.name == 'complementary_fusion']
+    statuses = [
+        s for m in diagnostics.messages for s in m.status if s.name == 'complementary_fusion'
+    ]
     diagnostics.close()
     assert statuses, 'no diagnostics received'
     assert 'missing: scan_match' in statuses[-1].message
@@ -229,14 +244,24 @@ def test_odom_to_base_link_on_tf_with_each_output_never_ahead_of_the_inputs(prob
                                            ('scan_match.delay_s', '-2.5'),
                                            ('imu.delay_s', '.nan')])
 def test_bad_parameters_exit_with_an_error_naming_them(param, value):
-    result = run_to_exit('complementary_fusion', ['--ros-args', '-p', f'{param}:={value}'], timeout=30)
+    result = run_to_exit(
+        'complementary_fusion', ['--ros-args', '-p', f'{param}:={value}'], timeout=30
+    )
     assert result.returncode == 2, result.stdout + result.stderr
     assert param in result.stderr
 
 
 def test_no_input_enabled_is_a_parameter_error():
-    args = ['--ros-args'] + [a for name in ('use_wheel_odom', 'use_imu', 'use_scan_match_position',
-                                            'use_scan_match_heading') for a in ('-p', f'{name}:=false')]
+    args = ['--ros-args'] + [
+        a
+        for name in (
+            'use_wheel_odom',
+            'use_imu',
+            'use_scan_match_position',
+            'use_scan_match_heading',
+        )
+        for a in ('-p', f'{name}:=false')
+    ]
     result = run_to_exit('complementary_fusion', args, timeout=30)
     assert result.returncode == 2 and 'at least one input' in result.stderr
 

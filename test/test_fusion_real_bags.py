@@ -149,6 +149,7 @@ def test_gyro_integrator_node_with_an_upside_down_mount(probe, mount_from):
     probe.destroy_publisher(pub)
     # 1 s turning at 0.5 rad/s about the IMU's z is -0.5 rad about base_link's z once the bias
     # (learnt while still: the -g reading counted as level) is taken off.
-    assert quaternion_to_yaw(pub_out.orientation) == pytest.approx(-0.5, abs=0.004)  # bias off: -0.509
+    # bias off: -0.509
+    assert quaternion_to_yaw(pub_out.orientation) == pytest.approx(-0.5, abs=0.004)
     assert pub_out.header.frame_id == 'base_link'
     assert pub_out.linear_acceleration.z == pytest.approx(9.81)

@@ -239,7 +239,10 @@ def simulated_heading(route, duration_s, seed, use_wheels, **gyro):
     errors, sigmas, biases = [], [], []
     for t, kind, i in events:
         if kind == 0:
-            if wo.update(t, list(joints), run.joint_position[i].tolist(), [], joints).publish and use_wheels:
+            if (
+                wo.update(t, list(joints), run.joint_position[i].tolist(), [], joints).publish
+                and use_wheels
+            ):
                 gi.observe_wheels(t, wo.twist[0], wo.twist[2])
         else:
             gi.update(t, run.imu_gyro[i], run.imu_accel[i])
@@ -249,7 +252,15 @@ def simulated_heading(route, duration_s, seed, use_wheels, **gyro):
     return params, np.array(errors), np.array(sigmas), np.array(biases)
 
 
-SLOW_TURNS = ('wait 6', 'turn 30 1', 'wait 3', 'turn -45 1.5', 'wait 3', 'straight 1.0 0.2', 'wait 3')
+SLOW_TURNS = (
+    'wait 6',
+    'turn 30 1',
+    'wait 3',
+    'turn -45 1.5',
+    'wait 3',
+    'straight 1.0 0.2',
+    'wait 3',
+)
 
 
 def test_slow_turns_are_not_absorbed_into_the_bias():
@@ -271,18 +282,25 @@ def test_honest_heading_uncertainty_on_the_simulated_route():
     for seed in range(1, 9):
         _, err, sigma, _ = simulated_heading(None, 124.0, seed, use_wheels=True)
         z.append(np.where(err == 0.0, 0.0, np.abs(err) / np.where(sigma > 0, sigma, np.nan)))
-        print(f'\ngyro seed {seed}: final heading error {math.degrees(err[-1]):.4f} deg, '
-              f'sigma {math.degrees(sigma[-1]):.4f} deg, max |error| {math.degrees(np.abs(err).max()):.4f} deg')
+        print(
+            f'\ngyro seed {seed}: final heading error {math.degrees(err[-1]):.4f} deg, '
+            f'sigma {math.degrees(sigma[-1]):.4f} deg, '
+            f'max |error| {math.degrees(np.abs(err).max()):.4f} deg'
+        )
     z = np.concatenate(z)
     within3, beyond1 = np.mean(z <= 3.0), np.mean(z > 1.0)
-    print(f'gyro heading, {z.size} samples: within 3 sigma {within3:.4f}, beyond 1 sigma {beyond1:.4f}')
+    print(
+        f'gyro heading, {z.size} samples: within 3 sigma {within3:.4f}, '
+        f'beyond 1 sigma {beyond1:.4f}'
+    )
     assert within3 >= 0.95
     assert beyond1 >= 0.10
 
 
 def test_batch_update_equals_per_sample_updates():
     """update_batch (vectorised windows and moving runs) gives the per-sample numbers, whatever
-    the chunking, including a wheel veto frozen over the batch and bad samples (per-sample path)."""
+    the chunking, including a wheel veto frozen over the batch and bad samples (per-sample
+    path)."""
     from sensing_nodes.core.sim.simulator import SimParams, simulate
     from sensing_nodes.core.sim.world import load_world
     from sensing_nodes.paths import config_file

@@ -74,7 +74,9 @@ def send(probe, pub, messages):
 
 
 def wait_stamp(probe, out, stamp):
-    return spin_until(probe, lambda: out.messages and stamp_to_ns(out.messages[-1].header.stamp) == stamp, 20)
+    return spin_until(
+        probe, lambda: out.messages and stamp_to_ns(out.messages[-1].header.stamp) == stamp, 20
+    )
 
 
 def test_imu_over_dds_with_bias_estimation_and_bad_input(probe, imu_pub):
@@ -105,7 +107,9 @@ def test_imu_over_dds_with_bias_estimation_and_bad_input(probe, imu_pub):
     # The bias was learnt in the still start: the turn integrates to 0.5 rad/s x 1 s.
     assert quaternion_to_yaw(last.orientation) == pytest.approx(0.5, abs=2e-3)
     assert last.angular_velocity.z == pytest.approx(0.5, abs=1e-6)
-    assert (last.angular_velocity.x, last.angular_velocity.y) == pytest.approx((0.0, 0.0), abs=1e-6)
+    assert (last.angular_velocity.x, last.angular_velocity.y) == pytest.approx(
+        (0.0, 0.0), abs=1e-6
+    )
     assert last.angular_velocity_covariance[8] == pytest.approx(gi.rate_variance(), rel=1e-9)
     assert last.linear_acceleration.z == 9.81 and last.linear_acceleration_covariance[0] == 4e-4
     assert last.header.frame_id == 'imu_link'
@@ -120,7 +124,9 @@ def test_wheel_motion_veto_over_dds_and_calibration_service(probe, imu_pub):
     out = Collector(probe, Imu, '/imu/data', ESTIMATE_QOS)
     turn = math.radians(1.0)
     samples = [(T0 + k * STEP, BIAS + turn) for k in range(400)]      # 2 s
-    with NodeProcess('gyro_integrator', params_file=REPO / 'config' / 'gyro_integrator.yaml') as node:
+    with NodeProcess(
+        'gyro_integrator', params_file=REPO / 'config' / 'gyro_integrator.yaml'
+    ) as node:
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0
                           and odom_pub.get_subscription_count() > 0, 20)
         odom_pub.publish(make_odometry(T0, 'odom', 'base_link', (0.0, 0.0, 0.0), np.eye(3),
@@ -135,7 +141,9 @@ def test_wheel_motion_veto_over_dds_and_calibration_service(probe, imu_pub):
         moving = out.messages[-1]
         # Not still: nothing was absorbed into the bias, the raw rate is integrated (2 s).
         assert moving.angular_velocity.z == pytest.approx(BIAS + turn, abs=1e-9)
-        assert quaternion_to_yaw(moving.orientation) == pytest.approx(2.0 * (BIAS + turn), rel=1e-2)
+        assert quaternion_to_yaw(moving.orientation) == pytest.approx(
+            2.0 * (BIAS + turn), rel=1e-2
+        )
         # The robot stops (wheels say so) and the service re-arms calibration.
         assert client.wait_for_service(timeout_sec=20)
         future = client.call_async(Trigger.Request())
@@ -164,7 +172,9 @@ def test_time_backwards_resets_the_heading(probe, imu_pub):
         prime(probe, imu_pub, out, imu(*samples[0]), node)
         send(probe, imu_pub, [imu(t, r) for t, r in samples[1:]])
         assert wait_stamp(probe, out, samples[-1][0])
-        assert quaternion_to_yaw(out.messages[-1].orientation) == pytest.approx(0.2 * 0.995, abs=1e-9)
+        assert quaternion_to_yaw(out.messages[-1].orientation) == pytest.approx(
+            0.2 * 0.995, abs=1e-9
+        )
         send(probe, imu_pub, [imu(t, r) for t, r in samples[:100]])
         assert wait_stamp(probe, out, samples[99][0])
         log = node.output()

@@ -31,7 +31,9 @@ def room_scan(pose, noise_m=0.0, rng=None):
 
 
 def pose_error(result, truth):
-    return math.hypot(result.x - truth[0], result.y - truth[1]), abs(wrap_angle(result.yaw - truth[2]))
+    return math.hypot(result.x - truth[0], result.y - truth[1]), abs(
+        wrap_angle(result.yaw - truth[2])
+    )
 
 
 # --- worked numbers of the lesson -------------------------------------------------------------

@@ -155,9 +155,16 @@ def test_blank_scan_falls_back_to_the_prediction_without_a_jump(probe, pubs):
     diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 10)
     with NodeProcess('icp_matcher', params_file=config_file('icp_matcher.yaml')) as node:
         out = run_sequence(probe, pubs, node, count, blank={blank})
-        spin_until(probe, lambda: any(
-            kv.key == 'fallback' for d in diagnostics.messages for s in d.status for kv in s.values),
-            5)
+        spin_until(
+            probe,
+            lambda: any(
+                kv.key == 'fallback'
+                for d in diagnostics.messages
+                for s in d.status
+                for kv in s.values
+            ),
+            5,
+        )
         assert node.alive()
         log = node.output()
     diagnostics.close()

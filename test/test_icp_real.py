@@ -2,7 +2,8 @@
 
 The full comparison (every pair) is the benchmark `python -m sensing_nodes.bench.icp_real`; its
 tables are in docs/nodes/icp_matcher.md. On this 44 + 30 pair subsample one pair moves a failure
-rate by 2-3 %, so the test allows ours one pair more than the best small_gicp method, and medians within 10 %;
+rate by 2-3 %, so the test allows ours one pair more than the best small_gicp method, and medians
+within 10 %;
 from the identity guess, where ours is far ahead, it must be strictly better.
 """
 

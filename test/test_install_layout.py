@@ -30,9 +30,16 @@ def install_tree(tmp_path_factory):
         cwd=ws, capture_output=True, text=True, timeout=300)
     assert build.returncode == 0, build.stdout + build.stderr
     prefix = ws / 'install' / 'sensing_nodes'
-    site = prefix / 'lib' / f'python{sys.version_info.major}.{sys.version_info.minor}' / 'site-packages'
+    site = (
+        prefix
+        / 'lib'
+        / f'python{sys.version_info.major}.{sys.version_info.minor}'
+        / 'site-packages'
+    )
     env = dict(os.environ)
-    env['AMENT_PREFIX_PATH'] = os.pathsep.join(filter(None, [str(prefix), env.get('AMENT_PREFIX_PATH')]))
+    env['AMENT_PREFIX_PATH'] = os.pathsep.join(
+        filter(None, [str(prefix), env.get('AMENT_PREFIX_PATH')])
+    )
     env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(site), env.get('PYTHONPATH')]))
     return prefix, env
 
@@ -41,7 +48,8 @@ def test_ament_index_finds_package_and_every_executable(install_tree):
     prefix, env = install_tree
     code = (
         'from ament_index_python.packages import get_package_prefix, get_package_share_directory\n'
-        'print(get_package_prefix("sensing_nodes")); print(get_package_share_directory("sensing_nodes"))\n'
+        'print(get_package_prefix("sensing_nodes"))\n'
+        'print(get_package_share_directory("sensing_nodes"))\n'
         'import sensing_nodes; print(sensing_nodes.__file__)\n'
     )
     # Run outside the checkout, so its sensing_nodes/ cannot shadow the installed one.

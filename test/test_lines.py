@@ -1,9 +1,12 @@
-"""core.lines: worked numbers, geometry, bad input, covariance consistency, accuracy on the default world."""
+"""core.lines: worked numbers, geometry, bad input, covariance consistency, accuracy on the default
+world."""
 
 import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sensing_nodes.core.geometry.se2 import inverse, transform_points, wrap_angle
 from sensing_nodes.core.lines import Line, extract_lines, fit_line
@@ -51,7 +54,10 @@ def test_worked_example_perpendicular_fit_is_tilted():
 def test_fit_from_sums_matches_eigen_decomposition():
     rng = np.random.default_rng(3)
     for _ in range(20):
-        p = rng.normal(size=(50, 2)) * [3.0, 0.2] @ np.array([[0.6, 0.8], [-0.8, 0.6]]) + rng.normal(size=2) * 5
+        p = (
+            rng.normal(size=(50, 2)) * [3.0, 0.2] @ np.array([[0.6, 0.8], [-0.8, 0.6]])
+            + rng.normal(size=2) * 5
+        )
         fit = fit_line(p)
         centred = p - p.mean(axis=0)
         values, vectors = np.linalg.eigh(centred.T @ centred)
@@ -76,7 +82,9 @@ def test_noiseless_corner_gives_two_lines_meeting_at_the_corner():
     assert (b.r, b.alpha) == pytest.approx((3.0, math.pi / 2), abs=1e-9)
     # The two fitted lines intersect at the corner, and their facing endpoints are there too
     # (within one beam spacing at that range: 3.6 m x 1 deg = 6.3 cm).
-    normals = np.array([[math.cos(a.alpha), math.sin(a.alpha)], [math.cos(b.alpha), math.sin(b.alpha)]])
+    normals = np.array(
+        [[math.cos(a.alpha), math.sin(a.alpha)], [math.cos(b.alpha), math.sin(b.alpha)]]
+    )
     corner = np.linalg.solve(normals, [a.r, b.r])
     assert corner == pytest.approx([2.0, 3.0], abs=1e-9)
     assert math.dist(a.end, corner) < 0.063
@@ -235,22 +243,43 @@ def test_covariance_matches_monte_carlo_spread():
 # ---------------------------------------------------------------- accuracy on the default world
 
 SIGMA = 0.01
-POSES = [(-3.0, -2.0, 0.3), (3.0, -2.0, 2.0), (-3.0, 2.5, -1.0), (2.5, 1.5, 0.7), (0.0, 2.0, 3.0),
-         (0.0, -2.0, -2.5), (-2.0, 0.0, 1.2), (3.5, 0.0, -0.4), (-4.0, -3.0, 0.1), (2.0, -3.0, 1.5),
-         (-4.2, 0.5, -2.0), (4.2, -3.2, 2.6), (-1.5, 3.0, 0.0), (1.8, 2.6, -1.9), (-2.5, -3.3, 1.0),
-         (3.0, 0.5, 3.1), (-3.5, 1.0, -0.7), (1.5, -1.5, 0.9), (-0.5, -1.6, -3.0), (4.0, 1.5, 1.7)]
+POSES = [
+    (-3.0, -2.0, 0.3),
+    (3.0, -2.0, 2.0),
+    (-3.0, 2.5, -1.0),
+    (2.5, 1.5, 0.7),
+    (0.0, 2.0, 3.0),
+    (0.0, -2.0, -2.5),
+    (-2.0, 0.0, 1.2),
+    (3.5, 0.0, -0.4),
+    (-4.0, -3.0, 0.1),
+    (2.0, -3.0, 1.5),
+    (-4.2, 0.5, -2.0),
+    (4.2, -3.2, 2.6),
+    (-1.5, 3.0, 0.0),
+    (1.8, 2.6, -1.9),
+    (-2.5, -3.3, 1.0),
+    (3.0, 0.5, 3.1),
+    (-3.5, 1.0, -0.7),
+    (1.5, -1.5, 0.9),
+    (-0.5, -1.6, -3.0),
+    (4.0, 1.5, 1.7),
+]
 
 
 def _nearest_wall(points_world, segments):
     a, b = segments[:, :2], segments[:, 2:]
     ab = b - a
     t = np.clip(((points_world[:, None, :] - a) * ab).sum(-1) / (ab * ab).sum(-1), 0.0, 1.0)
-    return np.linalg.norm(points_world[:, None, :] - (a + t[..., None] * ab), axis=-1).argmin(axis=1)
+    return np.linalg.norm(points_world[:, None, :] - (a + t[..., None] * ab), axis=-1).argmin(
+        axis=1
+    )
 
 
 @pytest.fixture(scope='module')
 def simulated():
-    """Per pose: noisy ranges, angles, the true wall hit by each beam (-1: none), extracted lines."""
+    """Per pose: noisy ranges, angles, the true wall hit by each beam (-1: none), extracted
+    lines."""
     world = load_world(config_file('default_world.yaml'))
     rng = np.random.default_rng(2024)
     angles = -math.pi + 2 * math.pi * np.arange(360) / 360
@@ -328,8 +357,6 @@ def test_deterministic(simulated):
 
 # ---------------------------------------------------------------- properties on random input
 
-from hypothesis import given, settings  # noqa: E402
-from hypothesis import strategies as st
 
 
 @settings(max_examples=150, deadline=None)
@@ -350,7 +377,9 @@ def test_random_scans_give_well_formed_lines(seed, beams, full_circle, invalid_f
     ranges = raycast(walls, (0.0, 0.0), angles) + rng.normal(0, 0.01, beams)
     bad = rng.random(beams) < invalid_fraction
     ranges[bad] = rng.choice([np.nan, np.inf, -np.inf, 0.0, -1.0], size=int(bad.sum()))
-    lines = extract_lines(ranges, angles, min_line_points=min_line_points, max_line_gap=max_line_gap)
+    lines = extract_lines(
+        ranges, angles, min_line_points=min_line_points, max_line_gap=max_line_gap
+    )
     for line in lines:
         assert line.r >= 0.0 and -math.pi < line.alpha <= math.pi
         assert 0 <= line.first < beams and 0 <= line.last < beams

@@ -30,7 +30,9 @@ def test_every_scan_of_the_real_logs(name):
         counts.append(len(lines))
         for line in lines:
             assert line.r >= 0.0 and -math.pi < line.alpha <= math.pi
-            assert np.all(np.isfinite(line.covariance)) and np.all(np.linalg.eigvalsh(line.covariance) > 0)
+            assert np.all(np.isfinite(line.covariance)) and np.all(
+                np.linalg.eigvalsh(line.covariance) > 0
+            )
             assert 0 <= line.first < line.last < ranges.size      # 180 degrees: never wraps
             assert line.point_count >= 6 and line.length >= 0.2
             # Every fitted point is within split_distance (0.05 m) of its line; dropping end
@@ -64,15 +66,22 @@ def test_lines_plot_on_a_bag(tmp_path):
             msg = LaserScan()
             msg.header.stamp = ns_to_stamp(1_000_000_000 + k * 100_000_000)
             msg.header.frame_id = 'laser'
-            msg.angle_min, msg.angle_increment = float(np.float32(angles[0])), float(np.float32(math.radians(1.0)))
+            msg.angle_min, msg.angle_increment = (
+                float(np.float32(angles[0])),
+                float(np.float32(math.radians(1.0))),
+            )
             msg.angle_max = float(np.float32(angles[-1]))
             msg.range_min, msg.range_max = 0.1, 8.0
             msg.ranges = raycast(walls, (0.0, 0.0), angles).astype(np.float32).tolist()
             bag.write('/scan', msg, 1_000_000_000 + k * 100_000_000)
     out = tmp_path / 'bag.png'
-    result = run_to_exit('lines_plot', ['--bag', str(tmp_path / 'bag'), '--index', '1', '--out', str(out)])
+    result = run_to_exit(
+        'lines_plot', ['--bag', str(tmp_path / 'bag'), '--index', '1', '--out', str(out)]
+    )
     assert result.returncode == 0, result.stderr
     assert '/scan #1' in result.stdout and ': 2 lines -> ' in result.stdout
     assert out.read_bytes()[:4] == b'\x89PNG'
-    bad = run_to_exit('lines_plot', ['--bag', str(tmp_path / 'bag'), '--index', '3', '--out', str(out)])
+    bad = run_to_exit(
+        'lines_plot', ['--bag', str(tmp_path / 'bag'), '--index', '3', '--out', str(out)]
+    )
     assert bad.returncode == 1 and 'scan index 3 out of range: there are 3 scans' in bad.stderr

@@ -1,4 +1,5 @@
-"""line_extractor over real DDS: the table parsed with numpy alone, markers, bad input, bad parameters."""
+"""line_extractor over real DDS: the table parsed with numpy alone, markers, bad input, bad
+parameters."""
 
 import math
 
@@ -109,7 +110,11 @@ def test_lines_table_and_markers(probe, node_io):
             [line.covariance[0, 0], line.covariance[0, 1], line.covariance[1, 1]], rel=1e-12)
         assert [row['x0'], row['y0'], row['x1'], row['y1']] == pytest.approx(
             [*line.start, *line.end], abs=1e-12)
-        assert (row['first'], row['last'], row['point_count']) == (line.first, line.last, line.point_count)
+        assert (row['first'], row['last'], row['point_count']) == (
+            line.first,
+            line.last,
+            line.point_count,
+        )
     # The walls themselves: x = 2 (alpha 0) and y = 3 (alpha 90 deg), to noise level.
     assert rows['r'] == pytest.approx([2.0, 3.0], abs=0.01)
     assert np.degrees(rows['alpha']) == pytest.approx([0.0, 90.0], abs=0.5)
@@ -119,20 +124,29 @@ def test_lines_table_and_markers(probe, node_io):
     assert strip.type == Marker.LINE_LIST and strip.action == Marker.ADD
     assert strip.header.frame_id == 'laser' and stamp_to_ns(strip.header.stamp) == 5_000_000_000
     ends = np.array([(p.x, p.y) for p in strip.points])
-    assert ends == pytest.approx(np.array([pt for ln in expected for pt in (ln.start, ln.end)]), abs=1e-12)
+    assert ends == pytest.approx(
+        np.array([pt for ln in expected for pt in (ln.start, ln.end)]), abs=1e-12
+    )
 
 
 # (name, scan, warning expected in the log; None: same kind as the one before, so throttled)
 BAD_SCANS = [
     ('all NaN', dict(ranges=np.full(100, np.nan)), 'none of the 100 ranges is valid'),
     ('all +inf', dict(ranges=np.full(100, np.inf)), None),
-    ('too few points', dict(ranges=np.r_[np.full(3, 2.0), np.full(97, np.inf)]), 'only 3 valid ranges'),
+    (
+        'too few points',
+        dict(ranges=np.r_[np.full(3, 2.0), np.full(97, np.inf)]),
+        'only 3 valid ranges',
+    ),
     ('no ranges', dict(ranges=np.zeros(0)), 'scan has no ranges'),
     ('zero increment', dict(ranges=np.full(100, 2.0), angle_increment=0.0), 'angle_increment=0.0'),
     ('negative increment', dict(ranges=np.full(100, 2.0), angle_increment=-0.01), None),
     ('NaN angle_min', dict(ranges=np.full(100, 2.0), angle_min=float('nan')), 'angle_min=nan'),
-    ('intensities mismatch', dict(ranges=np.full(100, 2.0), intensities=np.ones(99)),
-     '100 ranges but 99 intensities'),
+    (
+        'intensities mismatch',
+        dict(ranges=np.full(100, 2.0), intensities=np.ones(99)),
+        '100 ranges but 99 intensities',
+    ),
 ]
 
 
@@ -172,7 +186,8 @@ def test_bad_scans_publish_empty_results_and_warn(probe, node_io):
 
 
 @pytest.mark.parametrize('args, text', [
-    (['-p', 'min_range:=5.0', '-p', 'max_range:=1.0'], "parameter 'max_range' must be greater than min_range"),
+    (['-p', 'min_range:=5.0', '-p', 'max_range:=1.0'],
+     "parameter 'max_range' must be greater than min_range"),
     (['-p', 'split_distance:=-1.0'], 'split_distance'),
     (['-p', 'min_line_points:=1'], 'min_line_points'),
 ])

@@ -171,14 +171,32 @@ def test_carmen_log_outputs_equal_the_lockstep_replay(tmp_path):
     convert(log, bag)
     replayed = tmp_path / 'replayed'
     params = [a for p in REAL_DATA_PARAMS for a in ('--param', p)]
-    result = run_to_exit('sensing_replay', [
-        str(bag), str(replayed), '--launch', '--nodes', 'icp_matcher,complementary_fusion',
-        '--expect', '/scan=/scan_match/odom', '--expect', '/odom=', '--remap', '/odom:=/wheel/odom',
-        # The replay publishes /odom without waiting for an answer: 20 ms after each keeps the
-        # fusion's queue (reliable, keep last 100) from overrunning on a loaded machine (with
-        # 2 ms it lost 81 of the full log's 7374 messages; docs/pipeline.md).
-        '--settle-after', '/odom', '--settle-ms', '20', *params, '--no-progress'],
-        timeout=300.0)
+    result = run_to_exit(
+        'sensing_replay',
+        [
+            str(bag),
+            str(replayed),
+            '--launch',
+            '--nodes',
+            'icp_matcher,complementary_fusion',
+            '--expect',
+            '/scan=/scan_match/odom',
+            '--expect',
+            '/odom=',
+            '--remap',
+            '/odom:=/wheel/odom',
+            # The replay publishes /odom without waiting for an answer: 20 ms after each keeps the
+            # fusion's queue (reliable, keep last 100) from overrunning on a loaded machine (with
+            # 2 ms it lost 81 of the full log's 7374 messages; docs/pipeline.md).
+            '--settle-after',
+            '/odom',
+            '--settle-ms',
+            '20',
+            *params,
+            '--no-progress',
+        ],
+        timeout=300.0,
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     out = tmp_path / 'out'
     result = _pipeline([str(bag), str(out), '--nodes', 'icp_matcher,complementary_fusion',

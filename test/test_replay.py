@@ -42,8 +42,9 @@ def _assert_reproduces(recorded: Path, replayed: Path, hint: str = REGENERATE) -
     """Every output message is there, at the same bag time, every float within the tolerance
     and everything else equal."""
     types = {t: v[0] for t, v in topic_counts(recorded).items()}
-    report = compare_outputs(output_messages(recorded, OUTPUTS), output_messages(replayed, OUTPUTS),
-                             types)
+    report = compare_outputs(
+        output_messages(recorded, OUTPUTS), output_messages(replayed, OUTPUTS), types
+    )
     assert set(report) == OUTPUTS
     for topic, entry in report.items():
         assert entry['expected'] == entry['actual'] > 0, (topic, entry, hint)
@@ -297,7 +298,8 @@ def test_existing_output_is_not_overwritten(tmp_path):
     assert (out / 'keep').read_text() == 'x'
 
 
-# -- pieces -----------------------------------------------------------------------------------------
+# -- pieces
+# -----------------------------------------------------------------------------------------
 def test_bag_order_is_stamp_order_with_ties_as_stored():
     bag = load_bag(BAGS / 'nominal')
     stamps = [s for _, s, _ in bag.messages]
@@ -376,8 +378,19 @@ def test_warm_up_plays_a_message_of_every_input_however_sparse(tmp_path):
     bag = _subset_bag(tmp_path / 'keyframes', BAGS / 'nominal',
                       lambda t, s: t == '/joint_states' or (t == '/scan' and s in keyframes))
     out = tmp_path / 'out'
-    result = _replay([str(bag), str(out), '--launch', '--nodes', 'wheel_odometry,icp_matcher',
-                      '--expect', '/joint_states=/wheel/odom', '--expect', '/scan=/scan_match/odom'])
+    result = _replay(
+        [
+            str(bag),
+            str(out),
+            '--launch',
+            '--nodes',
+            'wheel_odometry,icp_matcher',
+            '--expect',
+            '/joint_states=/wheel/odom',
+            '--expect',
+            '/scan=/scan_match/odom',
+        ]
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     assert 'MISSING' not in result.stdout
     counts = topic_counts(out)

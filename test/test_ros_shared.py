@@ -23,7 +23,9 @@ def test_yaw_quaternion_round_trip(yaw):
 
 def test_odometry_round_trip_places_planar_covariance():
     cov = np.array([[0.1, 0.01, 0.02], [0.01, 0.2, 0.03], [0.02, 0.03, 0.3]])
-    msg = conv.make_odometry(5, 'odom', 'base_link', (1.0, 2.0, 0.5), cov, (0.3, 0.0, 0.1), cov * 2)
+    msg = conv.make_odometry(
+        5, 'odom', 'base_link', (1.0, 2.0, 0.5), cov, (0.3, 0.0, 0.1), cov * 2
+    )
     assert msg.pose.covariance[0] == 0.1 and msg.pose.covariance[35] == 0.3
     assert msg.pose.covariance[5] == 0.02 and msg.pose.covariance[14] == 0.0
     pose, back = conv.odometry_pose(msg)

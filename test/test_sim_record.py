@@ -129,7 +129,9 @@ def test_bag_holds_exactly_the_batch_simulation(bags):
     np.testing.assert_array_equal(xy, run.truth_pose[:, :2])
     yaw = np.array([2.0 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w)
                     for m in truth])
-    np.testing.assert_allclose(np.angle(np.exp(1j * (yaw - run.truth_pose[:, 2]))), 0.0, atol=1e-12)
+    np.testing.assert_allclose(
+        np.angle(np.exp(1j * (yaw - run.truth_pose[:, 2]))), 0.0, atol=1e-12
+    )
     twist = [[m.twist.twist.linear.x, m.twist.twist.angular.z] for m in truth]
     np.testing.assert_array_equal(twist, run.truth_twist)
 

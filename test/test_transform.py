@@ -1,4 +1,5 @@
-"""Quaternions and rigid transforms (core/geometry/quaternion.py, core/geometry/transform.py): worked numbers."""
+"""Quaternions and rigid transforms (core/geometry/quaternion.py, core/geometry/transform.py):
+worked numbers."""
 
 from __future__ import annotations
 

@@ -30,7 +30,9 @@ def odometry(**overrides) -> WheelOdometry:
 
 
 def feed(odo: WheelOdometry, stamps_ns, positions, names=JOINTS):
-    return [odo.update(int(t), list(names), list(p), [], JOINTS) for t, p in zip(stamps_ns, positions)]
+    return [
+        odo.update(int(t), list(names), list(p), [], JOINTS) for t, p in zip(stamps_ns, positions)
+    ]
 
 
 # -- worked numbers --------------------------------------------------------------------------
@@ -105,7 +107,10 @@ def test_quarter_circle_exact_arc_and_euler():
     # Small steps: Euler converges to the arc (error ~ step), the exact arc is exact at any step.
     n = 1000
     L = 0.3
-    left, right = np.full(n, ds / n * (1 - L / (2 * radius))), np.full(n, ds / n * (1 + L / (2 * radius)))
+    left, right = (
+        np.full(n, ds / n * (1 - L / (2 * radius))),
+        np.full(n, ds / n * (1 + L / (2 * radius))),
+    )
     euler, _ = integrate_path((0.0, 0.0, 0.0), left, right, L, method='euler')
     arc, _ = integrate_path((0.0, 0.0, 0.0), left, right, L, method='exact_arc')
     assert euler[-1, :2] == pytest.approx((radius, radius), abs=5e-3)
@@ -145,15 +150,19 @@ def test_jacobians_match_finite_differences(method, dtheta):
     pose = np.array([1.0, -0.5, yaw])
     dsl, dsr = ds - dtheta * L / 2, ds + dtheta * L / 2
 
-    def step(p, l, r):
-        s, t = body_increments(l, r, L)
+    def step(p, left, r):
+        s, t = body_increments(left, r, L)
         out = np.array(integrate_step(tuple(p), float(s), float(t), method))
         out[2] = p[2] + t       # unwrapped for differencing
         return out
 
     h = 1e-7
-    num_pose = np.column_stack([(step(pose + h * e, dsl, dsr) - step(pose - h * e, dsl, dsr)) / (2 * h)
-                                for e in np.eye(3)])
+    num_pose = np.column_stack(
+        [
+            (step(pose + h * e, dsl, dsr) - step(pose - h * e, dsl, dsr)) / (2 * h)
+            for e in np.eye(3)
+        ]
+    )
     num_wheels = np.column_stack([
         (step(pose, dsl + h, dsr) - step(pose, dsl - h, dsr)) / (2 * h),
         (step(pose, dsl, dsr + h) - step(pose, dsl, dsr - h)) / (2 * h)])
@@ -204,7 +213,9 @@ def test_batch_path_equals_per_message_recursion(method):
             np.testing.assert_allclose(odo.pose, poses[i], atol=1e-12)
             np.testing.assert_allclose(odo.covariance, covs[i], rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(pose, poses[-1], atol=1e-12)
-    plain_poses, plain_covs = integrate_path((1.0, 2.0, 0.3), dsl, dsr, L, (1e-4, 2e-4), cov0, method)
+    plain_poses, plain_covs = integrate_path(
+        (1.0, 2.0, 0.3), dsl, dsr, L, (1e-4, 2e-4), cov0, method
+    )
     np.testing.assert_allclose(cov_plain, plain_covs[-1], rtol=1e-9, atol=1e-15)
     # The systematic radius term only adds uncertainty.
     assert np.all(np.linalg.eigvalsh(covs[-1] - plain_covs[-1]) > -1e-15)
@@ -306,7 +317,11 @@ def test_gap_is_not_integrated_across_and_widens_covariance():
     r = odo.update(int(t[19] + 2_000 * MS), list(JOINTS), list(positions[30]), [], JOINTS)
     assert r.step is StampStep.GAP and 'gap' in r.note
     assert odo.pose == before
-    rolled = 0.05 * 0.5 * ((positions[30, 0] - positions[19, 0]) + (positions[30, 1] - positions[19, 1]))
+    rolled = (
+        0.05
+        * 0.5
+        * ((positions[30, 0] - positions[19, 0]) + (positions[30, 1] - positions[19, 1]))
+    )
     assert odo.covariance[0, 0] - cov_before[0, 0] == pytest.approx(rolled ** 2, rel=1e-9)
     # And it continues from the new reading.
     odo.update(int(t[19] + 2_020 * MS), list(JOINTS), list(positions[31]), [], JOINTS)
@@ -348,7 +363,9 @@ def test_velocity_only_driver():
 
 def test_config_problems_name_the_field():
     assert [p[0] for p in WheelOdometryConfig(wheel_radius_m=0.0).problems()] == ['wheel_radius_m']
-    assert [p[0] for p in WheelOdometryConfig(wheel_separation_m=-1).problems()] == ['wheel_separation_m']
+    assert [p[0] for p in WheelOdometryConfig(wheel_separation_m=-1).problems()] == [
+        'wheel_separation_m'
+    ]
     assert [p[0] for p in WheelOdometryConfig(method='rk4').problems()] == ['method']
     assert WheelOdometryConfig().problems() == []
 

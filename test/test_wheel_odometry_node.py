@@ -88,11 +88,17 @@ def test_odometry_over_dds_with_bad_input_in_between(probe, joint_pub):
         joint_state(good[40][0], JOINTS, good[40][2]),                       # duplicate stamp
     ]
     out = Collector(probe, Odometry, '/wheel/odom', ESTIMATE_QOS)
-    with NodeProcess('wheel_odometry', params={'wheel_radius_m': 0.05, 'wheel_separation_m': 0.3}) as node:
+    with NodeProcess(
+        'wheel_odometry', params={'wheel_radius_m': 0.05, 'wheel_separation_m': 0.3}
+    ) as node:
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 20)
         prime(probe, joint_pub, out, msgs[0], node)
         send(probe, joint_pub, msgs[1:41] + bad + msgs[41:])
-        spin_until(probe, lambda: out.messages and stamp_to_ns(out.messages[-1].header.stamp) == good[-1][0], 20)
+        spin_until(
+            probe,
+            lambda: out.messages and stamp_to_ns(out.messages[-1].header.stamp) == good[-1][0],
+            20,
+        )
         log = node.output()
         assert node.alive(), log
     out.close()
@@ -109,7 +115,10 @@ def test_odometry_over_dds_with_bad_input_in_between(probe, joint_pub):
     twist, twist_cov = odometry_twist(out.messages[-1])
     assert twist == pytest.approx(expected.twist, rel=1e-9)
     assert twist[0] == pytest.approx(0.5 * (0.36 + 0.30) * 0.05 / 0.02, rel=1e-9)
-    assert out.messages[-1].header.frame_id == 'odom' and out.messages[-1].child_frame_id == 'base_link'
+    assert (
+        out.messages[-1].header.frame_id == 'odom'
+        and out.messages[-1].child_frame_id == 'base_link'
+    )
     assert cov[0, 0] > 0 and cov[2, 2] > 0
     for key in ('non_finite', 'missing_joint', 'length_mismatch', 'repeated_stamp'):
         assert f'({key})' in log, log
@@ -124,7 +133,11 @@ def test_time_backwards_resets_and_reset_service(probe, joint_pub):
         msgs = [joint_state(t, n, p) for t, n, p in good]
         prime(probe, joint_pub, out, msgs[0], node)
         send(probe, joint_pub, msgs[1:])
-        spin_until(probe, lambda: out.messages and stamp_to_ns(out.messages[-1].header.stamp) == good[-1][0], 20)
+        spin_until(
+            probe,
+            lambda: out.messages and stamp_to_ns(out.messages[-1].header.stamp) == good[-1][0],
+            20,
+        )
         assert odometry_pose(out.messages[-1])[0][0] > 0.5
         # A looping bag: the same stamps again, from the start.
         count = len(out.messages)
@@ -162,7 +175,11 @@ def test_params_file_and_velocity_only_driver(probe, joint_pub):
                             [], [0.0, 4.0, 4.0]) for k in range(51)]
         prime(probe, joint_pub, out, msgs[0], node)
         send(probe, joint_pub, msgs[1:])
-        spin_until(probe, lambda: out.messages and stamp_to_ns(out.messages[-1].header.stamp) == T0 + 50 * STEP, 20)
+        spin_until(
+            probe,
+            lambda: out.messages and stamp_to_ns(out.messages[-1].header.stamp) == T0 + 50 * STEP,
+            20,
+        )
         assert node.alive(), node.output()
     out.close()
     pose, _ = odometry_pose(out.messages[-1])

@@ -75,8 +75,10 @@ def check_inputs(bag: InputBag, inputs: list[str], remaps: dict[str, str]) -> No
         published = remaps.get(topic, topic)
         wanted = NODE_INPUT_TYPES.get(published)
         if wanted is not None and bag.types[topic] != wanted:
-            raise InputBagError(f'{bag.path}: topic {topic} holds {bag.types[topic]}, but the nodes '
-                              f'take {wanted} on {published}')
+            raise InputBagError(
+                f'{bag.path}: topic {topic} holds {bag.types[topic]}, but the nodes '
+                f'take {wanted} on {published}'
+            )
         if not any(t == topic for t, _, _ in bag.messages):
             raise InputBagError(f'{bag.path}: topic {topic} has no messages')
 

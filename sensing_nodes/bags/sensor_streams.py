@@ -178,7 +178,9 @@ def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
                 rows['imu'].append((t, (g.x, g.y, g.z), (a.x, a.y, a.z)))
             else:
                 p, q = msg.pose.pose.position, msg.pose.pose.orientation
-                yaw = np.arctan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+                yaw = np.arctan2(
+                    2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z)
+                )
                 rows['truth'].append((t, (p.x, p.y, float(yaw))))
             done += 1
             if progress is not None and time.monotonic() - last_report > 2.0:

@@ -305,7 +305,10 @@ def run(quick: bool = False) -> dict:
     figures['one_process_graph_rss_mb'] = one['processing_graph_rss_mb']
     figures['one_process_graph_peak_rss_mb'] = one['processes'].get(ONE_PROCESS, {}).get(
         'peak_rss_mb')
-    if one['processing_graph_core_percent_per_1x'] and graph['processing_graph_core_percent_per_1x']:
+    if (
+        one['processing_graph_core_percent_per_1x']
+        and graph['processing_graph_core_percent_per_1x']
+    ):
         figures['one_process_over_separate_cpu_ratio'] = round(
             one['processing_graph_core_percent_per_1x']
             / graph['processing_graph_core_percent_per_1x'], 3)
@@ -351,8 +354,15 @@ if __name__ == '__main__':
     if args.floor is not None:
         result = relay_floor(args.floor, args.window, args.answer_every)
     elif args.imu_rate is None:
-        result = measure(PROCESSING_NODES, {}, args.window, args.rate, one_process=args.one_process,
-                         executor=args.executor, with_sim=not args.idle)
+        result = measure(
+            PROCESSING_NODES,
+            {},
+            args.window,
+            args.rate,
+            one_process=args.one_process,
+            executor=args.executor,
+            with_sim=not args.idle,
+        )
     else:
         result = measure(GYRO_1KHZ_NODES, {'imu_rate_hz': args.imu_rate}, args.window, args.rate)
     print(json.dumps(result, indent=2))

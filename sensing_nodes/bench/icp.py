@@ -159,8 +159,9 @@ def run(quick: bool = False) -> dict:
     points = [pairs[0].target] + [p.source for p in pairs]
     out['streaming_ours_matches_per_s'], out['streaming_small_gicp_gicp_matches_per_s'] = \
         _streaming_rates(points, guesses, repeats, {}, 'GICP')
-    out['streaming_ratio_ours_vs_small_gicp_gicp'] = (out['streaming_ours_matches_per_s']
-                                                      / out['streaming_small_gicp_gicp_matches_per_s'])
+    out['streaming_ratio_ours_vs_small_gicp_gicp'] = (
+        out['streaming_ours_matches_per_s'] / out['streaming_small_gicp_gicp_matches_per_s']
+    )
     # The same with neighbours from a k-d tree (the same neighbours, found more slowly:
     # core/icp.prepare_target), against a second small_gicp pass.
     tree, sg_again = _streaming_rates(points, guesses, repeats, {}, 'GICP', search='kd_tree')

@@ -203,8 +203,10 @@ def best_competitor(results: dict[str, dict]) -> dict:
 
 def format_table(table: dict) -> str:
     """Markdown table of evaluate()'s output."""
-    lines = ['| log | regime | method | median trans (m) | median rot (deg) | failure rate | pairs |',
-             '|---|---|---|---|---|---|---|']
+    lines = [
+        '| log | regime | method | median trans (m) | median rot (deg) | failure rate | pairs |',
+        '|---|---|---|---|---|---|---|',
+    ]
     for name, regimes in table.items():
         for regime, methods in regimes.items():
             for method, s in methods.items():

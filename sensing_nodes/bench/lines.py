@@ -22,8 +22,18 @@ from sensing_nodes.core.lines import Line, extract_lines
 from sensing_nodes.core.sim.world import load_world, raycast
 from sensing_nodes.paths import config_file
 
-POSES = [(-3.0, -2.0, 0.3), (3.0, -2.0, 2.0), (-3.0, 2.5, -1.0), (2.5, 1.5, 0.7), (0.0, 2.0, 3.0),
-         (0.0, -2.0, -2.5), (-2.0, 0.0, 1.2), (3.5, 0.0, -0.4), (-4.0, -3.0, 0.1), (2.0, -3.0, 1.5)]
+POSES = [
+    (-3.0, -2.0, 0.3),
+    (3.0, -2.0, 2.0),
+    (-3.0, 2.5, -1.0),
+    (2.5, 1.5, 0.7),
+    (0.0, 2.0, 3.0),
+    (0.0, -2.0, -2.5),
+    (-2.0, 0.0, 1.2),
+    (3.5, 0.0, -0.4),
+    (-4.0, -3.0, 0.1),
+    (2.0, -3.0, 1.5),
+]
 
 
 def simulated_scans(beams: int, sigma: float = 0.01, range_max: float = 8.0, seed: int = 0):
@@ -34,7 +44,9 @@ def simulated_scans(beams: int, sigma: float = 0.01, range_max: float = 8.0, see
     scans = []
     for x, y, yaw in POSES:
         true = raycast(world.segments, (x, y), angles + yaw)
-        scans.append((np.where(true <= range_max, true + rng.normal(0.0, sigma, beams), np.inf), angles))
+        scans.append(
+            (np.where(true <= range_max, true + rng.normal(0.0, sigma, beams), np.inf), angles)
+        )
     return scans
 
 
@@ -44,8 +56,12 @@ def _textbook_fit(rho, theta):
     """alpha, r of the polar least-squares line (Siegwart & Nourbakhsh's formula, double sums)."""
     n = len(rho)
     rr = np.outer(rho, rho)
-    num = np.sum(rho * rho * np.sin(2 * theta)) - 2.0 / n * np.sum(rr * np.outer(np.cos(theta), np.sin(theta)))
-    den = np.sum(rho * rho * np.cos(2 * theta)) - 1.0 / n * np.sum(rr * np.cos(np.add.outer(theta, theta)))
+    num = np.sum(rho * rho * np.sin(2 * theta)) - 2.0 / n * np.sum(
+        rr * np.outer(np.cos(theta), np.sin(theta))
+    )
+    den = np.sum(rho * rho * np.cos(2 * theta)) - 1.0 / n * np.sum(
+        rr * np.cos(np.add.outer(theta, theta))
+    )
     alpha = 0.5 * math.atan2(num, den) + math.pi / 2
     r = float(np.sum(rho * np.cos(theta - alpha)) / n)
     if r < 0:
@@ -86,8 +102,16 @@ def _textbook_split(rho, theta, lo, hi, split_distance, min_points, out):
     _textbook_split(rho, theta, k, hi, split_distance, min_points, out)
 
 
-def textbook_extract_lines(ranges, angles, split_distance=0.05, max_line_gap=0.5, min_line_points=6,
-                           min_line_length=0.2, range_sigma=0.01, merge_chi2=9.21):
+def textbook_extract_lines(
+    ranges,
+    angles,
+    split_distance=0.05,
+    max_line_gap=0.5,
+    min_line_points=6,
+    min_line_length=0.2,
+    range_sigma=0.01,
+    merge_chi2=9.21,
+):
     """The same split-and-merge as core.lines, written the textbook way (non-circular scans:
     a full-circle scan is cut at beam 0)."""
     ranges, angles = np.asarray(ranges, float), np.asarray(angles, float)
@@ -97,7 +121,11 @@ def textbook_extract_lines(ranges, angles, split_distance=0.05, max_line_gap=0.5
     ranges_out: list[tuple[int, int]] = []
     start = 0
     for i in range(1, len(rho) + 1):
-        if i == len(rho) or valid[i] != valid[i - 1] + 1 or math.hypot(x[i] - x[i - 1], y[i] - y[i - 1]) > max_line_gap:
+        if (
+            i == len(rho)
+            or valid[i] != valid[i - 1] + 1
+            or math.hypot(x[i] - x[i - 1], y[i] - y[i - 1]) > max_line_gap
+        ):
             _textbook_split(rho, theta, start, i - 1, split_distance, min_line_points, ranges_out)
             start = i
     ranges_out.sort()
@@ -112,13 +140,20 @@ def textbook_extract_lines(ranges, angles, split_distance=0.05, max_line_gap=0.5
                 if not small:
                     a1, r1 = _textbook_fit(rho[plo:phi + 1], theta[plo:phi + 1])
                     a2, r2 = _textbook_fit(rho[lo:hi + 1], theta[lo:hi + 1])
-                    c = _textbook_covariance(rho[plo:phi + 1], theta[plo:phi + 1], a1, 1.0) * range_sigma ** 2 \
-                        + _textbook_covariance(rho[lo:hi + 1], theta[lo:hi + 1], a2, 1.0) * range_sigma ** 2
+                    c = (
+                        _textbook_covariance(rho[plo : phi + 1], theta[plo : phi + 1], a1, 1.0)
+                        * range_sigma**2
+                        + _textbook_covariance(rho[lo : hi + 1], theta[lo : hi + 1], a2, 1.0)
+                        * range_sigma**2
+                    )
                     d = np.array([r2 - r1, math.remainder(a2 - a1, 2 * math.pi)])
                     ok = d @ np.linalg.solve(c, d) <= merge_chi2
                 if ok:
                     am, rm = _textbook_fit(rho[plo:hi + 1], theta[plo:hi + 1])
-                    if np.abs(_distances(rho[plo:hi + 1], theta[plo:hi + 1], am, rm)).max() <= split_distance:
+                    if (
+                        np.abs(_distances(rho[plo : hi + 1], theta[plo : hi + 1], am, rm)).max()
+                        <= split_distance
+                    ):
                         merged[-1] = (plo, hi)
                         continue
         merged.append((lo, hi))
@@ -127,7 +162,11 @@ def textbook_extract_lines(ranges, angles, split_distance=0.05, max_line_gap=0.5
         while hi - lo + 1 >= min_line_points:
             alpha, r = _textbook_fit(rho[lo:hi + 1], theta[lo:hi + 1])
             d = _distances(rho[[lo, hi]], theta[[lo, hi]], alpha, r)
-            sd = 3.0 * range_sigma * np.maximum(np.abs(np.cos(theta[[lo, hi]] - alpha)), math.sqrt(0.05))
+            sd = (
+                3.0
+                * range_sigma
+                * np.maximum(np.abs(np.cos(theta[[lo, hi]] - alpha)), math.sqrt(0.05))
+            )
             if abs(d[0]) <= sd[0] and abs(d[1]) <= sd[1]:
                 break
             lo, hi = lo + int(abs(d[0]) > sd[0]), hi - int(abs(d[1]) > sd[1])
@@ -141,7 +180,9 @@ def textbook_extract_lines(ranges, angles, split_distance=0.05, max_line_gap=0.5
         if np.linalg.norm(q1 - q0) < min_line_length:
             continue
         cov = _textbook_covariance(rho[lo:hi + 1], theta[lo:hi + 1], alpha, range_sigma)
-        lines.append(Line(r, alpha, cov, tuple(q0), tuple(q1), int(valid[lo]), int(valid[hi]), hi - lo + 1))
+        lines.append(
+            Line(r, alpha, cov, tuple(q0), tuple(q1), int(valid[lo]), int(valid[hi]), hi - lo + 1)
+        )
     return lines
 
 
@@ -172,7 +213,9 @@ def _lesson_covariance(rho, theta, alpha, sigma):
     """F·C·Fᵀ with the dense n×n C = sigma²·I, F = d(r, alpha)/d(rho), in loops (2×2 list)."""
     n = len(rho)
     c, s = math.cos(alpha), math.sin(alpha)
-    a = [(-1.0, rho[k] * math.sin(theta[k]) * c - rho[k] * math.cos(theta[k]) * s) for k in range(n)]
+    a = [
+        (-1.0, rho[k] * math.sin(theta[k]) * c - rho[k] * math.cos(theta[k]) * s) for k in range(n)
+    ]
     info = [[sum(a[k][i] * a[k][j] for k in range(n)) for j in range(2)] for i in range(2)]
     det = info[0][0] * info[1][1] - info[0][1] * info[1][0]
     inv = [[info[1][1] / det, -info[0][1] / det], [-info[1][0] / det, info[0][0] / det]]
@@ -250,11 +293,16 @@ def textbook_loops_extract_lines(ranges, angles, split_distance=0.05, max_line_g
                     c = [[c1[i][j] + c2[i][j] for j in range(2)] for i in range(2)]
                     dr, da = r2 - r1, math.remainder(a2 - a1, 2 * math.pi)
                     det = c[0][0] * c[1][1] - c[0][1] * c[1][0]
-                    chi2 = (c[1][1] * dr * dr - (c[0][1] + c[1][0]) * dr * da + c[0][0] * da * da) / det
+                    chi2 = (
+                        c[1][1] * dr * dr - (c[0][1] + c[1][0]) * dr * da + c[0][0] * da * da
+                    ) / det
                     ok = chi2 <= merge_chi2
                 if ok:
                     am, rm = _lesson_fit(rho[plo:hi + 1], theta[plo:hi + 1])
-                    if _lesson_max_distance(rho[plo:hi + 1], theta[plo:hi + 1], am, rm) <= split_distance:
+                    if (
+                        _lesson_max_distance(rho[plo : hi + 1], theta[plo : hi + 1], am, rm)
+                        <= split_distance
+                    ):
                         merged[-1] = (plo, hi)
                         continue
         merged.append((lo, hi))
@@ -265,7 +313,10 @@ def textbook_loops_extract_lines(ranges, angles, split_distance=0.05, max_line_g
             bad = []
             for i in (lo, hi):
                 d = rho[i] * math.cos(theta[i] - alpha) - r
-                bad.append(abs(d) > 3.0 * range_sigma * max(abs(math.cos(theta[i] - alpha)), math.sqrt(0.05)))
+                bad.append(
+                    abs(d)
+                    > 3.0 * range_sigma * max(abs(math.cos(theta[i] - alpha)), math.sqrt(0.05))
+                )
             if not (bad[0] or bad[1]):
                 break
             lo, hi = lo + int(bad[0]), hi - int(bad[1])

@@ -42,7 +42,9 @@ def run(quick: bool = False) -> dict:
     duration = 20.0 if quick else sim.make_route(params).period_s
     repeats = 1 if quick else 3
 
-    engine_s, engine_cpu_s = _best_of(repeats, lambda: sim.simulate(params, world, duration, seed=0))
+    engine_s, engine_cpu_s = _best_of(
+        repeats, lambda: sim.simulate(params, world, duration, seed=0)
+    )
 
     counts: dict[str, int] = {}
 

@@ -143,7 +143,8 @@ class GyroConfig:
     noise_density: float = 7.1e-5        # rad/s/sqrt(Hz)
     bias_random_walk: float = 1e-6       # rad/s/sqrt(s)
     initial_bias_sigma_rad_s: float = 0.01
-    initial_bias_z_rad_s: float = 0.0    # the bias estimate before the first stillness (calibrated)
+    # the bias estimate before the first stillness (calibrated)
+    initial_bias_z_rad_s: float = 0.0
     max_gap_s: float = 0.5
     wheel_timeout_s: float = 0.25
     wheel_still_linear_m_s: float = 1e-3
@@ -532,7 +533,8 @@ class GyroIntegrator:
     def _window_still(self, stamp_ns: int) -> bool:
         cfg = self.config
         if not self._window.full() or not self._window.quiet(
-                cfg.gyro_std_threshold_rad_s, cfg.accel_std_threshold_m_s2, cfg.max_gyro_bias_rad_s):
+            cfg.gyro_std_threshold_rad_s, cfg.accel_std_threshold_m_s2, cfg.max_gyro_bias_rad_s
+        ):
             return False
         if self.wheels_available(stamp_ns) and self._wheel_motion_ns is not None:
             return self._wheel_motion_ns < self._window.samples[0].stamp_ns
@@ -557,7 +559,11 @@ class _BatchRun:
         self.q, self.nd2 = cfg.bias_random_walk ** 2, cfg.noise_density ** 2
         self.yaw, self.py, self.pc, self.pb = gi.yaw, gi.p_yaw, gi.p_cross, gi.p_bias
         self.bias = gi.bias.copy()
-        self.was_still, self.used_until, self.updates = gi.still, gi._used_until_ns, gi.bias_updates
+        self.was_still, self.used_until, self.updates = (
+            gi.still,
+            gi._used_until_ns,
+            gi.bias_updates,
+        )
 
     def moving(self, lo: int, hi: int) -> None:
         """Samples lo..hi-1 integrate: GyroIntegrator._propagate and the trapezoid, as sums.

@@ -203,7 +203,8 @@ class MatchResult:
     (x, y, yaw). `error` is the mean residual (m) of the inlier correspondences: along the
     target's normal where the target is line-like (point-to-line), the point-to-point distance
     at corners and isolated points and with method='point_to_point'. `iterations` counts the
-    full-resolution iterations (a yaw-hypothesis stage runs before them). `converged` is True only when
+    full-resolution iterations (a yaw-hypothesis stage runs before them). `converged` is True only
+    when
     the increment fell below the tolerance before `max_iterations`; `reason` says why not.
     `degenerate` flags a direction the geometry does not constrain (a corridor's axis), along which
     the covariance is inflated; `degenerate_direction` is that unit vector over (x, y, yaw·L)."""
@@ -259,7 +260,9 @@ def cross_covariance(
     p = np.asarray(source, dtype=float).reshape(-1, 2)
     q = np.asarray(target, dtype=float).reshape(-1, 2)
     if p.shape != q.shape or p.shape[0] == 0:
-        raise ValueError(f'paired point sets must be non-empty and equal in shape: {p.shape} vs {q.shape}')
+        raise ValueError(
+            f'paired point sets must be non-empty and equal in shape: {p.shape} vs {q.shape}'
+        )
     w = np.ones(p.shape[0]) if weights is None else np.asarray(weights, dtype=float).ravel()
     if w.shape != (p.shape[0],) or not np.all(w >= 0) or w.sum() <= 0:
         raise ValueError('weights must be one non-negative number per pair, not all zero')
@@ -560,7 +563,8 @@ def _row_starts(rows: int, columns: int) -> NDArray[np.intp]:
 
 
 def voxel_downsample(points: ArrayLike, voxel_size: float) -> NDArray[np.float64]:
-    """Centroid of the points in each square voxel of side voxel_size (m); order follows voxel keys."""
+    """Centroid of the points in each square voxel of side voxel_size (m); order follows voxel
+    keys."""
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     if voxel_size <= 0 or pts.shape[0] == 0:
         return pts

@@ -1,10 +1,12 @@
 """Line extraction from a laser scan by split-and-merge, lines in polar form (laser frame, m, rad).
 
 A line is x·cos(alpha) + y·sin(alpha) = r with r >= 0 and alpha in (-pi, pi]; a point's signed
-distance to it is x·cos(alpha) + y·sin(alpha) - r (for a beam (rho, theta): rho·cos(theta - alpha) - r).
+distance to it is x·cos(alpha) + y·sin(alpha) - r (for a beam (rho, theta): rho·cos(theta - alpha)
+- r).
 
 Every least-squares fit during splitting and merging is O(1) from prefix sums of
-(x, y, x², y², xy) prepared once per scan, and the splitting works on all segments of a scan at once
+(x, y, x², y², xy) prepared once per scan, and the splitting works on all segments of a scan at
+once
 (one numpy pass per level of the split tree) while there are many, then range by range on array
 slices, so a scan costs O(n log n) array work. As numpy's cost per call (about a microsecond)
 dominates at a few hundred beams, work whose size is the number of segments or lines (a dozen or
@@ -67,7 +69,8 @@ class Line:
 
 @dataclass(frozen=True)
 class PolarFit:
-    """Least-squares line fit of points (laser frame): alpha (rad), r (m), residual sum of squares (m²)."""
+    """Least-squares line fit of points (laser frame): alpha (rad), r (m), residual sum of squares
+    (m²)."""
 
     alpha: float
     r: float
@@ -75,7 +78,8 @@ class PolarFit:
 
 
 def fit_line(points: ArrayLike) -> PolarFit:
-    """Perpendicular (total) least-squares line through (N, 2) points (m), N >= 2, from O(N) sums."""
+    """Perpendicular (total) least-squares line through (N, 2) points (m), N >= 2, from O(N)
+    sums."""
     p = np.asarray(points, dtype=float).reshape(-1, 2)
     if len(p) < 2:
         raise ValueError(f'a line needs at least 2 points, got {len(p)}')
@@ -118,7 +122,9 @@ class _Fits:
 class _Scan:
     """Valid points of one scan in processing order, with prefix sums for O(1) segment fits."""
 
-    def __init__(self, x: NDArray[np.float64], y: NDArray[np.float64], beams: NDArray[np.intp]) -> None:
+    def __init__(
+        self, x: NDArray[np.float64], y: NDArray[np.float64], beams: NDArray[np.intp]
+    ) -> None:
         self.x, self.y, self.beams = x, y, beams
         prefix = np.empty((len(self.x) + 1, 6))
         prefix[0] = 0.0
@@ -255,7 +261,8 @@ def _merge(scan: _Scan, s, e, options: LineOptions, min_points: int):
     (dr, dalpha), 2 dof) when the gap between them is at most max_line_gap and the merged fit
     still has every point within split_distance. A range of fewer than min_points points (a
     piece of wall between invalid beams, or an outlier) needs only the gap and the merged fit to
-    pass. Also returns the ranges' fits (cos, sin, r) when they were computed and nothing merged."""
+    pass. Also returns the ranges' fits (cos, sin, r) when they were computed and nothing
+    merged."""
     if len(s) < 2:
         return s, e, None
     xs, ys, xe, ye = scan.x[s], scan.y[s], scan.x[e], scan.y[e]
@@ -277,7 +284,10 @@ def _merge(scan: _Scan, s, e, options: LineOptions, min_points: int):
         if candidate[k - 1] and out_e[-1] == e_l[k - 1]:
             lo, hi = out_s[-1], e_l[k]
             cm, sm, rm = _fit_floats((scan.prefix[hi + 1] - scan.prefix[lo]).tolist())[:3]
-            if np.abs(scan.x[lo:hi + 1] * cm + scan.y[lo:hi + 1] * sm - rm).max() <= split_distance:
+            if (
+                np.abs(scan.x[lo : hi + 1] * cm + scan.y[lo : hi + 1] * sm - rm).max()
+                <= split_distance
+            ):
                 out_e[-1] = hi
                 continue
         out_s.append(s_l[k])
@@ -296,7 +306,10 @@ def _merge_candidates(fits, s_l, e_l, near_l, ends, options: LineOptions,
         if not near_l[k - 1]:
             continue
         left, right = fits[k - 1], fits[k]
-        small_l, small_r = e_l[k - 1] - s_l[k - 1] + 1 < min_points, e_l[k] - s_l[k] + 1 < min_points
+        small_l, small_r = (
+            e_l[k - 1] - s_l[k - 1] + 1 < min_points,
+            e_l[k] - s_l[k] + 1 < min_points,
+        )
         if small_l or small_r:
             # A small range joins a neighbour only when its far end is within split_distance of
             # the neighbour's line (the merged fit is checked below); two small ones directly.
@@ -453,7 +466,8 @@ _DEFAULT_OPTIONS = LineOptions()
 
 def extract_lines(ranges: ArrayLike, angles: ArrayLike, *, options: LineOptions | None = None,
                   **keywords) -> list[Line]:
-    """Lines (laser frame) in a scan given as ranges (m, REP 117 values allowed) and beam angles (rad).
+    """Lines (laser frame) in a scan given as ranges (m, REP 117 values allowed) and beam angles
+    (rad).
 
     Settings: `options=LineOptions(...)` or its fields as keywords (set on top of `options`).
     Lines are sorted by first beam. Raises ValueError for ranges and angles of different lengths
@@ -591,7 +605,9 @@ def _final_lines(scan: _Scan, s, e, sigma2: float, min_length: float) -> list[Li
     # Only the range is noisy, so a point's distance noise is sigma·|cos(incidence)|.
     along = x * co + y * so
     terms = np.empty((len(index), 3))
-    v = np.multiply(sigma2, np.maximum(along * along / scan.rho2[index], _MIN_COS2), out=terms[:, 0])
+    v = np.multiply(
+        sigma2, np.maximum(along * along / scan.rho2[index], _MIN_COS2), out=terms[:, 0]
+    )
     tm = c * fit.ym - sn * fit.xm                       # centroid's along-line coordinate
     u = y * co - x * so - tm[owner]                     # along-line coordinate about it
     vu = np.multiply(v, u, out=terms[:, 1])

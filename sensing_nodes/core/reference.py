@@ -56,7 +56,8 @@ def propagate_covariance(
     variance_per_m: tuple[float, float],
     method: str = 'exact_arc',
 ) -> NDArray[np.float64]:
-    """Pose covariance (3x3, x/y/yaw in odom) after one step from heading yaw, wheel distances in m.
+    """Pose covariance (3x3, x/y/yaw in odom) after one step from heading yaw, wheel distances in
+    m.
 
     Wheel distance variance is variance_per_m[i] * |ds_i| (m^2), independent per wheel.
     """

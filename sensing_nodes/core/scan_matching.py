@@ -47,7 +47,8 @@ class ScanMatcherSettings:
     fallback_std_m: float = 0.05                  # std added per fallback step, translation
     fallback_std_rad: float = math.radians(3.0)   # ... and yaw
     max_gap_s: float = 1.0                        # scans further apart: restart the keyframe
-    search: str = 'bearing'                       # keyframe's neighbour search (icp.prepare_target)
+    # keyframe's neighbour search (icp.prepare_target)
+    search: str = 'bearing'
     icp_options: icp.IcpOptions = icp.IcpOptions()   # how each scan is matched
 
 

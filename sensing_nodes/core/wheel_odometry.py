@@ -6,7 +6,8 @@ per-wheel model: each wheel's travelled distance has variance k * |ds_wheel| (k 
 independent between wheels and between steps, so the uncertainty grows with distance driven.
 Optionally a systematic part is added: each wheel's effective radius is off by a constant
 relative error of standard deviation `radius_multiplier_std` (what calibration leaves); its effect
-is carried as the Jacobian of the pose w.r.t. the two radius errors, so it correlates over the path.
+is carried as the Jacobian of the pose w.r.t. the two radius errors, so it correlates over the
+path.
 
 Encoder wrap: some drivers publish positions wrapped into (-pi, pi]. An increment whose size is
 impossible for the wheel in dt (|dphi| > max_wheel_speed * dt) but becomes possible with one
@@ -352,8 +353,10 @@ class WheelOdometry:
         ds_l, ds_r, wrapped = rolled
         if step is StampStep.GAP:
             self._inflate_for_gap(ds_l, ds_r)
-            note = (f'{dt:.3f} s gap (> max_gap_s {self.config.max_gap_s}): not integrated across; '
-                    f'wheels rolled {ds_l:.3f} / {ds_r:.3f} m, pose covariance widened')
+            note = (
+                f'{dt:.3f} s gap (> max_gap_s {self.config.max_gap_s}): not integrated across; '
+                f'wheels rolled {ds_l:.3f} / {ds_r:.3f} m, pose covariance widened'
+            )
             self.twist = (0.0, 0.0, 0.0)
             self._restart(stamp_ns, pos, vel)
             return OdometryUpdate(True, step, note=note, wrapped=wrapped)

@@ -1,4 +1,5 @@
-"""The processing nodes driven over a bag without DDS (sensing_pipeline's work), written into a new bag.
+"""The processing nodes driven over a bag without DDS (sensing_pipeline's work), written into a new
+bag.
 
 Each node is built as its executable builds it (its class, with config/<node>.yaml, then
 --params-file files, then --param overrides: the same defaults and validation), but never spun:

@@ -319,9 +319,13 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
         if progress is not None and now >= next_report:
             next_report = now + 2.0
             outputs = sum(len(v) for v in result.outputs.values())
-            print(f'  {progress}{i + 1:6d} / {len(todo)} inputs ({100 * (i + 1) / len(todo):3.0f} %), '
-                  f'{(stamp - first_stamp) * 1e-9:6.1f} s of bag time, {outputs} outputs',
-                  file=sys.stderr, flush=True)
+            print(
+                f'  {progress}{i + 1:6d} / {len(todo)} inputs '
+                f'({100 * (i + 1) / len(todo):3.0f} %), '
+                f'{(stamp - first_stamp) * 1e-9:6.1f} s of bag time, {outputs} outputs',
+                file=sys.stderr,
+                flush=True,
+            )
     deadline = time.monotonic() + timeout_s   # the answers still outstanding, then quiet
     while any(replayer.seen[k] < 1 for k in deferred_pending) and time.monotonic() < deadline:
         replayer.spin(0.02)
@@ -338,22 +342,38 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, ra
 
 
 
-def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockstep',
-           rate: float = 1.0, expectations: dict[str, tuple[str, ...]] | None = None,
-           extra_outputs: tuple[str, ...] = DEFAULT_EXTRA_OUTPUTS, remaps: dict[str, str] | None = None,
-           launch: bool = False, nodes: tuple[str, ...] = PROCESSING_NODES,
-           node_params: dict[str, list[str]] | None = None, loops: int = 1,
-           timeout_s: float = 10.0, quiet_s: float = 1.5, startup_timeout_s: float = 60.0,
-           progress: bool = True, logs: Path | None = None,
-           compress: bool = False, settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
-           settle_s: float = 0.002, warmup_s: float = 2.0,
-           settle_before: dict[str, float] | None = None,
-           params_file: Path | None = None, one_process: bool = False) -> list[PassResult]:
+def replay(
+    bag_path: str | Path,
+    out: str | Path | None,
+    *,
+    mode: str = 'lockstep',
+    rate: float = 1.0,
+    expectations: dict[str, tuple[str, ...]] | None = None,
+    extra_outputs: tuple[str, ...] = DEFAULT_EXTRA_OUTPUTS,
+    remaps: dict[str, str] | None = None,
+    launch: bool = False,
+    nodes: tuple[str, ...] = PROCESSING_NODES,
+    node_params: dict[str, list[str]] | None = None,
+    loops: int = 1,
+    timeout_s: float = 10.0,
+    quiet_s: float = 1.5,
+    startup_timeout_s: float = 60.0,
+    progress: bool = True,
+    logs: Path | None = None,
+    compress: bool = False,
+    settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
+    settle_s: float = 0.002,
+    warmup_s: float = 2.0,
+    settle_before: dict[str, float] | None = None,
+    params_file: Path | None = None,
+    one_process: bool = False,
+) -> list[PassResult]:
     """Replay a bag through the graph (started here when `launch`: with one_process, in one
     sensing_graph process), `loops` times back to back; writes `out` (one pass) or out/pass-K
     (several), complete or not at all."""
     remaps = dict(remaps or {})
-    if expectations is None:   # the default table names node inputs: a remapped bag topic feeds one
+    # the default table names node inputs: a remapped bag topic feeds one
+    if expectations is None:
         published_as = {dst: src for src, dst in remaps.items()}
         expectations = {published_as.get(t, t): o for t, o in DEFAULT_EXPECTATIONS.items()}
     expectations = dict(expectations)
@@ -445,8 +465,10 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
                                      quiet_s, label if progress else None, settle_after,
                                      settle_s, settle_before, flush))
             if graph is not None and graph.failed():
-                raise ReplayError(f'node(s) exited during the replay: {", ".join(graph.failed())}; '
-                                  f'logs in {log_dir / "logs"}')
+                raise ReplayError(
+                    f'node(s) exited during the replay: {", ".join(graph.failed())}; '
+                    f'logs in {log_dir / "logs"}'
+                )
         output_types, offered = {}, {}
         for t in replayer.subscribed:
             infos = replayer.node.get_publishers_info_by_topic(t)
@@ -458,7 +480,9 @@ def replay(bag_path: str | Path, out: str | Path | None, *, mode: str = 'lockste
         for r in results:
             for t in r.outputs:
                 if t not in output_types:
-                    raise ReplayError(f'output {t}: its publisher vanished before its type was read')
+                    raise ReplayError(
+                        f'output {t}: its publisher vanished before its type was read'
+                    )
         if partial is not None:
             if loops == 1:
                 write_output_bag(partial, bag, results[0], output_types, outputs, compress,

@@ -149,21 +149,37 @@ class ComplementaryFusionNode(Node):
                            'longest an input may lag the newest (stamp time) and still be fused '
                            'in stamp order; later messages are dropped and counted',
                            minimum=0.0, maximum=10.0)
-        self._flush_after_s = declare(self, 'flush_after_s', 0.5,
-                                      'wall time without input after which held inputs are processed',
-                                      minimum=0.01, maximum=60.0)
-        max_gap_s = declare(self, 'max_gap_s', 2.0,
-                            'an input silent longer than this (stamp time) restarts its increments',
-                            minimum=0.001, maximum=3600.0)
+        self._flush_after_s = declare(
+            self,
+            'flush_after_s',
+            0.5,
+            'wall time without input after which held inputs are processed',
+            minimum=0.01,
+            maximum=60.0,
+        )
+        max_gap_s = declare(
+            self,
+            'max_gap_s',
+            2.0,
+            'an input silent longer than this (stamp time) restarts its increments',
+            minimum=0.001,
+            maximum=3600.0,
+        )
         self._reset_jump_s = declare(self, 'reset_on_backwards_jump_s', 0.0,
                                      'an input stamp more than this before the same input\'s '
                                      'previous one means time went backwards (looping bag): the '
                                      'filter resets', minimum=0.0)
-        self._input_timeout_s = declare(self, 'input_timeout_s', 2.0,
-                                        'an enabled input silent for this long is reported missing',
-                                        minimum=0.01)
+        self._input_timeout_s = declare(
+            self,
+            'input_timeout_s',
+            2.0,
+            'an enabled input silent for this long is reported missing',
+            minimum=0.01,
+        )
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the fused pose')
-        self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame of the fused pose')
+        self._base_frame = declare(
+            self, 'base_frame', 'base_link', 'child frame of the fused pose'
+        )
         publish_tf = declare(self, 'publish_tf', True,
                              'broadcast odom_frame -> base_frame on /tf with each output, stamped '
                              'as the output (one owner per tree: turn it off where another node '
@@ -173,7 +189,8 @@ class ComplementaryFusionNode(Node):
                 method)
         if alpha == 'auto':
             alpha_value = None
-        elif isinstance(alpha, (int, float)) and not isinstance(alpha, bool) and 0.0 <= alpha <= 1.0:
+        elif isinstance(alpha, (int, float)) and not isinstance(alpha, bool) \
+                and 0.0 <= alpha <= 1.0:
             alpha_value = float(alpha)
         else:
             raise ParameterError('alpha', "must be a number in [0, 1] or 'auto'", alpha)

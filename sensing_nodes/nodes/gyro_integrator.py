@@ -36,42 +36,86 @@ class GyroIntegratorNode(Node):
         super().__init__('gyro_integrator', **node_options)
         d = GyroConfig()
         config = GyroConfig(
-            bias_estimation=declare(self, 'bias_estimation', d.bias_estimation,
-                                    'estimate the gyro bias whenever the robot stands still'),
-            stillness_window_s=declare(self, 'stillness_window_s', d.stillness_window_s,
-                                       'stillness is decided over this trailing window (s)'),
+            bias_estimation=declare(
+                self,
+                'bias_estimation',
+                d.bias_estimation,
+                'estimate the gyro bias whenever the robot stands still',
+            ),
+            stillness_window_s=declare(
+                self,
+                'stillness_window_s',
+                d.stillness_window_s,
+                'stillness is decided over this trailing window (s)',
+            ),
             gyro_std_threshold_rad_s=declare(
-                self, 'gyro_std_threshold_rad_s', d.gyro_std_threshold_rad_s,
-                'still only if every gyro axis std over the window is below this (rad/s)'),
+                self,
+                'gyro_std_threshold_rad_s',
+                d.gyro_std_threshold_rad_s,
+                'still only if every gyro axis std over the window is below this (rad/s)',
+            ),
             accel_std_threshold_m_s2=declare(
-                self, 'accel_std_threshold_m_s2', d.accel_std_threshold_m_s2,
-                'still only if every accelerometer axis std over the window is below this (m/s^2)'),
+                self,
+                'accel_std_threshold_m_s2',
+                d.accel_std_threshold_m_s2,
+                'still only if every accelerometer axis std over the window is below this (m/s^2)',
+            ),
             max_gyro_bias_rad_s=declare(
-                self, 'max_gyro_bias_rad_s', d.max_gyro_bias_rad_s,
-                'still only if every gyro axis mean over the window is within this (rad/s)'),
-            noise_density=declare(self, 'gyro_noise_density', d.noise_density,
-                                  'white rate noise density (rad/s/sqrt(Hz)): '
-                                  'sample std * sqrt(dt)'),
-            bias_random_walk=declare(self, 'bias_random_walk', d.bias_random_walk,
-                                     'bias random walk density (rad/s/sqrt(s))'),
+                self,
+                'max_gyro_bias_rad_s',
+                d.max_gyro_bias_rad_s,
+                'still only if every gyro axis mean over the window is within this (rad/s)',
+            ),
+            noise_density=declare(
+                self,
+                'gyro_noise_density',
+                d.noise_density,
+                'white rate noise density (rad/s/sqrt(Hz)): sample std * sqrt(dt)',
+            ),
+            bias_random_walk=declare(
+                self,
+                'bias_random_walk',
+                d.bias_random_walk,
+                'bias random walk density (rad/s/sqrt(s))',
+            ),
             initial_bias_sigma_rad_s=declare(
-                self, 'initial_bias_sigma_rad_s', d.initial_bias_sigma_rad_s,
-                'std of the bias before any calibration (rad/s)'),
+                self,
+                'initial_bias_sigma_rad_s',
+                d.initial_bias_sigma_rad_s,
+                'std of the bias before any calibration (rad/s)',
+            ),
             initial_bias_z_rad_s=declare(
-                self, 'initial_bias_z_rad_s', d.initial_bias_z_rad_s,
+                self,
+                'initial_bias_z_rad_s',
+                d.initial_bias_z_rad_s,
                 'z bias estimate before the first stillness (rad/s; sensing_calibrate writes it)',
-                minimum=-1.0, maximum=1.0),
-            max_gap_s=declare(self, 'max_gap_s', d.max_gap_s,
-                              'a stamp gap longer than this (s) is not integrated across'),
+                minimum=-1.0,
+                maximum=1.0,
+            ),
+            max_gap_s=declare(
+                self,
+                'max_gap_s',
+                d.max_gap_s,
+                'a stamp gap longer than this (s) is not integrated across',
+            ),
             wheel_timeout_s=declare(
-                self, 'wheel_timeout_s', d.wheel_timeout_s,
-                '/wheel/odom counts as available while its newest stamp is this close (s)'),
+                self,
+                'wheel_timeout_s',
+                d.wheel_timeout_s,
+                '/wheel/odom counts as available while its newest stamp is this close (s)',
+            ),
             wheel_still_linear_m_s=declare(
-                self, 'wheel_still_linear_m_s', d.wheel_still_linear_m_s,
-                '/wheel/odom reports zero motion when |vx| is at most this (m/s)'),
+                self,
+                'wheel_still_linear_m_s',
+                d.wheel_still_linear_m_s,
+                '/wheel/odom reports zero motion when |vx| is at most this (m/s)',
+            ),
             wheel_still_angular_rad_s=declare(
-                self, 'wheel_still_angular_rad_s', d.wheel_still_angular_rad_s,
-                '/wheel/odom reports zero motion when |wz| is at most this (rad/s)'),
+                self,
+                'wheel_still_angular_rad_s',
+                d.wheel_still_angular_rad_s,
+                '/wheel/odom reports zero motion when |wz| is at most this (rad/s)',
+            ),
         )
         self._restart_on_backwards = declare(
             self, 'restart_on_backwards', True,
@@ -102,9 +146,15 @@ class GyroIntegratorNode(Node):
 
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self.processor = GyroIntegratorProcessor(
-            config, mount_source,
-            scale_error, self._restart_on_backwards, use_wheels, self.diagnostics, ThrottledWarnings(self),
-            self.get_logger())
+            config,
+            mount_source,
+            scale_error,
+            self._restart_on_backwards,
+            use_wheels,
+            self.diagnostics,
+            ThrottledWarnings(self),
+            self.get_logger(),
+        )
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.create_service(Trigger, '~/calibrate', self._on_calibrate)
         self.get_logger().info(

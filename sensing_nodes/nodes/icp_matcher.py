@@ -212,7 +212,9 @@ class IcpMatcherProcessor:
         pose, _ = odometry_pose(msg)
         if not all(math.isfinite(v) for v in pose):
             self.diagnostics.count('odom_not_finite')
-            self._warnings.warn('odom_nan', f'odometry at {stamp * 1e-9:.3f} s is not finite: ignored')
+            self._warnings.warn(
+                'odom_nan', f'odometry at {stamp * 1e-9:.3f} s is not finite: ignored'
+            )
             return []
         if not self._odometry.add(stamp, pose):
             self.diagnostics.count('odom_backwards')

@@ -1,4 +1,5 @@
-"""line_extractor: /scan (LaserScan) -> /scan/lines (MarkerArray) and /scan/lines/table (PointCloud2).
+"""line_extractor: /scan (LaserScan) -> /scan/lines (MarkerArray) and /scan/lines/table
+(PointCloud2).
 
 The table is one PointCloud2 "point" per line with named fields (TABLE_FIELDS), so a consumer
 reads it with numpy alone; header = the scan's stamp and frame. Layout documented in
@@ -131,7 +132,9 @@ class LineExtractorNode(Node):
             ThrottledWarnings(self, period_s=5.0))
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.get_logger().info(
-            'extracting lines from /scan with ' + ', '.join(f'{k}={v}' for k, v in self._options.items()))
+            'extracting lines from /scan with '
+            + ', '.join(f'{k}={v}' for k, v in self._options.items())
+        )
 
 
 class LineExtractorProcessor:

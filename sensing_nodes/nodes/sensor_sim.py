@@ -4,7 +4,8 @@ Live:    sensor_sim --ros-args --params-file config/sensor_sim.yaml [-p real_tim
 Record:  sensor_sim --record DIR --duration S [--seed N] [--params-file F] [--ros-args -p N:=V]
          (a rosbag2 MCAP bag of every topic, no DDS, as fast as the CPU allows)
 
-Both run the same engine (sensing_nodes.core.sim.simulator.SensorSim) and the same message conversion,
+Both run the same engine (sensing_nodes.core.sim.simulator.SensorSim) and the same message
+conversion,
 so a recorded bag holds exactly the messages the live node publishes for the same seed.
 """
 

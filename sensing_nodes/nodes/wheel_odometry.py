@@ -31,7 +31,9 @@ class WheelOdometryNode(Node):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('wheel_odometry', **node_options)
-        left = declare(self, 'left_wheel_joint', 'left_wheel_joint', 'name of the left wheel joint')
+        left = declare(
+            self, 'left_wheel_joint', 'left_wheel_joint', 'name of the left wheel joint'
+        )
         right = declare(self, 'right_wheel_joint', 'right_wheel_joint',
                         'name of the right wheel joint')
         radius = declare(self, 'wheel_radius_m', 0.05, 'nominal wheel radius (m)')
@@ -64,8 +66,12 @@ class WheelOdometryNode(Node):
                              'the fusion broadcasts it by default)')
         mode = declare(self, 'covariance_mode', 'propagated',
                        "'propagated' (from the wheel error model) or 'static' (the lists below)")
-        static_pose = declare(self, 'static_pose_variances', [1e-3, 1e-3, 1e-3],
-                              "with covariance_mode 'static': variances of x, y (m^2), yaw (rad^2)")
+        static_pose = declare(
+            self,
+            'static_pose_variances',
+            [1e-3, 1e-3, 1e-3],
+            "with covariance_mode 'static': variances of x, y (m^2), yaw (rad^2)",
+        )
         static_twist = declare(self, 'static_twist_variances', [1e-3, 1e-9, 1e-3],
                                "with covariance_mode 'static': variances of vx, vy, wz")
 

@@ -75,7 +75,8 @@ def make_odometry(
     twist: tuple[float, float, float] = (0.0, 0.0, 0.0),
     twist_covariance: ArrayLike | None = None,
 ) -> Odometry:
-    """nav_msgs/Odometry for a planar pose in frame_id and a twist (vx, vy, wz) in child_frame_id."""
+    """nav_msgs/Odometry for a planar pose in frame_id and a twist (vx, vy, wz) in
+    child_frame_id."""
     msg = Odometry()
     msg.header.stamp = ns_to_stamp(stamp_ns)
     msg.header.frame_id = frame_id

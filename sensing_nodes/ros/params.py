@@ -29,7 +29,8 @@ def declare(
     minimum: float | None = None,
     maximum: float | None = None,
 ) -> Any:
-    """Declare a read-only parameter with a description and optional inclusive range; return its value.
+    """Declare a read-only parameter with a description and optional inclusive range; return its
+    value.
 
     A value outside the range makes rclpy raise at declaration, which run_node reports.
     """

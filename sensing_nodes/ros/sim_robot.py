@@ -197,7 +197,9 @@ def record(out_dir: str | Path, duration_s: float, params: core.SimParams, setti
     # SIGINT stops between two messages, so the bag is closed with exactly what it holds
     # (an interrupt inside a write could leave a message in the file that the metadata misses).
     interrupted: list[int] = []
-    previous_handler = signal.signal(signal.SIGINT, lambda signum, frame: interrupted.append(signum))
+    previous_handler = signal.signal(
+        signal.SIGINT, lambda signum, frame: interrupted.append(signum)
+    )
     try:
         with BagWriter(out_dir) as bag:
             for kind, (topic, msg_type) in TOPICS.items():

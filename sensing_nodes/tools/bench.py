@@ -51,7 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--quick', action='store_true', help='smaller runs (a smoke test)')
     parser.add_argument('--out', type=Path, default=Path('bench_results.json'),
                         help='JSON output file (default bench_results.json)')
-    parser.add_argument('--only', nargs='*', choices=AREAS + ['graph'], help='run only these areas')
+    parser.add_argument(
+        '--only', nargs='*', choices=AREAS + ['graph'], help='run only these areas'
+    )
     args = parser.parse_args(argv)
 
     results: dict = {
@@ -74,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
                                 if k in ('error', 'real_time_factor', 'scans_published',
                                          'scans_matched', 'scans_lines')})
             else:
-                figures = importlib.import_module(f'sensing_nodes.bench.{area}').run(quick=args.quick)
+                figures = importlib.import_module(f'sensing_nodes.bench.{area}').run(
+                    quick=args.quick
+                )
         except Exception as exc:  # a failing area must not hide the others' figures
             figures = {'error': f'{type(exc).__name__}: {exc}'}
         figures['bench_seconds'] = round(time.monotonic() - start, 1)

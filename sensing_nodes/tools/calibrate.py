@@ -84,10 +84,12 @@ def params_yaml(result: cal.CalibrationResult, wheel_radius_m: float, bag: str,
     est = {e.name: e for e in result.estimates}
     radius_std = [est[n].std / est[n].value for n in ('left_radius_m', 'right_radius_m')
                   if est[n].excited]
-    lines = [f'# {PROG} {bag}',
-             f'# {result.intervals_used} scan-matched intervals used, {result.outliers} outliers, '
-             f'{sum(result.refused.values())} refused by the matcher; '
-             f'{result.distance_m:.1f} m driven, {math.degrees(result.turned_rad):.0f} deg turned.']
+    lines = [
+        f'# {PROG} {bag}',
+        f'# {result.intervals_used} scan-matched intervals used, {result.outliers} outliers, '
+        f'{sum(result.refused.values())} refused by the matcher; '
+        f'{result.distance_m:.1f} m driven, {math.degrees(result.turned_rad):.0f} deg turned.',
+    ]
     for e in result.estimates:
         if e.excited:
             lines.append(f'#   {e.name:<20} {e.value:.6f} +- {e.std:.2g} {e.unit}')
@@ -182,8 +184,12 @@ def run(args: argparse.Namespace) -> int:
     separation = args.wheel_separation or float(nominal_values.get('wheel_separation_m', 0.30))
     laser = args.laser or [float(nominal_values.get(k, 0.0)) for k in
                            ('laser_x_m', 'laser_y_m', 'laser_yaw_rad')]
-    left_mult = 1.0 if args.wheel_radius else float(nominal_values.get('left_radius_multiplier', 1.0))
-    right_mult = 1.0 if args.wheel_radius else float(nominal_values.get('right_radius_multiplier', 1.0))
+    left_mult = (
+        1.0 if args.wheel_radius else float(nominal_values.get('left_radius_multiplier', 1.0))
+    )
+    right_mult = (
+        1.0 if args.wheel_radius else float(nominal_values.get('right_radius_multiplier', 1.0))
+    )
     nominal = cal.Geometry(radius * left_mult, radius * right_mult, separation, *laser)
     left, right = _wheel_columns(data.joint_names,
                                  args.left_joint or nominal_values.get('left_wheel_joint', ''),
@@ -222,9 +228,11 @@ def run(args: argparse.Namespace) -> int:
           f'{result.distance_m:.1f} m driven, {math.degrees(result.turned_rad):.0f} deg turned')
     if result.closed_form is not None:
         cf = result.closed_form
-        print(f'closed form (Censi et al. 2013): radii {cf.left_radius_m:.6f} / '
-              f'{cf.right_radius_m:.6f} m, separation {cf.wheel_separation_m:.5f} m, laser '
-              f'({cf.laser_x_m:.4f}, {cf.laser_y_m:.4f}) m {math.degrees(cf.laser_yaw_rad):.3f} deg')
+        print(
+            f'closed form (Censi et al. 2013): radii {cf.left_radius_m:.6f} / '
+            f'{cf.right_radius_m:.6f} m, separation {cf.wheel_separation_m:.5f} m, laser '
+            f'({cf.laser_x_m:.4f}, {cf.laser_y_m:.4f}) m {math.degrees(cf.laser_yaw_rad):.3f} deg'
+        )
     print('refined (nonlinear least squares):')
     for e, nom in zip(result.estimates, nominal.vector()):
         if e.excited:
@@ -284,7 +292,8 @@ def delay_yaml(result: cal.TimeOffset, bag: str, odom_topic: str, match_topic: s
 
 
 def run_delay(args: argparse.Namespace) -> int:
-    """--odom-delay: the odometry topic's delay against the scan matches (core/evaluation/calibration.py)."""
+    """--odom-delay: the odometry topic's delay against the scan matches
+    (core/evaluation/calibration.py)."""
     odom_t, odom_yaw = read_yaw_track(args.bag, args.odom_topic)
     match_t, match_yaw = read_yaw_track(args.bag, args.match_topic)
     print(f'{args.bag}: {len(odom_t)} odometry poses on {args.odom_topic}, {len(match_t)} scan '

@@ -77,16 +77,24 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         prog='sensing_demo', description=__doc__.split('\n\n')[0])
     parser.add_argument('--out', type=Path, default=None,
                         help='output folder (default: demo_out/run-<date-time>)')
-    parser.add_argument('--duration', type=float, default=130.0,
-                        help='simulated seconds to drive (default 130: one lap of the default route)')
+    parser.add_argument(
+        '--duration',
+        type=float,
+        default=130.0,
+        help='simulated seconds to drive (default 130: one lap of the default route)',
+    )
     parser.add_argument('--seed', type=int, default=0, help='simulation seed (default 0)')
     parser.add_argument('--rate', type=float, default=5.0,
                         help='the most simulated seconds per wall second (default 5); the '
                              'simulator also waits for the fused answer to each scan, so a '
                              'machine that cannot keep up slows the run instead of dropping data')
-    parser.add_argument('--domain-id', type=int, default=None,
-                        help='ROS_DOMAIN_ID for the graph (default: one of this run\'s own, so the '
-                             'demo never talks to a robot on your network)')
+    parser.add_argument(
+        '--domain-id',
+        type=int,
+        default=None,
+        help='ROS_DOMAIN_ID for the graph (default: one of this run\'s own, so the '
+        'demo never talks to a robot on your network)',
+    )
     parser.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
                         help='a parameter override for one node, sensor_sim or a processing '
                              'node (as sensing_replay)')
@@ -215,10 +223,13 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
                 if now >= next_progress:
                     if not args.quiet and start_stamp is not None:
                         sim_s = (recorder.newest_stamp_ns - start_stamp) * 1e-9
-                        print(f'  simulated {sim_s:6.1f} / {args.duration:g} s  '
-                              f'({sim_s / max(now - wall_start, 1e-9):4.1f}x real time)  '
-                              f'scans {recorder.counts.get("/scan", 0):5d}  '
-                              f'fused {recorder.counts.get("/odometry/filtered", 0):6d}', flush=True)
+                        print(
+                            f'  simulated {sim_s:6.1f} / {args.duration:g} s  '
+                            f'({sim_s / max(now - wall_start, 1e-9):4.1f}x real time)  '
+                            f'scans {recorder.counts.get("/scan", 0):5d}  '
+                            f'fused {recorder.counts.get("/odometry/filtered", 0):6d}',
+                            flush=True,
+                        )
                     next_progress = now + 2.0
                     if graph.failed():
                         raise SystemExit(f'sensing_demo: node(s) exited early: {graph.failed()}; '
@@ -259,7 +270,9 @@ def _wait_for_nodes(node, executor, names, graph, recorder, timeout=30.0) -> Non
                 executor.spin_once(timeout_sec=0.05)
             return
     missing = set(names) - set(node.get_node_names())
-    raise SystemExit(f'sensing_demo: nodes not discovered within {timeout:.0f} s: {sorted(missing)}')
+    raise SystemExit(
+        f'sensing_demo: nodes not discovered within {timeout:.0f} s: {sorted(missing)}'
+    )
 
 
 def score(collected: Collected, counts: dict, wall_s: float, duration_s: float) -> dict:
@@ -331,12 +344,15 @@ def print_table(report: dict) -> None:
             print(f'{name:<16}   (no messages)')
             continue
         pos = e.get('final_position_error_m')
-        cols = [f'{pos:9.3f} m' if pos is not None else f'{"-":>11}',
-                # % of the distance driven: none after a still start
-                f'{100 * pos / distance:7.2f}%' if pos is not None and distance > 0 else f'{"-":>8}',
-                f"{e['rms_position_error_m']:8.3f} m" if pos is not None else f'{"-":>10}',
-                f"{e['final_heading_error_deg']:9.2f}°", f"{e['rms_heading_error_deg']:8.2f}°",
-                f"{100 * e['within_3_sigma']:7.1f}%" if 'within_3_sigma' in e else f'{"-":>8}']
+        cols = [
+            f'{pos:9.3f} m' if pos is not None else f'{"-":>11}',
+            # % of the distance driven: none after a still start
+            f'{100 * pos / distance:7.2f}%' if pos is not None and distance > 0 else f'{"-":>8}',
+            f"{e['rms_position_error_m']:8.3f} m" if pos is not None else f'{"-":>10}',
+            f"{e['final_heading_error_deg']:9.2f}°",
+            f"{e['rms_heading_error_deg']:8.2f}°",
+            f"{100 * e['within_3_sigma']:7.1f}%" if 'within_3_sigma' in e else f'{"-":>8}',
+        ]
         print(f'{name:<16}' + ''.join(cols))
     lat = report['latency_ms']
     if lat['p50'] is not None:
@@ -399,7 +415,10 @@ def main(argv: list[str] | None = None) -> int:
     out = new_run_folder(args.out, 'demo_out', 'bag', 'sensing_demo')
     if out is None:
         return 2
-    print(f'sensing_demo: {args.duration:g} s of the default route at {args.rate:g}x, seed {args.seed}')
+    print(
+        f'sensing_demo: {args.duration:g} s of the default route at {args.rate:g}x, '
+        f'seed {args.seed}'
+    )
     collected, counts, wall_s, duration = run_graph(args, out)
     collected.load(out / 'bag')
     report = score(collected, counts, wall_s, duration)

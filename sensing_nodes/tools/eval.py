@@ -49,8 +49,10 @@ def load_trajectories(bag: Path, topics: list[str]) -> dict[str, tuple[np.ndarra
         raise EvalError(f'{bag}: cannot read the bag ({type(exc).__name__}: {exc})') from None
     for topic in topics:
         if topic not in available:
-            raise EvalError(f'{bag}: topic {topic} is not in the bag (Odometry topics: '
-                            f'{", ".join(t for t, (ty, _) in sorted(available.items()) if ty == ODOMETRY)})')
+            raise EvalError(
+                f'{bag}: topic {topic} is not in the bag (Odometry topics: '
+                f'{", ".join(t for t, (ty, _) in sorted(available.items()) if ty == ODOMETRY)})'
+            )
         if available[topic][0] != ODOMETRY:
             raise EvalError(f'{bag}: topic {topic} holds {available[topic][0]}, not {ODOMETRY}')
         if available[topic][1] < 2:
@@ -109,7 +111,9 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
         if not has_reference:
             raise EvalError(f'{bag}: topic {reference} is not in the bag and no --relations given')
         relations = relations_from_trajectory(*trajectories[reference], delta_s)
-        source = f'{reference} (delta {delta_s:g} s)' if delta_s > 0 else f'{reference} (consecutive)'
+        source = (
+            f'{reference} (delta {delta_s:g} s)' if delta_s > 0 else f'{reference} (consecutive)'
+        )
     report = {'bag': str(bag), 'reference': source, 'estimates': {}}
     for topic in topics:
         t, poses = trajectories[topic]
@@ -127,15 +131,20 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
 
 
 def table(report: dict) -> str:
-    lines = [f"{report['bag']}: relative pose error against {report['reference']}", '',
-             f"{'estimate':<22}{'relations':>10}{'RPE translation (m)':>24}{'RPE rotation (deg)':>22}"
-             f"{'ATE rmse (m)':>14}{'median RPE (m, deg)':>22}"]
+    lines = [
+        f"{report['bag']}: relative pose error against {report['reference']}",
+        '',
+        f"{'estimate':<22}{'relations':>10}{'RPE translation (m)':>24}{'RPE rotation (deg)':>22}"
+        f"{'ATE rmse (m)':>14}{'median RPE (m, deg)':>22}",
+    ]
     for topic, e in report['estimates'].items():
         ate = f"{e['ate_rmse_m']:14.3f}" if 'ate_rmse_m' in e else f"{'-':>14}"
-        lines.append(f"{topic:<22}{e['relations']:>10}"
-                     f"{e['rpe_translation_mean_m']:>13.3f} ± {e['rpe_translation_std_m']:<8.3f}"
-                     f"{e['rpe_rotation_mean_deg']:>11.2f} ± {e['rpe_rotation_std_deg']:<8.2f}{ate}"
-                     f"{e['rpe_translation_median_m']:>14.3f}, {e['rpe_rotation_median_deg']:.2f}")
+        lines.append(
+            f"{topic:<22}{e['relations']:>10}"
+            f"{e['rpe_translation_mean_m']:>13.3f} ± {e['rpe_translation_std_m']:<8.3f}"
+            f"{e['rpe_rotation_mean_deg']:>11.2f} ± {e['rpe_rotation_std_deg']:<8.2f}{ate}"
+            f"{e['rpe_translation_median_m']:>14.3f}, {e['rpe_rotation_median_deg']:.2f}"
+        )
     return '\n'.join(lines)
 
 
@@ -181,16 +190,29 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='sensing_eval', description=__doc__.split('\n\n')[0])
     parser.add_argument('bag', help='bag with the estimate topics (nav_msgs/Odometry): a rosbag2 '
                         'folder or a ROS 1 .bag file')
-    parser.add_argument('--topic', action='append', default=None,
-                        help='estimate topic (repeat; default: every Odometry topic but the reference)')
-    parser.add_argument('--reference', default=REFERENCE, help=f'reference topic (default {REFERENCE})')
-    parser.add_argument('--relations', default=None,
-                        help='relations file (t1 t2 x y z roll pitch yaw) instead of the reference')
+    parser.add_argument(
+        '--topic',
+        action='append',
+        default=None,
+        help='estimate topic (repeat; default: every Odometry topic but the reference)',
+    )
+    parser.add_argument(
+        '--reference', default=REFERENCE, help=f'reference topic (default {REFERENCE})'
+    )
+    parser.add_argument(
+        '--relations',
+        default=None,
+        help='relations file (t1 t2 x y z roll pitch yaw) instead of the reference',
+    )
     parser.add_argument('--delta-s', type=float, default=0.0,
                         help='relations from the reference: pair samples this far apart (s); '
                              '0 = consecutive samples')
-    parser.add_argument('--time-offset', type=float, default=0.0,
-                        help='seconds added to the relation file times (carmen_to_bag --time-offset)')
+    parser.add_argument(
+        '--time-offset',
+        type=float,
+        default=0.0,
+        help='seconds added to the relation file times (carmen_to_bag --time-offset)',
+    )
     parser.add_argument('--json', type=Path, default=None, help='write the figures as JSON here')
     parser.add_argument('--png', type=Path, default=None, help='write a plot here')
     args = parser.parse_args(argv)

@@ -61,7 +61,12 @@ def bag_pair(path: str | Path, topic: str, index: int, step: int
             break
     if any(v is None for v in wanted.values()):
         raise ValueError(f'{path}: {count} messages on {topic}, need index {index + step}')
-    return wanted[index], wanted[index + step], None, f'{Path(path).name} {topic} #{index} -> #{index + step}'
+    return (
+        wanted[index],
+        wanted[index + step],
+        None,
+        f'{Path(path).name} {topic} #{index} -> #{index + step}',
+    )
 
 
 def render(target, source, guess: Pose2, result: icp.MatchResult, out: str | Path, title: str,

@@ -44,7 +44,13 @@ def bag_scan(path: str | Path, topic: str, index: int) -> tuple[NDArray, NDArray
                     0.0 <= msg.range_min < msg.range_max:
                 limits = {'min_range': float(msg.range_min), 'max_range': float(msg.range_max)}
             stamp_s = stamp_to_ns(msg.header.stamp) / 1e9
-            return ranges, angles, limits, f'{Path(path).name} {topic} #{index} (t={stamp_s:.3f} s, frame {msg.header.frame_id})'
+            return (
+                ranges,
+                angles,
+                limits,
+                f'{Path(path).name} {topic} #{index} '
+                f'(t={stamp_s:.3f} s, frame {msg.header.frame_id})',
+            )
         count += 1
     if count == 0:
         raise ValueError(f'{path}: no messages on {topic}')
@@ -119,8 +125,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f'{title}: {len(lines)} lines -> {args.out}')
     for k, line in enumerate(lines):
         sd = np.sqrt(np.diag(line.covariance))
-        print(f'  {k}: r={line.r:.3f} m (sd {sd[0]:.4f}), alpha={np.degrees(line.alpha):.2f} deg '
-              f'(sd {np.degrees(sd[1]):.3f}), beams {line.first}-{line.last}, length {line.length:.2f} m')
+        print(
+            f'  {k}: r={line.r:.3f} m (sd {sd[0]:.4f}), alpha={np.degrees(line.alpha):.2f} deg '
+            f'(sd {np.degrees(sd[1]):.3f}), beams {line.first}-{line.last}, '
+            f'length {line.length:.2f} m'
+        )
     return 0
 
 

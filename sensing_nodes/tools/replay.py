@@ -65,7 +65,9 @@ def _find_executables_next_to_python() -> None:
     """`python -m sensing_nodes.tools.replay` from a venv: its bin/ holds the node executables
     (graph.processes.executable looks next to sys.argv[0], then on PATH)."""
     bin_dir = Path(sys.executable).parent
-    if (bin_dir / 'wheel_odometry').is_file() and str(bin_dir) not in os.environ['PATH'].split(os.pathsep):
+    if (bin_dir / 'wheel_odometry').is_file() and str(bin_dir) not in os.environ['PATH'].split(
+        os.pathsep
+    ):
         os.environ['PATH'] = str(bin_dir) + os.pathsep + os.environ.get('PATH', '')
 
 
@@ -98,8 +100,9 @@ def make_bags(folder: str | Path, names: list[str] | None = None, progress: bool
 # -- command line ---------------------------------------------------------------------------
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog='sensing_replay', description=__doc__.split('\n\n')[0])
-    parser.add_argument('bag', nargs='?', help='input bag: a rosbag2 folder (MCAP or sqlite3) or a '
-                        'ROS 1 .bag file')
+    parser.add_argument(
+        'bag', nargs='?', help='input bag: a rosbag2 folder (MCAP or sqlite3) or a ROS 1 .bag file'
+    )
     parser.add_argument('out', nargs='?', help='output bag folder to create (inputs + outputs)')
     parser.add_argument('--mode', choices=('lockstep', 'timed'), default='lockstep')
     parser.add_argument('--rate', type=float, default=1.0,
@@ -139,19 +142,29 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--settle-after', action='append', default=None, metavar='TOPIC',
                         help='inputs followed by the settle time (default: '
                              + ' '.join(DEFAULT_SETTLE_AFTER) + ')')
-    parser.add_argument('--settle-before', action='append', default=None, metavar='TOPIC=MS',
-                        help='lockstep: wall ms to spin before publishing that input (default: '
-                             + ' '.join(f'{t}={1e3 * v:g}' for t, v in DEFAULT_SETTLE_BEFORE.items())
-                             + '); TOPIC=0 turns one off')
+    parser.add_argument(
+        '--settle-before',
+        action='append',
+        default=None,
+        metavar='TOPIC=MS',
+        help='lockstep: wall ms to spin before publishing that input (default: '
+        + ' '.join(f'{t}={1e3 * v:g}' for t, v in DEFAULT_SETTLE_BEFORE.items())
+        + '); TOPIC=0 turns one off',
+    )
     parser.add_argument('--warmup-s', type=float, default=2.0,
                         help='with --launch: first play this much of the bag (bag seconds) and '
                              'discard the outputs, so every link of the graph is matched before '
                              'the pass that counts (0: no warm-up)')
-    parser.add_argument('--logs', type=Path, default=None, help='with --launch: keep node logs here')
+    parser.add_argument(
+        '--logs', type=Path, default=None, help='with --launch: keep node logs here'
+    )
     parser.add_argument('--make-bags', metavar='DIR', default=None,
                         help="regenerate the project's bags (" + ', '.join(BAG_SPECS) + ') in DIR')
-    parser.add_argument('--check', action='store_true',
-                        help='compare the outputs with those recorded in BAG; exit 1 if any differ')
+    parser.add_argument(
+        '--check',
+        action='store_true',
+        help='compare the outputs with those recorded in BAG; exit 1 if any differ',
+    )
     parser.add_argument('--compress', action='store_true',
                         help='zstd-compress the output bag\'s MCAP chunks')
     parser.add_argument('--no-progress', action='store_true')

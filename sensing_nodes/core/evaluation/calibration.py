@@ -566,8 +566,12 @@ def _fit(sub: Intervals, covariance: NDArray[np.float64], values: NDArray[np.flo
     return jac
 
 
-def _parameter_covariance(jac: NDArray[np.float64], free: NDArray[np.bool_],
-                          res: NDArray[np.float64], cov: NDArray[np.float64]) -> NDArray[np.float64]:
+def _parameter_covariance(
+    jac: NDArray[np.float64],
+    free: NDArray[np.bool_],
+    res: NDArray[np.float64],
+    cov: NDArray[np.float64],
+) -> NDArray[np.float64]:
     """(6, 6) covariance of the parameters from the fit's Jacobian, scaled by the reduced
     chi-square of the residuals (K, 3) under their covariances (K, 3, 3) when above 1; NaN rows
     and columns for held parameters."""

@@ -53,8 +53,11 @@ def allan_deviation(values: ArrayLike, rate_hz: float, points_per_decade: int = 
     dt = 1.0 / rate_hz
     theta = np.concatenate(([0.0], np.cumsum(y - y.mean()))) * dt
     max_m = n // min_clusters
-    m = np.unique(np.round(np.logspace(0, math.log10(max_m),
-                                       int(math.log10(max_m) * points_per_decade) + 1)).astype(int))
+    m = np.unique(
+        np.round(
+            np.logspace(0, math.log10(max_m), int(math.log10(max_m) * points_per_decade) + 1)
+        ).astype(int)
+    )
     m = m[(m >= 1) & (2 * m < n)]
     adev = np.empty(m.size)
     for i, mi in enumerate(m):

@@ -29,7 +29,8 @@ def interpolate_poses(
 def express_in_reference_frame(
     origin: se2.Pose2, poses: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    """Poses of an estimate whose frame starts at `origin` (a reference-frame pose) -> reference frame."""
+    """Poses of an estimate whose frame starts at `origin` (a reference-frame pose) -> reference
+    frame."""
     xy = se2.transform_points(origin, poses[:, :2])
     return np.column_stack([xy, se2.wrap_angle(poses[:, 2] + origin[2])])
 
@@ -112,7 +113,9 @@ def relations_from_trajectory(
         j = np.arange(1, len(t_ref) + 1)
     i = np.flatnonzero(j < len(t_ref))
     j = j[i]
-    motion = np.array([se2.between(tuple(poses_ref[a]), tuple(poses_ref[b])) for a, b in zip(i, j)])
+    motion = np.array(
+        [se2.between(tuple(poses_ref[a]), tuple(poses_ref[b])) for a, b in zip(i, j)]
+    )
     return Relations(t_ref[i], t_ref[j], motion.reshape(-1, 3))
 
 
@@ -153,11 +156,16 @@ class RelativeErrors:
 
     def summary(self) -> dict[str, float]:
         tr, rot = self.translation_m, np.degrees(self.rotation_rad)
-        return {'relations': int(tr.size), 'skipped_relations': int(self.skipped),
-                'rpe_translation_mean_m': float(tr.mean()), 'rpe_translation_std_m': float(tr.std()),
-                'rpe_rotation_mean_deg': float(rot.mean()), 'rpe_rotation_std_deg': float(rot.std()),
-                'rpe_translation_median_m': float(np.median(tr)),
-                'rpe_rotation_median_deg': float(np.median(rot))}
+        return {
+            'relations': int(tr.size),
+            'skipped_relations': int(self.skipped),
+            'rpe_translation_mean_m': float(tr.mean()),
+            'rpe_translation_std_m': float(tr.std()),
+            'rpe_rotation_mean_deg': float(rot.mean()),
+            'rpe_rotation_std_deg': float(rot.std()),
+            'rpe_translation_median_m': float(np.median(tr)),
+            'rpe_rotation_median_deg': float(np.median(rot)),
+        }
 
 
 def relative_pose_errors(

@@ -22,7 +22,8 @@ VARIANCE_FLOOR = 1e-12
 
 
 def inverse_variance(m1: ArrayLike, var1: ArrayLike, m2: ArrayLike, var2: ArrayLike):
-    """Inverse-variance weighted mean of two independent estimates and its variance (elementwise)."""
+    """Inverse-variance weighted mean of two independent estimates and its variance
+    (elementwise)."""
     m1, var1, m2, var2 = (np.asarray(v, dtype=float) for v in (m1, var1, m2, var2))
     fused = (var2 * m1 + var1 * m2) / (var1 + var2)
     variance = var1 * var2 / (var1 + var2)
@@ -30,7 +31,10 @@ def inverse_variance(m1: ArrayLike, var1: ArrayLike, m2: ArrayLike, var2: ArrayL
 
 
 def fuse_information(
-    m1: NDArray[np.float64], cov1: NDArray[np.float64], m2: NDArray[np.float64], cov2: NDArray[np.float64]
+    m1: NDArray[np.float64],
+    cov1: NDArray[np.float64],
+    m2: NDArray[np.float64],
+    cov2: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Inverse-variance fusion of two independent vector estimates with full covariances
     (the matrix form of inverse_variance: information matrices add)."""
@@ -45,7 +49,9 @@ def complementary_heading(
     """θ̂ = α·(θ̂_prev + ω·dt) + (1 − α)·θ_abs, computed on the wrapped difference so that
     headings on either side of ±π blend correctly (rad, rad/s, s)."""
     predicted = heading_prev + rate * dt
-    return float(se2.wrap_angle(predicted + (1.0 - alpha) * se2.wrap_angle(heading_abs - predicted)))
+    return float(
+        se2.wrap_angle(predicted + (1.0 - alpha) * se2.wrap_angle(heading_abs - predicted))
+    )
 
 
 def auto_alpha(var_predicted: float, var_absolute: float) -> float:
@@ -188,7 +194,10 @@ class ComplementaryFusion:
             return
         self._ensure_started(stamp_ns)
         src = self._wheel
-        if src.stamp_ns is not None and 0 < stamp_ns - src.stamp_ns <= self.settings.max_gap_s * 1e9:
+        if (
+            src.stamp_ns is not None
+            and 0 < stamp_ns - src.stamp_ns <= self.settings.max_gap_s * 1e9
+        ):
             step = se2.between(src.pose, pose)
             step_cov = increment_covariance(src.pose, src.cov, pose, cov)
             self._wheel_since = se2.compose_with_covariance(*self._wheel_since, step, step_cov)

@@ -1,6 +1,7 @@
 """Unit quaternions (x, y, z, w), ROS's order, as plain float tuples.
 
-Rotations of sensor mounts and transforms: a handful per message at most, so plain floats (a 4-vector
+Rotations of sensor mounts and transforms: a handful per message at most, so plain floats (a
+4-vector
 through numpy costs more in call overhead than the arithmetic).
 """
 
@@ -67,7 +68,8 @@ def from_yaw(yaw: float) -> Quat:
 
 
 def from_rpy(roll: float, pitch: float, yaw: float) -> Quat:
-    """Fixed-axis roll (x), pitch (y), yaw (z) in rad -> q = qz(yaw) qy(pitch) qx(roll) (REP 103)."""
+    """Fixed-axis roll (x), pitch (y), yaw (z) in rad -> q = qz(yaw) qy(pitch) qx(roll) (REP
+    103)."""
     cr, sr = math.cos(roll / 2.0), math.sin(roll / 2.0)
     cp, sp = math.cos(pitch / 2.0), math.sin(pitch / 2.0)
     cy, sy = math.cos(yaw / 2.0), math.sin(yaw / 2.0)

@@ -58,7 +58,8 @@ def transform_points(pose: Pose2, points: ArrayLike) -> NDArray[np.float64]:
 
 
 def compose_jacobians(a: Pose2, b: Pose2) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Jacobians of compose(a, b) with respect to a and to b (3x3 each), for covariance propagation."""
+    """Jacobians of compose(a, b) with respect to a and to b (3x3 each), for covariance
+    propagation."""
     c, s = math.cos(a[2]), math.sin(a[2])
     j_a = np.array([
         [1.0, 0.0, -s * b[0] - c * b[1]],

@@ -357,7 +357,9 @@ class GyroBiasProcess:
         if n == 0 or not self.active:
             return out
         if self.random_walk > 0.0:
-            steps = self._rng.standard_normal((n, 3)) * (self.random_walk * math.sqrt(self.period_s))
+            steps = self._rng.standard_normal((n, 3)) * (
+                self.random_walk * math.sqrt(self.period_s)
+            )
             out += self._walk + np.cumsum(steps, axis=0)
             self._walk = out[-1].copy()
         if self.instability > 0.0:
@@ -395,7 +397,9 @@ _KIND_TIMES = ((CLOCK, 'clock_t'), (TRUTH, 'truth_t'), (IMU, 'imu_t'), (JOINTS, 
                (SCAN, 'scan_t'))
 
 
-def block_events(block: SimBlock) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+def block_events(
+    block: SimBlock,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
     """(time ns, kind, index into that kind's arrays) of every sample of a block, in publishing
     order: by time, then by kind (CLOCK, TRUTH, IMU, JOINTS, SCAN)."""
     times = [getattr(block, name) for _, name in _KIND_TIMES]
@@ -504,7 +508,8 @@ class SensorSim:
         imu_t = stamps(k)
         imu_gyro, imu_accel = self._imu(heading[k], speed[k], yaw_rate[k])
 
-        # Encoders: wheel rotation = travel x slip / true radius, plus random slip ~ sqrt(|travel|).
+        # Encoders: wheel rotation = travel x slip / true radius, plus random slip ~
+        # sqrt(|travel|).
         k = samples('joint')
         joint_t = stamps(k)
         joint_position, joint_velocity = self._encoders(distance[k], heading[k])
@@ -581,7 +586,9 @@ class SensorSim:
         return out
 
 
-def measured_ranges(true_ranges: NDArray, noise: NDArray, params: SimParams) -> NDArray[np.float64]:
+def measured_ranges(
+    true_ranges: NDArray, noise: NDArray, params: SimParams
+) -> NDArray[np.float64]:
     """What the laser reports for true ranges (m), given standard-normal draws: true + bias +
     sigma * noise; +inf beyond range_max or with no hit, -inf below range_min (REP 117)."""
     with np.errstate(invalid='ignore'):

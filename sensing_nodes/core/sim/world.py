@@ -1,4 +1,5 @@
-"""A 2-D world of wall segments (map frame, metres) and exact, vectorised ray casting against it."""
+"""A 2-D world of wall segments (map frame, metres) and exact, vectorised ray casting against
+it."""
 
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ class World:
 
 
 def world_from_dict(data: dict) -> World:
-    """Build a World from the YAML structure {name, walls: [[x0,y0,x1,y1]...], polygons: [[[x,y]...]...]}.
+    """Build a World from the YAML structure {name, walls: [[x0,y0,x1,y1]...], polygons:
+    [[[x,y]...]...]}.
 
     Raises ValueError naming the faulty entry.
     """
@@ -29,7 +31,9 @@ def world_from_dict(data: dict) -> World:
     for i, wall in enumerate(data.get('walls') or []):
         values = np.asarray(wall, dtype=float) if _numeric(wall) else None
         if values is None or values.shape != (4,) or not np.all(np.isfinite(values)):
-            raise ValueError(f'walls[{i}] must be four finite numbers [x0, y0, x1, y1], got {wall!r}')
+            raise ValueError(
+                f'walls[{i}] must be four finite numbers [x0, y0, x1, y1], got {wall!r}'
+            )
         if np.allclose(values[:2], values[2:]):
             raise ValueError(f'walls[{i}] has zero length')
         segments.append(values.tolist())
