@@ -12,8 +12,6 @@ from sensing_nodes.core.gyro import (
     GyroIntegrator,
     ImuRejection,
     integrate_rate,
-    still_mask,
-    window_statistics,
 )
 from sensing_nodes.core.timing import StampStep
 from sensing_nodes.core.wheel_odometry import WheelOdometry, WheelOdometryConfig
@@ -104,20 +102,7 @@ def test_bias_estimate_corrects_the_following_motion():
     assert abs(gi.yaw - 2.0) < math.radians(0.1)
 
 
-def test_window_statistics_match_a_direct_computation():
-    rng = np.random.default_rng(2)
-    t = T0 + np.cumsum(rng.integers(3, 8, 300)) * MS
-    v = rng.normal(9.8, 0.1, (300, 3))
-    mean, std, full = window_statistics(t, v, 0.2)
-    for i in (0, 10, 37, 150, 299):
-        older = np.flatnonzero(t <= t[i] - 200 * MS)
-        start = older[-1] if older.size else 0
-        np.testing.assert_allclose(mean[i], v[start:i + 1].mean(axis=0), rtol=1e-12)
-        np.testing.assert_allclose(std[i], v[start:i + 1].std(axis=0), rtol=1e-6, atol=1e-12)
-        assert full[i] == (t[i] - t[start] >= 200 * MS)
-
-
-def test_batch_still_mask_matches_the_per_sample_detector():
+def test_stillness_detector_sees_a_turn_and_a_bump():
     rng = np.random.default_rng(3)
     n = 2000
     t = T0 + np.arange(n) * 5 * MS
@@ -127,14 +112,12 @@ def test_batch_still_mask_matches_the_per_sample_detector():
     accel = rng.normal(0, 0.02, (n, 3)) + GRAVITY
     accel[1300:1400, 0] += rng.normal(0, 0.3, 100)   # a bump
     cfg = GyroConfig()
-    batch = still_mask(t, gyro, accel, cfg)
     gi = GyroIntegrator(cfg)
     per_sample = []
     for i in range(n):
         gi.update(int(t[i]), gyro[i], accel[i])
         per_sample.append(gi.still)
-    assert np.array_equal(batch, np.array(per_sample))
-    assert batch[500] and not batch[700] and not batch[1350] and batch[1999]
+    assert per_sample[500] and not per_sample[700] and not per_sample[1350] and per_sample[1999]
 
 
 def test_wheel_motion_vetoes_stillness():
@@ -297,52 +280,7 @@ def test_honest_heading_uncertainty_on_the_simulated_route():
     assert beyond1 >= 0.10
 
 
-def test_batch_update_equals_per_sample_updates():
-    """update_batch (vectorised windows and moving runs) gives the per-sample numbers, whatever
-    the chunking, including a wheel veto frozen over the batch and bad samples (per-sample
-    path)."""
-    from sensing_nodes.core.sim.simulator import SimParams, simulate
-    from sensing_nodes.core.sim.world import load_world
-    from sensing_nodes.paths import config_file
-
-    run = simulate(SimParams(), load_world(config_file('default_world.yaml')), 60.0, seed=2)
-    t, gyro, accel = run.imu_t, run.imu_gyro.copy(), run.imu_accel
-    gyro[5000, 1] = math.nan                       # one bad sample: that chunk goes per sample
-    cfg = GyroConfig()
-    reference = GyroIntegrator(cfg)
-    expected = []
-    for i in range(t.size):
-        if i == 9000:
-            reference.observe_wheels(int(t[i]), 0.2, 0.0)
-        reference.update(int(t[i]), gyro[i], accel[i])
-        expected.append((reference.yaw, reference.heading_variance, reference.bias[2],
-                         reference.still, reference.rate[2]))
-    expected = np.array(expected)
-    assert 0.2 < expected[:, 3].mean() < 0.9          # both still and moving runs are exercised
-    for chunks in ([t.size], [1000] * 12, [1, 6, 4993, 3000, 1000, 20000]):
-        gi = GyroIntegrator(cfg)
-        got, i = [], 0
-        sizes = iter(chunks)
-        while i < t.size:
-            size = next(sizes, 5000)
-            if i == 9000:
-                gi.observe_wheels(int(t[i]), 0.2, 0.0)
-            if i < 9000 < i + size:                    # split where the wheels report motion
-                size = 9000 - i
-            out = gi.update_batch(t[i:i + size], gyro[i:i + size], accel[i:i + size])
-            got.append(np.column_stack([out.yaw, out.heading_variance, out.bias[:, 2],
-                                        out.still, out.rate[:, 2]]))
-            i += size
-        got = np.concatenate(got)
-        valid = ~np.isnan(got[:, 0])
-        assert valid.sum() == t.size - 1 and not valid[5000]
-        np.testing.assert_array_equal(got[valid, 3], expected[valid, 3])
-        np.testing.assert_allclose(got[valid], expected[valid], rtol=1e-9, atol=1e-12)
-        assert gi.yaw == pytest.approx(reference.yaw, abs=1e-12)
-        assert gi.p_yaw == pytest.approx(reference.p_yaw, rel=1e-9)
-
-
-def test_batch_still_mask_with_wheel_motion_matches_the_veto():
+def test_wheel_motion_in_the_window_vetoes_stillness():
     n = 1200
     t = T0 + np.arange(n) * 5 * MS
     gyro = np.tile((0.0, 0.0, 0.0087), (n, 1))
@@ -350,15 +288,13 @@ def test_batch_still_mask_with_wheel_motion_matches_the_veto():
     moving = np.zeros(n, dtype=bool)
     moving[300:340] = True                    # the wheels report a slow turn the IMU cannot see
     cfg = GyroConfig()
-    batch = still_mask(t, gyro, accel, cfg, wheel_moving=moving)
     gi = GyroIntegrator(cfg)
     per_sample = []
     for i in range(n):
         gi.observe_wheels(int(t[i]), 0.0, 0.02 if moving[i] else 0.0)
         gi.update(int(t[i]), gyro[i], accel[i])
         per_sample.append(gi.still)
-    assert np.array_equal(batch, np.array(per_sample))
-    assert batch[299] and not batch[300] and not batch[400] and batch[500]
+    assert per_sample[299] and not per_sample[300] and not per_sample[400] and per_sample[500]
 
 
 def _still_with_lost_imu_stream():
@@ -383,11 +319,3 @@ def test_heading_variance_stays_non_negative_when_stillness_returns_to_an_old_sa
         lowest = min(lowest, gi.p_yaw, gi.heading_variance)
     assert lowest >= 0.0
     assert gi.bias_updates > 0 and gi.bias[2] == pytest.approx(0.0087, abs=0.002)
-
-
-def test_heading_variance_stays_non_negative_in_the_batch_path_too():
-    stamps, gyro, accel = _still_with_lost_imu_stream()
-    gi = GyroIntegrator(GyroConfig())
-    gi.observe_wheels(int(stamps[-1]), 0.0, 0.0)
-    out = gi.update_batch(stamps, gyro, accel)
-    assert np.all(out.heading_variance >= 0.0)

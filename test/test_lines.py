@@ -389,3 +389,15 @@ def test_random_scans_give_well_formed_lines(seed, beams, full_circle, invalid_f
         assert np.all(np.linalg.eigvalsh(line.covariance) > 0)
         # The endpoints lie on the line.
         assert distances(line, [line.start, line.end]) == pytest.approx([0.0, 0.0], abs=1e-9)
+
+
+@pytest.mark.parametrize('name', ['textbook_numpy', 'textbook_loops'])
+def test_production_agrees_with_the_textbook_split_and_merge(name):
+    """core.lines against the lesson's form (core.reference.lines) on scans of the default world:
+    the same r and alpha on the lines both find; the textbook cuts a full circle at beam 0, which
+    moves a few split points, so it finds most, not all, of ours."""
+    from sensing_nodes.bench.lines import METHODS, agreement, simulated_scans
+
+    dr, dalpha, found = agreement(simulated_scans(360)[:4], METHODS[name])
+    assert dr < 1e-9 and dalpha < 1e-9
+    assert found >= 0.85

@@ -7,7 +7,11 @@ import numpy as np
 import pytest
 
 from sensing_nodes.core.geometry.se2 import between, wrap_angle
-from sensing_nodes.core.reference import integrate_step, propagate_covariance, step_jacobians
+from sensing_nodes.core.reference.wheel_odometry import (
+    integrate_step,
+    propagate_covariance,
+    step_jacobians,
+)
 from sensing_nodes.core.timing import StampStep
 from sensing_nodes.core.wheel_odometry import (
     METHODS,
@@ -186,7 +190,9 @@ def test_covariance_worked_numbers_straight_line():
 
 
 @pytest.mark.parametrize('method', METHODS)
-def test_batch_path_equals_per_message_recursion(method):
+def test_dead_reckoning_equals_the_reference_step_by_step(method):
+    """WheelOdometry per message and integrate_path over the whole path, against the lesson's
+    3x3-product step (core.reference): poses and covariances, radius term included."""
     rng = np.random.default_rng(11)
     n, L = 400, 0.3
     dsl = rng.normal(0.01, 0.01, n)
@@ -196,8 +202,8 @@ def test_batch_path_equals_per_message_recursion(method):
     cfg = WheelOdometryConfig(wheel_radius_m=1.0, wheel_separation_m=L, method=method,
                               variance_per_m=(1e-4, 2e-4), radius_multiplier_std=0.01,
                               max_wheel_speed_rad_s=1e6)
-    odo = WheelOdometry(cfg, pose=(1.0, 2.0, 0.3))
-    odo.random_covariance = cov0.copy()
+    odo = WheelOdometry(cfg)
+    odo.reset((1.0, 2.0, 0.3), cov0)
     cov_plain = cov0.copy()
     pose = (1.0, 2.0, 0.3)
     position = np.zeros(2)

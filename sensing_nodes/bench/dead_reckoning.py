@@ -1,8 +1,8 @@
 """Throughput of the dead-reckoning cores (wheel odometry, gyro integrator), and whether the two
 nodes keep up with 1 kHz input over DDS.
 
-Inputs are the default simulated run (124 s: 50 Hz joint states, 200 Hz IMU), tiled for the batch
-paths. Figures are messages per second on one core, measured in one run.
+Inputs are the default simulated run (124 s: 50 Hz joint states, 200 Hz IMU), the joint states
+tiled for integrate_path (a whole path in one call). Figures are messages per second on one core, measured in one run.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator, integrate_rate, still_mask
+from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
 from sensing_nodes.core.sim.simulator import SimParams, simulate
 from sensing_nodes.core.sim.world import load_world
 from sensing_nodes.core.wheel_odometry import (
@@ -74,20 +74,6 @@ def _wheel_rates(run, quick: bool) -> dict:
 
 def _gyro_rates(run, quick: bool) -> dict:
     cfg = GyroConfig()
-    tiles = 4 if quick else 20
-    period = int(run.imu_t[1] - run.imu_t[0])
-    n = run.imu_t.size * tiles
-    t = run.imu_t[0] + np.arange(n, dtype=np.int64) * period
-    gyro = np.tile(run.imu_gyro, (tiles, 1))
-    accel = np.tile(run.imu_accel, (tiles, 1))
-
-    def batch(chunk: int) -> None:
-        # The whole estimator (stillness, bias filter, heading, variance), in one call or in
-        # chunks of 1 s (200 samples).
-        gi = GyroIntegrator(cfg)
-        for i in range(0, n, chunk):
-            gi.update_batch(t[i:i + chunk], gyro[i:i + chunk], accel[i:i + chunk])
-
     samples = list(zip(run.imu_t.tolist(), run.imu_gyro.tolist(), run.imu_accel.tolist()))
     if quick:
         samples = samples[:5000]
@@ -97,18 +83,7 @@ def _gyro_rates(run, quick: bool) -> dict:
         for ti, g, a in samples:
             gi.update(ti, g, a)
 
-    def heading_only():
-        still = still_mask(t, gyro, accel, cfg)
-        integrate_rate(t, np.where(still, 0.0, gyro[:, 2]))
-
-    batch_1s = _best_rate(n, lambda: batch(200), 2)
-    batch_all = _best_rate(n, lambda: batch(n), 2)
-    message_rate = _best_rate(len(samples), per_message, 2)
-    return {'gyro_batch_samples_per_s': batch_all, 'gyro_batch_1s_chunks_samples_per_s': batch_1s,
-            'gyro_per_message_samples_per_s': message_rate,
-            'gyro_batch_over_per_message': batch_all / message_rate,
-            'gyro_stillness_and_heading_only_samples_per_s': _best_rate(n, heading_only, 2),
-            'gyro_batch_n': n}
+    return {'gyro_per_message_samples_per_s': _best_rate(len(samples), per_message, 2)}
 
 
 def _dds_check(executable: str, seconds: float, rate_hz: float) -> dict:

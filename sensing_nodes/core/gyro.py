@@ -38,71 +38,6 @@ def integrate_rate(stamps_ns: ArrayLike, rate: ArrayLike, bias: float = 0.0, yaw
     return yaw0 + np.concatenate([[0.0], np.cumsum(0.5 * (r[1:] + r[:-1]) * dt)])
 
 
-def _window_ns(window_s: float) -> int:
-    return int(round(window_s * 1e9))
-
-
-def window_starts(stamps_ns: NDArray[np.int64], window_s: float) -> NDArray[np.intp]:
-    """Index of the first sample of the trailing window at each sample (see window_statistics)."""
-    start = np.searchsorted(stamps_ns, stamps_ns - _window_ns(window_s), side='right') - 1
-    return np.maximum(start, 0)
-
-
-def window_statistics(stamps_ns: ArrayLike, values: ArrayLike, window_s: float
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
-    """Mean and standard deviation of (N, D) values over the trailing window_s at each sample.
-
-    Returns (mean (N, D), std (N, D), full (N,)): full is True where the window already spans
-    window_s of data. The window at sample i runs from the newest sample at least window_s older
-    than t_i (or the first sample) to sample i, as in GyroIntegrator.
-    """
-    t = np.asarray(stamps_ns, dtype=np.int64)
-    v = np.asarray(values, dtype=float).reshape(t.size, -1)
-    # Shift by the first sample so the running sums of squares do not cancel catastrophically.
-    v = v - v[:1]
-    c1 = np.concatenate([np.zeros((1, v.shape[1])), np.cumsum(v, axis=0)])
-    c2 = np.concatenate([np.zeros((1, v.shape[1])), np.cumsum(v * v, axis=0)])
-    start = window_starts(t, window_s)
-    idx = np.arange(t.size)
-    n = (idx + 1 - start)[:, None].astype(float)
-    s1 = c1[idx + 1] - c1[start]
-    s2 = c2[idx + 1] - c2[start]
-    mean = s1 / n
-    var = np.maximum(s2 / n - mean * mean, 0.0)
-    full = (t - t[start]) >= _window_ns(window_s)
-    first = np.asarray(values, dtype=float).reshape(t.size, -1)[:1]
-    return mean + first, np.sqrt(var), full
-
-
-def still_mask(stamps_ns: ArrayLike, gyro: ArrayLike, accel: ArrayLike, config: 'GyroConfig',
-               wheel_moving: ArrayLike | None = None) -> NDArray[np.bool_]:
-    """Batch form of the IMU stillness rule: True where the window ending at a sample is still.
-
-    gyro, accel: (N, 3). wheel_moving (N,) bool, optional: wheel odometry reported motion at
-    (or last before) each sample; any motion inside the window vetoes stillness.
-    """
-    t = np.asarray(stamps_ns, dtype=np.int64)
-    both = np.concatenate([np.asarray(gyro, dtype=float).reshape(-1, 3),
-                           np.asarray(accel, dtype=float).reshape(-1, 3)], axis=1)
-    still = _quiet_windows(*window_statistics(t, both, config.stillness_window_s), config)
-    if wheel_moving is not None:
-        moving = np.asarray(wheel_moving, dtype=bool)
-        motion_count = np.concatenate([[0], np.cumsum(moving)])
-        start = window_starts(t, config.stillness_window_s)
-        still &= (motion_count[np.arange(t.size) + 1] - motion_count[start]) == 0
-    return still
-
-
-def _quiet_windows(mean: NDArray[np.float64], std: NDArray[np.float64], full: NDArray[np.bool_],
-                   config: 'GyroConfig') -> NDArray[np.bool_]:
-    """The IMU stillness rule on window statistics of (N, 6) [gyro | accel] samples: a full
-    window whose every gyro and accelerometer std is below its threshold and whose gyro mean is
-    within max_gyro_bias_rad_s on every axis. _Window.quiet is this rule on running sums."""
-    return (full & (std[:, :3] < config.gyro_std_threshold_rad_s).all(axis=1)
-            & (std[:, 3:] < config.accel_std_threshold_m_s2).all(axis=1)
-            & (np.abs(mean[:, :3]) <= config.max_gyro_bias_rad_s).all(axis=1))
-
-
 def _returned_covariance(p_yaw: float, p_cross: float, p_bias: float) -> tuple[float, float]:
     """(p_yaw, p_cross) of a heading held since the stillness window's start, against today's
     bias variance: the cross term is capped so the [yaw, bias] covariance stays PSD.
@@ -178,22 +113,6 @@ class ImuUpdate(SampleOutcome):
 
 
 @dataclass
-class BatchUpdate:
-    """Per-sample results of GyroIntegrator.update_batch, as update() would have left them."""
-    accepted: NDArray[np.bool_]
-    yaw: NDArray[np.float64]               # unwrapped heading (rad)
-    heading_variance: NDArray[np.float64]  # rad^2
-    rate: NDArray[np.float64]              # (N, 3) bias-corrected rates (rad/s)
-    bias: NDArray[np.float64]              # (N, 3) bias estimate (rad/s)
-    still: NDArray[np.bool_]
-
-    @classmethod
-    def empty(cls, n: int) -> BatchUpdate:
-        return cls(np.zeros(n, bool), np.full(n, np.nan), np.full(n, np.nan),
-                   np.full((n, 3), np.nan), np.full((n, 3), np.nan), np.zeros(n, bool))
-
-
-@dataclass
 class _Sample:
     stamp_ns: int
     gyro: tuple[float, float, float]
@@ -208,7 +127,7 @@ class _Window:
     """Samples of the trailing stillness window with running sums for their mean and variance."""
 
     def __init__(self, window_s: float) -> None:
-        self.window_ns = _window_ns(window_s)
+        self.window_ns = int(round(window_s * 1e9))
         self.samples: deque[_Sample] = deque()
         self._ref = (0.0,) * 6
         self._s1 = [0.0] * 6
@@ -377,106 +296,6 @@ class GyroIntegrator:
         self.rate = np.array((g[0] - bx, g[1] - by, g[2] - bz))
         return ImuUpdate(True, step, note=note, still=self.still)
 
-    def update_batch(self, stamps_ns: ArrayLike, gyro: ArrayLike, accel: ArrayLike) -> BatchUpdate:
-        """Take many raw samples at once: the same numbers as calling update() on each in turn.
-
-        stamps_ns (N,) int64, gyro (N, 3) rad/s, accel (N, 3) m/s^2. The stillness windows and
-        the integration while moving are vectorised; while still, the bias filter runs as a
-        scalar recursion. Wheel-odometry state is taken as it is at the call. Batches holding
-        anything the per-sample rules must handle (non-finite values, stamps not strictly
-        increasing, gaps, a pending calibration with estimation off) go through update().
-        """
-        t = np.asarray(stamps_ns, dtype=np.int64).ravel()
-        g = np.asarray(gyro, dtype=float).reshape(-1, 3)
-        a = np.asarray(accel, dtype=float).reshape(-1, 3)
-        if not (t.size == g.shape[0] == a.shape[0]):
-            raise ValueError(f'{t.size} stamps, {g.shape[0]} rates and {a.shape[0]} accelerations')
-        out = BatchUpdate.empty(t.size)
-        start = 0
-        while start < t.size and self.stamp_ns is None:
-            self._record(out, start, self.update(int(t[start]), g[start], a[start]))
-            start += 1
-        if start == t.size:
-            return out
-        cfg = self.config
-        dt_ns = np.diff(np.concatenate([[self.stamp_ns], t[start:]]))
-        clean = (np.isfinite(g[start:]).all() and np.isfinite(a[start:]).all() and dt_ns.min() > 0
-                 and dt_ns.max() <= cfg.max_gap_s * 1e9
-                 and not (self.calibration_requested and not cfg.bias_estimation))
-        if not clean:
-            for i in range(start, t.size):
-                self._record(out, i, self.update(int(t[i]), g[i], a[i]))
-            return out
-        self._batch_clean(t[start:], g[start:], a[start:], dt_ns * 1e-9, out, start)
-        return out
-
-    def _record(self, out: BatchUpdate, i: int, result: ImuUpdate) -> None:
-        out.accepted[i] = result.publish
-        if not result.publish:
-            return          # rejected: its row stays NaN
-        out.yaw[i] = self.yaw
-        out.heading_variance[i] = self.heading_variance
-        out.rate[i] = self.rate
-        out.bias[i] = self.bias
-        out.still[i] = self.still
-
-    def _batch_clean(self, t, g, a, dt, out: BatchUpdate, offset: int) -> None:
-        """update_batch for a batch the per-sample rules pass untouched (see there); writes
-        rows offset.. of out and leaves the state as update() would have."""
-        cfg = self.config
-        # The window holds earlier samples too: prefix them so every window is the per-sample one.
-        prefix = list(self._window.samples)
-        npre = len(prefix)
-        t_all = np.concatenate([np.array([s.stamp_ns for s in prefix], dtype=np.int64), t])
-        g_all = np.concatenate([np.array([s.gyro for s in prefix]).reshape(-1, 3), g])
-        a_all = np.concatenate([np.array([s.accel for s in prefix]).reshape(-1, 3), a])
-        first = window_starts(t_all, cfg.stillness_window_s)
-        if cfg.bias_estimation:
-            both = np.concatenate([g_all, a_all], axis=1)
-            still = _quiet_windows(*window_statistics(t_all, both, cfg.stillness_window_s),
-                                   cfg)[npre:]
-            wheels = (self._wheel_last_ns is not None) & (
-                np.abs(t - (self._wheel_last_ns or 0)) <= cfg.wheel_timeout_s * 1e9)
-            if self._wheel_motion_ns is not None:
-                still &= ~(wheels & (self._wheel_motion_ns >= t_all[first[npre:]]))
-        else:
-            still = np.zeros(t.size, dtype=bool)
-        run = _BatchRun(self, prefix, t, t_all, g, g_all, dt, first)
-        edges = np.flatnonzero(np.diff(still.astype(np.int8))) + 1
-        for lo, hi in zip(np.concatenate([[0], edges]), np.concatenate([edges, [t.size]])):
-            if still[lo]:
-                run.still(lo, hi)
-            else:
-                run.moving(lo, hi)
-        self._finish_batch(run, still, out, offset)
-        self._window.clear()
-        for j in range(first[-1], t_all.size):
-            self._window.add(_Sample(int(t_all[j]), tuple(float(v) for v in g_all[j]),
-                                     tuple(float(v) for v in a_all[j]), float(run.yaw_all[j]),
-                                     float(run.py_all[j]), float(run.pc_all[j])))
-
-    def _finish_batch(self, run: _BatchRun, still, out: BatchUpdate, offset: int) -> None:
-        """Outputs of a clean batch, and the state as after the last per-sample update."""
-        g, dt, npre = run.g, run.dt, run.npre
-        rate = g - run.bias_out
-        half = 0.5 * rate[:, 2] * dt
-        sl = slice(offset, offset + g.shape[0])
-        out.accepted[sl] = True
-        out.yaw[sl] = run.yaw_all[npre:]
-        out.heading_variance[sl] = run.py_all[npre:] + half * half
-        out.rate[sl] = rate
-        out.bias[sl] = run.bias_out
-        out.still[sl] = still
-        self.yaw, self.p_yaw = float(run.yaw), float(run.py)
-        self.p_cross, self.p_bias = float(run.pc), float(run.pb)
-        self.bias = run.bias.copy()
-        self.still = bool(still[-1])
-        self._used_until_ns, self.bias_updates = run.used_until, run.updates
-        self.stamp_ns = int(run.t[-1])
-        self._prev_gyro = tuple(float(v) for v in g[-1])
-        self._last_dt = float(dt[-1])
-        self.rate = rate[-1].copy()
-
     @property
     def heading_variance(self) -> float:
         """Published heading variance (rad^2): the filter's plus a term for the sample convention.
@@ -539,84 +358,3 @@ class GyroIntegrator:
         if self.wheels_available(stamp_ns) and self._wheel_motion_ns is not None:
             return self._wheel_motion_ns < self._window.samples[0].stamp_ns
         return True
-
-
-class _BatchRun:
-    """GyroIntegrator._batch_clean's walk over the moving and still runs of a batch: the filter
-    state on plain floats, and the heading history (yaw, p_yaw, p_cross after each sample) of
-    the window's earlier samples followed by the batch, which a new still run returns to."""
-
-    def __init__(self, gi: GyroIntegrator, prefix: list[_Sample], t, t_all, g, g_all, dt,
-                 first) -> None:
-        n, cfg = t.size, gi.config
-        self.t, self.t_all, self.g, self.g_all, self.dt, self.first = t, t_all, g, g_all, dt, first
-        self.npre = len(prefix)
-        self.yaw_all = np.concatenate([[s.yaw for s in prefix], np.empty(n)])
-        self.py_all = np.concatenate([[s.p_yaw for s in prefix], np.empty(n)])
-        self.pc_all = np.concatenate([[s.p_cross for s in prefix], np.empty(n)])
-        self.bias_out = np.empty((n, 3))
-        self.gz_prev = np.concatenate([[gi._prev_gyro[2]], g[:-1, 2]])
-        self.q, self.nd2 = cfg.bias_random_walk ** 2, cfg.noise_density ** 2
-        self.yaw, self.py, self.pc, self.pb = gi.yaw, gi.p_yaw, gi.p_cross, gi.p_bias
-        self.bias = gi.bias.copy()
-        self.was_still, self.used_until, self.updates = (
-            gi.still,
-            gi._used_until_ns,
-            gi.bias_updates,
-        )
-
-    def moving(self, lo: int, hi: int) -> None:
-        """Samples lo..hi-1 integrate: GyroIntegrator._propagate and the trapezoid, as sums.
-
-        yaw' = yaw + (trapezoid - bias) dt; F = [[1, -dt], [0, 1]] plus noise, in closed form."""
-        d, q, pb, pc = self.dt[lo:hi], self.q, self.pb, self.pc
-        pb_before = pb + q * np.concatenate([[0.0], np.cumsum(d[:-1])])
-        pc_run = pc - np.cumsum(d * pb_before)
-        pc_before = np.concatenate([[pc], pc_run[:-1]])
-        py_run = self.py + np.cumsum(-2.0 * d * pc_before + d * d * pb_before + self.nd2 * d)
-        yaw_run = self.yaw + np.cumsum(
-            (0.5 * (self.gz_prev[lo:hi] + self.g[lo:hi, 2]) - self.bias[2]) * d)
-        rows = slice(self.npre + lo, self.npre + hi)
-        self.yaw_all[rows], self.py_all[rows], self.pc_all[rows] = yaw_run, py_run, pc_run
-        self.bias_out[lo:hi] = self.bias
-        self.yaw, self.py, self.pc = yaw_run[-1], py_run[-1], pc_run[-1]
-        self.pb = pb_before[-1] + q * d[-1]
-        self.was_still = False
-
-    def still(self, lo: int, hi: int) -> None:
-        """Samples lo..hi-1 measure the bias: GyroIntegrator._measure_bias per sample, on plain
-        floats (numpy per element costs more)."""
-        npre, g = self.npre, self.g
-        yaw, py, pc, pb = self.yaw, self.py, self.pc, self.pb
-        if not self.was_still:
-            # As update(): return to the heading held at the window's start, and let every raw
-            # sample of the window not used before measure the bias.
-            j = self.first[npre + lo]
-            yaw = float(self.yaw_all[j])
-            py, pc = _returned_covariance(float(self.py_all[j]), float(self.pc_all[j]), pb)
-            begin = max(j, int(np.searchsorted(self.t_all, self.used_until, side='right')))
-            zs = self.g_all[begin:npre + lo + 1].mean(axis=0)
-            ms = [npre + lo + 1 - begin]
-            self.was_still = True
-        else:
-            zs, ms = g[lo], [1]
-        gx, gy, gz = g[lo:hi, 0].tolist(), g[lo:hi, 1].tolist(), g[lo:hi, 2].tolist()
-        gx[0], gy[0], gz[0] = (float(v) for v in zs)
-        ms += [1] * (hi - lo - 1)
-        bx, by, bz = (float(v) for v in self.bias)
-        q, nd2, update = self.q, self.nd2, _zero_velocity_update
-        states = []
-        keep = states.append
-        for dk, m, zx, zy, zz in zip(self.dt[lo:hi].tolist(), ms, gx, gy, gz):
-            pb += q * dk
-            state = update(yaw, py, pc, pb, bx, by, bz, zx, zy, zz, nd2 / max(dk, 1e-6) / m)
-            yaw, py, pc, pb, bx, by, bz = state
-            keep(state)
-        yaws, pys, pcs, _, bxs, bys, bzs = zip(*states)
-        rows = slice(npre + lo, npre + hi)
-        self.yaw_all[rows], self.py_all[rows], self.pc_all[rows] = yaws, pys, pcs
-        self.bias_out[lo:hi, 0], self.bias_out[lo:hi, 1], self.bias_out[lo:hi, 2] = bxs, bys, bzs
-        self.used_until = int(self.t[hi - 1])
-        self.yaw, self.py, self.pc, self.pb = yaw, py, pc, pb
-        self.bias = np.array([bx, by, bz])
-        self.updates += sum(ms)

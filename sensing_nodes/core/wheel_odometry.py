@@ -104,8 +104,9 @@ def _arc_factors(half_turn):
     return f, df
 
 
-def _displacement(yaw, ds, dtheta, method: str):
-    """Odom-frame step (dx, dy) and d(dx, dy)/d(ds, dtheta) for a step starting at heading yaw."""
+def arc_displacement(yaw, ds, dtheta, method: str):
+    """Odom-frame step (dx, dy) (m) and d(dx, dy)/d(ds, dtheta) for a step of ds (m) and dtheta
+    (rad) starting at heading yaw (rad): along the arc, or straight ahead for 'euler'."""
     if method == 'exact_arc':
         # Exact arc: (dx, dy) = ds * sin(a)/a * (cos, sin)(yaw + a), a = dtheta/2; at a -> 0 this
         # is the midpoint straight-line form.
@@ -134,86 +135,9 @@ def step_columns(yaw, ds_left, ds_right, wheel_separation_m: float, method: str 
     """
     ds, dtheta = body_increments(ds_left, ds_right, wheel_separation_m)
     inv_l = 1.0 / wheel_separation_m
-    dx, dy, (fx, fy), (gx, gy) = _displacement(yaw, ds, dtheta, method)
+    dx, dy, (fx, fy), (gx, gy) = arc_displacement(yaw, ds, dtheta, method)
     return (dx, dy, ds, dtheta, (0.5 * fx - inv_l * gx, 0.5 * fy - inv_l * gy),
             (0.5 * fx + inv_l * gx, 0.5 * fy + inv_l * gy))
-
-
-def _step_noise(yaw, ds_left, ds_right, wheel_separation_m, variance_per_m, method):
-    """Per-step (dx, dy, dtheta), Q = G diag(k|ds|) G^T (..., 3, 3) and the radius-error
-    Jacobian H (..., 3, 2), vectorised over steps."""
-    dx, dy, _, dtheta, (lx, ly), (rx, ry) = step_columns(yaw, ds_left, ds_right,
-                                                          wheel_separation_m, method)
-    inv_l = np.full_like(dtheta, 1.0 / wheel_separation_m)
-    g_left = np.stack([lx, ly, -inv_l], axis=-1)
-    g_right = np.stack([rx, ry, inv_l], axis=-1)
-    var_l = variance_per_m[0] * np.abs(ds_left)
-    var_r = variance_per_m[1] * np.abs(ds_right)
-    q = (var_l[..., None, None] * g_left[..., :, None] * g_left[..., None, :]
-         + var_r[..., None, None] * g_right[..., :, None] * g_right[..., None, :])
-    # d(step)/d(relative radius errors): a radius error e scales that wheel's distance by (1 + e).
-    h = np.stack([g_left * np.asarray(ds_left)[..., None],
-                  g_right * np.asarray(ds_right)[..., None]], axis=-1)
-    return dx, dy, dtheta, q, h
-
-
-def integrate_path(
-    pose0: Pose2,
-    ds_left: ArrayLike,
-    ds_right: ArrayLike,
-    wheel_separation_m: float,
-    variance_per_m: tuple[float, float] = (0.0, 0.0),
-    covariance0: ArrayLike | None = None,
-    method: str = 'exact_arc',
-    radius_multiplier_std: float = 0.0,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Batch dead reckoning: poses (N, 3) in odom and covariances (N, 3, 3) after each of N steps.
-
-    The same recursion as WheelOdometry (see step_columns), without a Python loop: every step
-    Jacobian is a shear I + u e3^T with u = (-dy, dx, 0), so the products telescope into
-    differences of positions and the covariance is a sum of cumulative sums.
-    """
-    ds_l = np.asarray(ds_left, dtype=float).ravel()
-    ds_r = np.asarray(ds_right, dtype=float).ravel()
-    if ds_l.shape != ds_r.shape:
-        raise ValueError(f'ds_left and ds_right differ in length ({ds_l.size} vs {ds_r.size})')
-    n = ds_l.size
-    _, dtheta = body_increments(ds_l, ds_r, wheel_separation_m)
-    yaw_before = pose0[2] + np.concatenate([[0.0], np.cumsum(dtheta)[:-1]])
-    dx, dy, _, q, h = _step_noise(yaw_before, ds_l, ds_r, wheel_separation_m, variance_per_m,
-                                  method)
-    x = pose0[0] + np.cumsum(dx)
-    y = pose0[1] + np.cumsum(dy)
-    poses = np.stack([x, y, wrap_angle(yaw_before + dtheta) if n else np.zeros(0)], axis=-1)
-
-    cov0 = np.zeros((3, 3)) if covariance0 is None else np.asarray(covariance0, float)
-    # Term k (k = 0 is the initial covariance) enters P_N as Phi Q_k Phi^T with
-    # Phi = I + (w_N - w_k) e3^T, w = (-y, x, 0).
-    w = np.zeros((n + 1, 3))
-    w[0, :2] = (-pose0[1], pose0[0])
-    w[1:, 0], w[1:, 1] = -y, x
-    qs = np.concatenate([cov0[None], q], axis=0)
-    qcol = qs[:, :, 2]
-    s = qs[:, 2, 2]
-    a = np.cumsum(qs, axis=0)[1:]
-    b = np.cumsum(qcol, axis=0)[1:]
-    c = np.cumsum(w[:, :, None] * qcol[:, None, :], axis=0)[1:]
-    s_sum = np.cumsum(s)[1:]
-    d = np.cumsum(s[:, None] * w, axis=0)[1:]
-    e = np.cumsum(s[:, None, None] * w[:, :, None] * w[:, None, :], axis=0)[1:]
-    wn = w[1:]
-    wb = wn[:, :, None] * b[:, None, :]
-    wd = wn[:, :, None] * d[:, None, :]
-    covs = (a + wb - c + np.swapaxes(wb - c, 1, 2)
-            + s_sum[:, None, None] * wn[:, :, None] * wn[:, None, :]
-            - wd - np.swapaxes(wd, 1, 2) + e)
-    if radius_multiplier_std > 0.0 and n:
-        # Pose Jacobian w.r.t. the radius errors: J_N = sum_k Phi(N, k) H_k, telescoped likewise.
-        hrow = h[:, 2, :]
-        j = (np.cumsum(h, axis=0) + wn[:, :, None] * np.cumsum(hrow, axis=0)[:, None, :]
-             - np.cumsum(w[1:, :, None] * hrow[:, None, :], axis=0))
-        covs = covs + radius_multiplier_std ** 2 * j @ np.swapaxes(j, 1, 2)
-    return poses, 0.5 * (covs + np.swapaxes(covs, 1, 2))
 
 
 class Rejection(enum.Enum):
@@ -262,6 +186,90 @@ class WheelOdometryConfig:
                 self.wheel_radius_m * self.right_radius_multiplier)
 
 
+def dead_reckoning_step(pose: Pose2, covariance: tuple[float, ...],
+                        radius_jacobian: tuple[float, ...], ds_left: float, ds_right: float,
+                        config: WheelOdometryConfig) -> tuple[Pose2, tuple[float, ...],
+                                                                tuple[float, ...]]:
+    """One dead-reckoning step over wheel distances ds_left, ds_right (m): the new pose (x, y,
+    yaw in odom; m, rad), its covariance from the random wheel errors as (xx, xy, xt, yy, yt, tt)
+    and its Jacobian w.r.t. the two relative radius errors as (x_l, x_r, y_l, y_r, yaw_l, yaw_r).
+
+    P' = F P F^T + G diag(k|ds_l|, k|ds_r|) G^T and J' = F J + G diag(ds_l, ds_r) with the
+    columns of step_columns (F = I + u e3^T, u = (-dy, dx, 0)), written out in plain floats:
+    this runs once per JointState message, where 3x3 numpy products cost more than the
+    arithmetic (core.reference writes the same step as matrix products; the tests compare)."""
+    inv_l = 1.0 / config.wheel_separation_m
+    x, y, yaw = pose
+    dx, dy, _, dtheta, (lx, ly), (rx, ry) = step_columns(yaw, ds_left, ds_right,
+                                                          config.wheel_separation_m, config.method)
+    a, b = -dy, dx
+    var_l = config.variance_per_m[0] * abs(ds_left)
+    var_r = config.variance_per_m[1] * abs(ds_right)
+    xx, xy, xt, yy, yt, tt = covariance
+    covariance = (xx + 2.0 * a * xt + a * a * tt + var_l * lx * lx + var_r * rx * rx,
+                  xy + a * yt + b * xt + a * b * tt + var_l * lx * ly + var_r * rx * ry,
+                  xt + a * tt + inv_l * (var_r * rx - var_l * lx),
+                  yy + 2.0 * b * yt + b * b * tt + var_l * ly * ly + var_r * ry * ry,
+                  yt + b * tt + inv_l * (var_r * ry - var_l * ly),
+                  tt + inv_l * inv_l * (var_l + var_r))
+    if config.radius_multiplier_std > 0.0:
+        jx0, jx1, jy0, jy1, jt0, jt1 = radius_jacobian
+        radius_jacobian = (jx0 + a * jt0 + lx * ds_left, jx1 + a * jt1 + rx * ds_right,
+                           jy0 + b * jt0 + ly * ds_left, jy1 + b * jt1 + ry * ds_right,
+                           jt0 - inv_l * ds_left, jt1 + inv_l * ds_right)
+    yaw2 = yaw + dtheta
+    if yaw2 > math.pi or yaw2 <= -math.pi:
+        yaw2 = float(wrap_angle(yaw2))
+    return (x + dx, y + dy, yaw2), covariance, radius_jacobian
+
+
+def covariance_matrix(covariance: tuple[float, ...], radius_jacobian: tuple[float, ...],
+                      radius_multiplier_std: float) -> NDArray[np.float64]:
+    """The 3x3 pose covariance (x/y/yaw) from dead_reckoning_step's random part and radius
+    Jacobian: random + std^2 J J^T."""
+    xx, xy, xt, yy, yt, tt = covariance
+    out = np.array([[xx, xy, xt], [xy, yy, yt], [xt, yt, tt]])
+    if radius_multiplier_std > 0.0:
+        j = np.array(radius_jacobian).reshape(3, 2)
+        out += radius_multiplier_std * radius_multiplier_std * (j @ j.T)
+    return out
+
+
+ZERO_COVARIANCE = (0.0,) * 6
+
+
+def integrate_path(
+    pose0: Pose2,
+    ds_left: ArrayLike,
+    ds_right: ArrayLike,
+    wheel_separation_m: float,
+    variance_per_m: tuple[float, float] = (0.0, 0.0),
+    covariance0: ArrayLike | None = None,
+    method: str = 'exact_arc',
+    radius_multiplier_std: float = 0.0,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Dead reckoning over N steps of wheel distances (m): poses (N, 3) in odom and covariances
+    (N, 3, 3) after each step, by dead_reckoning_step (the recursion WheelOdometry runs)."""
+    ds_l = np.asarray(ds_left, dtype=float).ravel()
+    ds_r = np.asarray(ds_right, dtype=float).ravel()
+    if ds_l.shape != ds_r.shape:
+        raise ValueError(f'ds_left and ds_right differ in length ({ds_l.size} vs {ds_r.size})')
+    config = WheelOdometryConfig(wheel_separation_m=wheel_separation_m, method=method,
+                                 variance_per_m=tuple(variance_per_m),
+                                 radius_multiplier_std=radius_multiplier_std)
+    c0 = np.zeros((3, 3)) if covariance0 is None else np.asarray(covariance0, dtype=float)
+    pose = (float(pose0[0]), float(pose0[1]), float(pose0[2]))
+    cov = (c0[0, 0], c0[0, 1], c0[0, 2], c0[1, 1], c0[1, 2], c0[2, 2])
+    cov = tuple(float(v) for v in cov)
+    jac = ZERO_COVARIANCE
+    poses, covs = np.empty((ds_l.size, 3)), np.empty((ds_l.size, 3, 3))
+    for k, (left, right) in enumerate(zip(ds_l.tolist(), ds_r.tolist())):
+        pose, cov, jac = dead_reckoning_step(pose, cov, jac, left, right, config)
+        poses[k] = pose
+        covs[k] = covariance_matrix(cov, jac, radius_multiplier_std)
+    return poses, covs
+
+
 @dataclass
 class OdometryUpdate(SampleOutcome):
     """Outcome of one JointState sample (rejection: a Rejection); wrapped: an encoder wrap was
@@ -269,14 +277,23 @@ class OdometryUpdate(SampleOutcome):
     wrapped: bool = False
 
 
-def _wheel_pair(names, values, il: int, ir: int, kind: str):
-    """(left, right) floats of one JointState field, or the rejection of a malformed one."""
+class _NotIntegrated(Exception):
+    """A sample that integrates nothing; `outcome` says why (a rejection or a restart)."""
+
+    def __init__(self, outcome: OdometryUpdate) -> None:
+        super().__init__(outcome.note)
+        self.outcome = outcome
+
+
+def _wheel_pair(names, values, il: int, ir: int, kind: str) -> tuple[float, float]:
+    """(left, right) floats of one JointState field; _NotIntegrated for a malformed one."""
     if len(values) != len(names):
-        return OdometryUpdate(False, rejection=Rejection.LENGTH_MISMATCH,
-                              note=f'{len(names)} names but {len(values)} {kind}')
+        raise _NotIntegrated(OdometryUpdate(False, rejection=Rejection.LENGTH_MISMATCH,
+                                            note=f'{len(names)} names but {len(values)} {kind}'))
     pair = (float(values[il]), float(values[ir]))
     if not (math.isfinite(pair[0]) and math.isfinite(pair[1])):
-        return OdometryUpdate(False, rejection=Rejection.NON_FINITE, note=f'wheel {kind} {pair}')
+        raise _NotIntegrated(OdometryUpdate(False, rejection=Rejection.NON_FINITE,
+                                            note=f'wheel {kind} {pair}'))
     return pair
 
 
@@ -289,28 +306,27 @@ class WheelOdometry:
     """
     config: WheelOdometryConfig
     pose: Pose2 = (0.0, 0.0, 0.0)
-    random_covariance: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
-    radius_jacobian: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 2)))
     twist: tuple[float, float, float] = (0.0, 0.0, 0.0)
     twist_covariance: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
     stamp_ns: int | None = None
+    # dead_reckoning_step's state: the random part of the pose covariance and the radius Jacobian
+    _random: tuple[float, ...] = ZERO_COVARIANCE
+    _radius: tuple[float, ...] = ZERO_COVARIANCE
     _positions: tuple[float, float] | None = None
     _velocities: tuple[float, float] | None = None
 
     @property
     def covariance(self) -> NDArray[np.float64]:
         """Pose covariance (3x3, x/y/yaw in odom): random wheel errors plus radius errors."""
-        std = self.config.radius_multiplier_std
-        if std == 0.0:
-            return self.random_covariance
-        j = self.radius_jacobian
-        return self.random_covariance + (std * std) * (j @ j.T)
+        return covariance_matrix(self._random, self._radius, self.config.radius_multiplier_std)
 
-    def reset(self, pose: Pose2 = (0.0, 0.0, 0.0)) -> None:
-        """Put the robot at pose with zero covariance; keep the encoder reference."""
+    def reset(self, pose: Pose2 = (0.0, 0.0, 0.0), covariance: ArrayLike | None = None) -> None:
+        """Put the robot at pose with `covariance` (3x3, default zero: exactly known); keep the
+        encoder reference."""
         self.pose = (float(pose[0]), float(pose[1]), float(wrap_angle(pose[2])))
-        self.random_covariance = np.zeros((3, 3))
-        self.radius_jacobian = np.zeros((3, 2))
+        c = np.zeros((3, 3)) if covariance is None else np.asarray(covariance, dtype=float)
+        self._random = tuple(float(v) for v in c[np.triu_indices(3)])
+        self._radius = ZERO_COVARIANCE
         self.twist = (0.0, 0.0, 0.0)
         self.twist_covariance = np.zeros((3, 3))
 
@@ -328,10 +344,13 @@ class WheelOdometry:
         joints: tuple[str, str],
     ) -> OdometryUpdate:
         """Take one JointState sample (stamp ns, names, positions rad, velocities rad/s)."""
-        sample = self._read(names, positions, velocities, joints)
-        if isinstance(sample, OdometryUpdate):
-            return sample
-        pos, vel = sample
+        try:
+            return self._update(stamp_ns, names, positions, velocities, joints)
+        except _NotIntegrated as skipped:
+            return skipped.outcome
+
+    def _update(self, stamp_ns, names, positions, velocities, joints) -> OdometryUpdate:
+        pos, vel = self._read(names, positions, velocities, joints)
         step = classify_step(self.stamp_ns, stamp_ns, self.config.max_gap_s)
         if step is StampStep.REPEATED:
             return OdometryUpdate(False, step, Rejection.REPEATED_STAMP,
@@ -347,10 +366,7 @@ class WheelOdometry:
             return OdometryUpdate(True, step, note=note)
 
         dt = (stamp_ns - self.stamp_ns) * 1e-9
-        rolled = self._wheel_distances(stamp_ns, step, dt, pos, vel)
-        if isinstance(rolled, OdometryUpdate):
-            return rolled
-        ds_l, ds_r, wrapped = rolled
+        ds_l, ds_r, wrapped = self._wheel_distances(stamp_ns, step, dt, pos, vel)
         if step is StampStep.GAP:
             self._inflate_for_gap(ds_l, ds_r)
             note = (
@@ -367,32 +383,31 @@ class WheelOdometry:
                               note='encoder position wrapped; unwrapped' if wrapped else '')
 
     def _read(self, names, positions, velocities, joints):
-        """(positions, None) or (None, velocities) of the [left, right] wheels, or the
-        rejection (an OdometryUpdate) of a sample that cannot be used."""
+        """(positions, None) or (None, velocities) of the [left, right] wheels; _NotIntegrated
+        for a sample that cannot be used."""
         try:
             il, ir = names.index(joints[0]), names.index(joints[1])
         except ValueError:
             missing = [j for j in joints if j not in names]
-            return OdometryUpdate(False, rejection=Rejection.MISSING_JOINT,
-                                  note=f'wheel joint(s) {missing} not in {list(names)}')
+            raise _NotIntegrated(OdometryUpdate(
+                False, rejection=Rejection.MISSING_JOINT,
+                note=f'wheel joint(s) {missing} not in {list(names)}')) from None
         if len(positions):
-            pos = _wheel_pair(names, positions, il, ir, 'positions')
-            return pos if isinstance(pos, OdometryUpdate) else (pos, None)
+            return _wheel_pair(names, positions, il, ir, 'positions'), None
         if not len(velocities):
-            return OdometryUpdate(False, rejection=Rejection.NO_DATA,
-                                  note='no positions and no velocities')
+            raise _NotIntegrated(OdometryUpdate(False, rejection=Rejection.NO_DATA,
+                                                note='no positions and no velocities'))
         vel = _wheel_pair(names, velocities, il, ir, 'velocities')
-        if isinstance(vel, OdometryUpdate):
-            return vel
         if max(abs(vel[0]), abs(vel[1])) > self.config.max_wheel_speed_rad_s:
-            return OdometryUpdate(False, rejection=Rejection.IMPLAUSIBLE, note=(
+            raise _NotIntegrated(OdometryUpdate(False, rejection=Rejection.IMPLAUSIBLE, note=(
                 f'wheel velocities {vel} rad/s beyond max_wheel_speed_rad_s '
-                f'{self.config.max_wheel_speed_rad_s}'))
+                f'{self.config.max_wheel_speed_rad_s}')))
         return None, vel
 
-    def _wheel_distances(self, stamp_ns: int, step: StampStep, dt: float, pos, vel):
+    def _wheel_distances(self, stamp_ns: int, step: StampStep, dt: float, pos, vel
+                         ) -> tuple[float, float, bool]:
         """(ds_left, ds_right, wrapped): the distances (m) the wheels rolled since the last
-        sample; or the OdometryUpdate when there is nothing to integrate (restarted)."""
+        sample; _NotIntegrated when there is nothing to integrate (restarted)."""
         radii = self.config.radii
         if pos is not None and self._positions is not None:
             max_step = self.config.max_wheel_speed_rad_s * dt
@@ -403,9 +418,10 @@ class WheelOdometry:
                     folded = unwrap_increments(d, max_step)
                     if abs(folded) > max_step:
                         self._restart(stamp_ns, pos, vel)
-                        return OdometryUpdate(False, step, Rejection.IMPLAUSIBLE, note=(
-                            f'wheel angle jumped {d:.3f} rad in {dt:.4f} s (max '
-                            f'{max_step:.3f} rad); restarted from this reading'))
+                        raise _NotIntegrated(OdometryUpdate(
+                            False, step, Rejection.IMPLAUSIBLE, note=(
+                                f'wheel angle jumped {d:.3f} rad in {dt:.4f} s (max '
+                                f'{max_step:.3f} rad); restarted from this reading')))
                     d, wrapped = folded, True
                 dphi.append(d)
             return dphi[0] * radii[0], dphi[1] * radii[1], wrapped
@@ -417,40 +433,20 @@ class WheelOdometry:
             return vel[0] * dt * radii[0], vel[1] * dt * radii[1], False
         # Positions appear after velocity-only samples: anchor on them.
         self._restart(stamp_ns, pos, vel)
-        return OdometryUpdate(True, step, note='positions appeared; anchored on them')
+        raise _NotIntegrated(OdometryUpdate(True, step,
+                                            note='positions appeared; anchored on them'))
 
     def _integrate(self, ds_l: float, ds_r: float, dt: float) -> None:
-        # P' = F P F^T + G diag(var) G^T (see step_columns) written out in scalars: this runs
-        # once per message and 3x3 numpy products cost more than the arithmetic.
+        """One step of the pose and its covariance (dead_reckoning_step), and the twist over
+        the interval with its covariance from the same wheel variances."""
         cfg = self.config
+        self.pose, self._random, self._radius = dead_reckoning_step(
+            self.pose, self._random, self._radius, ds_l, ds_r, cfg)
         inv_l = 1.0 / cfg.wheel_separation_m
-        x, y, yaw = self.pose
-        dx, dy, ds, dtheta, (lx, ly), (rx, ry) = step_columns(yaw, ds_l, ds_r,
-                                                              cfg.wheel_separation_m, cfg.method)
-        # F = I + u e3^T with u = (-dy, dx, 0).
-        a, b = -dy, dx
+        ds, dtheta = body_increments(ds_l, ds_r, cfg.wheel_separation_m)
+        self.twist = (ds / dt, 0.0, dtheta / dt)
         var_l = cfg.variance_per_m[0] * abs(ds_l)
         var_r = cfg.variance_per_m[1] * abs(ds_r)
-        # As plain floats: arithmetic on numpy scalars costs several times more (same bits).
-        (xx, xy, xt), (_, yy, yt), (_, _, tt) = self.random_covariance.tolist()
-        xx2 = xx + 2.0 * a * xt + a * a * tt + var_l * lx * lx + var_r * rx * rx
-        xy2 = xy + a * yt + b * xt + a * b * tt + var_l * lx * ly + var_r * rx * ry
-        xt2 = xt + a * tt + inv_l * (var_r * rx - var_l * lx)
-        yy2 = yy + 2.0 * b * yt + b * b * tt + var_l * ly * ly + var_r * ry * ry
-        yt2 = yt + b * tt + inv_l * (var_r * ry - var_l * ly)
-        tt2 = tt + inv_l * inv_l * (var_l + var_r)
-        self.random_covariance = np.array([[xx2, xy2, xt2], [xy2, yy2, yt2], [xt2, yt2, tt2]])
-        if cfg.radius_multiplier_std > 0.0:
-            (jx0, jx1), (jy0, jy1), (jt0, jt1) = self.radius_jacobian.tolist()
-            self.radius_jacobian = np.array([
-                [jx0 + a * jt0 + lx * ds_l, jx1 + a * jt1 + rx * ds_r],
-                [jy0 + b * jt0 + ly * ds_l, jy1 + b * jt1 + ry * ds_r],
-                [jt0 - inv_l * ds_l, jt1 + inv_l * ds_r]])
-        yaw2 = yaw + dtheta
-        if yaw2 > math.pi or yaw2 <= -math.pi:
-            yaw2 = float(wrap_angle(yaw2))
-        self.pose = (x + dx, y + dy, yaw2)
-        self.twist = (ds / dt, 0.0, dtheta / dt)
         inv_dt2 = 1.0 / (dt * dt)
         var_v = 0.25 * (var_l + var_r) * inv_dt2
         var_w = inv_l * inv_l * (var_l + var_r) * inv_dt2
@@ -463,4 +459,5 @@ class WheelOdometry:
         # difference bounds the turn; add both as variance rather than pretend to know the pose.
         path = 0.5 * (abs(ds_l) + abs(ds_r))
         turn = (abs(ds_l) + abs(ds_r)) / self.config.wheel_separation_m
-        self.random_covariance = self.random_covariance + np.diag([path**2, path**2, turn**2])
+        xx, xy, xt, yy, yt, tt = self._random
+        self._random = (xx + path * path, xy, xt, yy + path * path, yt, tt + turn * turn)

@@ -1,15 +1,7 @@
-"""Reference (textbook) forms of production rules, for tests and teaching: nothing on the robot
-runs these. Each is written the way a lesson writes it (3x3 matrix products, one step at a
-time), and the tests check the production paths against them.
-
-- Wheel odometry (core.wheel_odometry): one dead-reckoning step of the pose and the classic
-  EKF covariance step P' = F P F^T + G diag(k |ds_l|, k |ds_r|) G^T. Production runs the same
-  recursion in scalars per message (WheelOdometry) and telescoped over a whole path
-  (integrate_path), both from wheel_odometry.step_columns.
-
-The lesson's line fits (polar least squares from the O(n^2) double sums) and ICP live in the
-benchmarks that race them against production (sensing_nodes.bench.lines, sensing_nodes.bench.icp).
-"""
+"""Wheel odometry written the way a lesson writes it (3x3 matrix products, one step at a
+time): one dead-reckoning step of the pose and the classic EKF covariance step
+P' = F P F^T + G diag(k |ds_l|, k |ds_r|) G^T. Production (core.wheel_odometry's
+dead_reckoning_step) runs the same recursion in plain floats; the tests compare the two."""
 
 from __future__ import annotations
 
@@ -17,7 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sensing_nodes.core.geometry.se2 import wrap_angle
-from sensing_nodes.core.wheel_odometry import _displacement
+from sensing_nodes.core.wheel_odometry import arc_displacement
 
 
 def integrate_step(pose: ArrayLike, ds: ArrayLike, dtheta: ArrayLike, method: str = 'exact_arc'):
@@ -28,10 +20,10 @@ def integrate_step(pose: ArrayLike, ds: ArrayLike, dtheta: ArrayLike, method: st
     of the step (the textbook update).
     """
     if isinstance(pose, tuple) and isinstance(ds, float) and isinstance(dtheta, float):
-        dx, dy, _, _ = _displacement(float(pose[2]), ds, dtheta, method)
+        dx, dy, _, _ = arc_displacement(float(pose[2]), ds, dtheta, method)
         return (pose[0] + dx, pose[1] + dy, float(wrap_angle(pose[2] + dtheta)))
     p = np.asarray(pose, dtype=float)
-    dx, dy, _, _ = _displacement(p[..., 2], np.asarray(ds, float), np.asarray(dtheta, float),
+    dx, dy, _, _ = arc_displacement(p[..., 2], np.asarray(ds, float), np.asarray(dtheta, float),
                                  method)
     return np.stack([p[..., 0] + dx, p[..., 1] + dy, wrap_angle(p[..., 2] + dtheta)], axis=-1)
 
@@ -40,7 +32,7 @@ def step_jacobians(
     yaw: float, ds: float, dtheta: float, wheel_separation_m: float, method: str = 'exact_arc'
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Jacobians of one step w.r.t. the pose (3x3) and the wheel distances [dsL, dsR] (3x2)."""
-    dx, dy, d_ds, d_dth = _displacement(float(yaw), float(ds), float(dtheta), method)
+    dx, dy, d_ds, d_dth = arc_displacement(float(yaw), float(ds), float(dtheta), method)
     j_pose = np.array([[1.0, 0.0, -dy], [0.0, 1.0, dx], [0.0, 0.0, 1.0]])
     j_body = np.array([[d_ds[0], d_dth[0]], [d_ds[1], d_dth[1]], [0.0, 1.0]])
     to_body = np.array([[0.5, 0.5], [-1.0 / wheel_separation_m, 1.0 / wheel_separation_m]])
