@@ -2,7 +2,8 @@
 nodes keep up with 1 kHz input over DDS.
 
 Inputs are the default simulated run (124 s: 50 Hz joint states, 200 Hz IMU), the joint states
-tiled for integrate_path (a whole path in one call). Figures are messages per second on one core, measured in one run.
+tiled for integrate_path (a whole path in one call). Figures are messages per second on one
+core, measured in one run.
 """
 
 from __future__ import annotations

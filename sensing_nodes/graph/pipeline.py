@@ -116,6 +116,139 @@ class Progress:
             print(file=sys.stderr, flush=True)
 
 
+class _Wiring:
+    """The nodes' processors as the pipeline drives them: topic -> handlers (in node order)
+    with the decoding each expects, and the outputs they publish."""
+
+    def __init__(self, built: dict[str, Any], nodes: tuple[str, ...]) -> None:
+        from rclpy.serialization import deserialize_message
+
+        from sensing_nodes.bags.stamps import stamp_reader
+        from sensing_nodes.bags.storage import type_name
+        from sensing_nodes.ros.cdr import cdr_decoder
+
+        self.handlers: dict[str, list] = defaultdict(list)
+        self.input_types: dict[str, type] = {}
+        self.decoders: dict[tuple[str, bool], Any] = {}    # (topic, decoded) -> bytes -> msg
+        self.outputs: dict[str, Any] = {}                   # topic -> Output
+        self.flushes = []                                   # what a node holds at the end
+        for name in nodes:
+            processor = built[name].processor
+            for i in processor.inputs():
+                # What the node's subscription gives it: a `decoded` input a rosbags-decoded
+                # message (ros/cdr.py), any other an rclpy message.
+                self.handlers[i.topic].append((i.handler, i.decoded))
+                self.input_types[i.topic] = i.msg_type
+                self.decoders[i.topic, i.decoded] = cdr_decoder(i.msg_type) if i.decoded else \
+                    (lambda raw, cls=i.msg_type: deserialize_message(raw, cls))
+            for o in processor.outputs():
+                self.outputs[o.topic] = o
+            if hasattr(processor, 'flush'):
+                self.flushes.append(processor.flush)
+        self.output_types = {t: type_name(o.msg_type) for t, o in self.outputs.items()}
+        self.stamp_of = {t: stamp_reader(kind) for t, kind in self.output_types.items()}
+
+    def feeds(self, bag, remaps: dict[str, str]) -> dict[str, str]:
+        """Bag topic -> the node input it feeds: those a node takes (after --remap) and no node
+        produces; PipelineError when none, or a type does not match."""
+        from sensing_nodes.bags.storage import type_name
+        from sensing_nodes.topics import NODE_INPUT_TYPES
+
+        feeds = {t: remaps.get(t, t) for t in bag.types
+                 if remaps.get(t, t) in self.handlers and remaps.get(t, t) not in self.outputs}
+        if not feeds:
+            raise PipelineError(f'{bag.path}: no topic the nodes take (' + ', '.join(sorted(
+                t for t in self.handlers if t not in self.outputs)) + '); it has: '
+                + ', '.join(sorted(bag.types)) + ' (--remap BAG_TOPIC:=TOPIC)')
+        for topic, fed in feeds.items():
+            wanted = type_name(self.input_types[fed])
+            if bag.types[topic] != wanted:
+                raise PipelineError(f'{bag.path}: topic {topic} holds {bag.types[topic]}, but the '
+                                    f'nodes take {wanted} on {fed}')
+        fed = set(feeds.values())
+        unused = sorted(t for t in NODE_INPUT_TYPES
+                        if t in self.handlers and t not in self.outputs and t not in fed)
+        if unused:
+            print(f'sensing_pipeline: warning: nothing in {bag.path} feeds {", ".join(unused)} '
+                  f'(bag topics: {", ".join(sorted(bag.types))}; --remap BAG_TOPIC:=TOPIC)',
+                  file=sys.stderr)
+        return feeds
+
+
+class _Driver:
+    """Hands each input to its handlers and every output at once to the handlers of its topic
+    (depth first), recording the outputs: (bag time, CDR bytes) per topic."""
+
+    def __init__(self, wiring: _Wiring) -> None:
+        from sensing_nodes.bags.input_bag import PassResult
+
+        self.wiring = wiring
+        self.result = PassResult()
+
+    def receive(self, topic: str, raw: bytes, stamp_ns: int) -> None:
+        """CDR bytes on a topic to each of its handlers, decoded once per kind of decoding."""
+        decoded: dict[bool, Any] = {}
+        for handler, kind in self.wiring.handlers[topic]:
+            msg = decoded.get(kind)
+            if msg is None:
+                msg = decoded[kind] = self.wiring.decoders[topic, kind](raw)
+            self.deliver(handler(msg), stamp_ns)
+
+    def deliver(self, produced, stamp_ns: int) -> None:
+        """Depth first: an output reaches its consumers before the next output, as a lockstep
+        replay waits for one input's outputs (and lets them land) first."""
+        from rclpy.serialization import serialize_message
+
+        recorded, wiring = self.result.outputs, self.wiring
+        for topic, msg in produced:
+            if isinstance(msg, bytes):     # packed by the node itself (ros/cdr.py)
+                recorded[topic].append((wiring.stamp_of[topic](msg, stamp_ns), msg))
+                if topic in wiring.handlers:
+                    self.receive(topic, msg, stamp_ns)
+                continue
+            raw = serialize_message(msg)   # now: a node may refill its message in place
+            recorded[topic].append((wiring.stamp_of[topic](raw, stamp_ns), raw))
+            for handler, _ in wiring.handlers.get(topic, ()):
+                self.deliver(handler(msg), stamp_ns)
+
+    def run(self, bag, feeds: dict[str, str], progress: bool):
+        """Every fed input in bag order, then what the nodes hold; each output topic sorted
+        by bag time, ties in production order (as the replay's recorder stamps them)."""
+        inputs = [(t, s, raw) for t, s, raw in bag.messages if t in feeds]
+        bar = Progress(inputs[0][1] if inputs else 0, inputs[-1][1] if inputs else 0, progress)
+        for topic, stamp_ns, raw in inputs:
+            self.receive(feeds[topic], raw, stamp_ns)
+            self.result.inputs_published += 1
+            bar.update(stamp_ns)
+        last_ns = inputs[-1][1] if inputs else 0
+        for flush in self.wiring.flushes:   # the end of the bag: the fusion's reorder buffer
+            self.deliver(flush(), last_ns)
+        bar.finish(last_ns)
+        for rows in self.result.outputs.values():
+            rows.sort(key=lambda row: row[0])
+        return self.result
+
+
+def _write(out: Path, bag, result, wiring: _Wiring, compress: bool) -> None:
+    """The output bag, complete or not at all: the bag's topics with the nodes' outputs in place
+    of earlier copies. /diagnostics is published by every node on a wall-clock timer, not
+    produced here (docs/pipeline.md); the input bag's copy is dropped (it describes another
+    run)."""
+    from sensing_nodes.bags.input_bag import write_output_bag
+    from sensing_nodes.topics import DIAGNOSTICS
+
+    replaced = set(wiring.outputs) | {DIAGNOSTICS}
+    staging = out.with_name(f'.{out.name}.partial')
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    try:
+        write_output_bag(staging / out.name, bag, result, wiring.output_types, replaced, compress,
+                         {t: [o.qos] for t, o in wiring.outputs.items()})
+        (staging / out.name).rename(out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
 def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
         params_files: list[Path] | None = None,
         node_params: dict[str, list[str]] | None = None,
@@ -123,20 +256,8 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
         compress: bool = False) -> dict[str, int]:
     """Run the nodes over the bag and write OUT (the bag's topics, with the nodes' outputs in
     place of earlier copies); returns the number of messages per output topic."""
-    from rclpy.serialization import deserialize_message, serialize_message
+    from sensing_nodes.bags.input_bag import InputBagError, load_bag
 
-    from sensing_nodes.bags.input_bag import (
-        InputBagError,
-        PassResult,
-        load_bag,
-        write_output_bag,
-    )
-    from sensing_nodes.bags.stamps import stamp_reader
-    from sensing_nodes.bags.storage import type_name
-    from sensing_nodes.ros.cdr import cdr_decoder
-    from sensing_nodes.topics import DIAGNOSTICS, NODE_INPUT_TYPES
-
-    remaps = dict(remaps or {})
     out = Path(out)
     if out.exists():
         raise PipelineError(f'{out}: already exists; choose a new output folder')
@@ -146,96 +267,10 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
         raise PipelineError(str(exc)) from None
     built = build_nodes(nodes, list(params_files or []), dict(node_params or {}))
     try:
-        handlers: dict[str, list] = defaultdict(list)   # topic -> handlers, in node order
-        input_types: dict[str, type] = {}
-        decoders: dict[tuple[str, bool], Any] = {}      # (topic, decoded) -> CDR bytes -> msg
-        outputs: dict[str, Any] = {}                    # topic -> Output
-        for name in nodes:
-            processor = built[name].processor
-            for i in processor.inputs():
-                # What the node's subscription gives it: a `decoded` input a rosbags-decoded
-                # message (ros/cdr.py), any other an rclpy message.
-                handlers[i.topic].append((i.handler, i.decoded))
-                input_types[i.topic] = i.msg_type
-                decoders[i.topic, i.decoded] = cdr_decoder(i.msg_type) if i.decoded else \
-                    (lambda raw, cls=i.msg_type: deserialize_message(raw, cls))
-            for o in processor.outputs():
-                outputs[o.topic] = o
-        output_types = {t: type_name(o.msg_type) for t, o in outputs.items()}
-        stamp_of = {t: stamp_reader(kind) for t, kind in output_types.items()}
-        # Bag topics fed to the nodes: those a node takes (after --remap) and no node produces.
-        feeds = {t: remaps.get(t, t) for t in bag.types
-                 if remaps.get(t, t) in handlers and remaps.get(t, t) not in outputs}
-        if not feeds:
-            raise PipelineError(f'{bag.path}: no topic the nodes take (' + ', '.join(sorted(
-                t for t in handlers if t not in outputs)) + '); it has: '
-                + ', '.join(sorted(bag.types)) + ' (--remap BAG_TOPIC:=TOPIC)')
-        for topic, fed in feeds.items():
-            wanted = type_name(input_types[fed])
-            if bag.types[topic] != wanted:
-                raise PipelineError(f'{bag.path}: topic {topic} holds {bag.types[topic]}, but the '
-                                    f'nodes take {wanted} on {fed}')
-        unused = sorted(t for t, wanted in NODE_INPUT_TYPES.items()
-                        if t in handlers and t not in outputs and t not in feeds.values())
-        if unused:
-            print(f'sensing_pipeline: warning: nothing in {bag.path} feeds {", ".join(unused)} '
-                  f'(bag topics: {", ".join(sorted(bag.types))}; --remap BAG_TOPIC:=TOPIC)',
-                  file=sys.stderr)
-        result = PassResult()
-        recorded = result.outputs
-
-        def receive(topic: str, raw: bytes, stamp_ns: int) -> None:
-            # CDR bytes on a topic to each of its handlers, decoded once per kind of decoding.
-            decoded: dict[bool, Any] = {}
-            for handler, kind in handlers[topic]:
-                msg = decoded.get(kind)
-                if msg is None:
-                    msg = decoded[kind] = decoders[topic, kind](raw)
-                deliver(handler(msg), stamp_ns)
-
-        def deliver(produced, stamp_ns: int) -> None:
-            # Depth first: an output reaches its consumers before the next output, as a
-            # lockstep replay waits for one input's outputs (and lets them land) first.
-            for topic, msg in produced:
-                if isinstance(msg, bytes):     # packed by the node itself (ros/cdr.py)
-                    raw = msg
-                    recorded[topic].append((stamp_of[topic](raw, stamp_ns), raw))
-                    if topic in handlers:
-                        receive(topic, raw, stamp_ns)
-                    continue
-                raw = serialize_message(msg)   # now: a node may refill its message in place
-                recorded[topic].append((stamp_of[topic](raw, stamp_ns), raw))
-                for handler, _ in handlers.get(topic, ()):
-                    deliver(handler(msg), stamp_ns)
-
-        inputs = [(t, s, raw) for t, s, raw in bag.messages if t in feeds]
-        bar = Progress(inputs[0][1] if inputs else 0, inputs[-1][1] if inputs else 0, progress)
-        for topic, stamp_ns, raw in inputs:
-            receive(feeds[topic], raw, stamp_ns)
-            result.inputs_published += 1
-            bar.update(stamp_ns)
-        last_ns = inputs[-1][1] if inputs else 0
-        for name in nodes:   # the end of the bag: what a node holds (the fusion's reorder buffer)
-            flush = getattr(built[name].processor, 'flush', None)
-            if flush is not None:
-                deliver(flush(), last_ns)
-        bar.finish(last_ns)
-        # Each output topic in bag-time order, ties in production order (as the replay records
-        # them: its recorder stamps each message with its header stamp).
-        for topic in recorded:
-            recorded[topic].sort(key=lambda row: row[0])
-        # /diagnostics: published by every node on a wall-clock timer, not produced here (see
-        # docs/pipeline.md); the input bag's copy is dropped (it describes another run).
-        replaced = set(outputs) | {DIAGNOSTICS}
-        staging = out.with_name(f'.{out.name}.partial')
-        shutil.rmtree(staging, ignore_errors=True)
-        staging.mkdir(parents=True)
-        try:
-            write_output_bag(staging / out.name, bag, result, output_types, replaced, compress,
-                             {t: [o.qos] for t, o in outputs.items()})
-            (staging / out.name).rename(out)
-        finally:
-            shutil.rmtree(staging, ignore_errors=True)
-        return {t: len(v) for t, v in sorted(recorded.items())}
+        wiring = _Wiring(built, nodes)
+        feeds = wiring.feeds(bag, dict(remaps or {}))
+        result = _Driver(wiring).run(bag, feeds, progress)
+        _write(out, bag, result, wiring, compress)
+        return {t: len(v) for t, v in sorted(result.outputs.items())}
     finally:
         close(built)

@@ -16,7 +16,7 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from sensing_nodes.bags.input_bag import (
@@ -43,7 +43,6 @@ from sensing_nodes.topics import (
     PROCESSING_NODES,
     SCAN,
     SCAN_MATCH,
-    SENSOR_TOPICS,
     TF,
     WALL_PERIODIC_TOPICS,
     WHEEL_ODOM,
@@ -103,7 +102,7 @@ class Replayer:
 
         from sensing_nodes.bags.storage import message_class
         from sensing_nodes.graph.recorder import TopicRecorder
-        from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
+        from sensing_nodes.ros.qos import CLOCK_QOS, topic_qos
         from sensing_nodes.ros.run import make_executor
 
         self._rclpy = rclpy
@@ -114,9 +113,8 @@ class Replayer:
         self.expectations = expectations
         self.publishers = {}
         for topic, published in inputs.items():
-            qos = SENSOR_QOS if published in SENSOR_TOPICS else ESTIMATE_QOS
             self.publishers[topic] = self.node.create_publisher(
-                message_class(input_types[topic]), published, qos)
+                message_class(input_types[topic]), published, topic_qos(published))
         from rosgraph_msgs.msg import Clock
         self.clock_publisher = None
         self._clock_class = Clock
@@ -240,259 +238,297 @@ class Replayer:
         self._rclpy.try_shutdown()
 
 
-def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], mode: str, rate: float,
-              timeout_s: float, quiet_s: float, progress: str | None,
-              settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
-              settle_s: float = 0.002,
-              settle_before: dict[str, float] | None = None,
-              flush: FlushWait | None = None) -> PassResult:
-    """One pass over the bag's inputs; returns what the graph published during it."""
-    settle_before = DEFAULT_SETTLE_BEFORE if settle_before is None else settle_before
-    result = PassResult()
-    replayer.current = result
-    replayer.latest_stamp_ns = {}
-    started = time.monotonic()
-    todo = [(t, s, raw) for t, s, raw in bag.messages if t in inputs]
-    # The outputs carry the input's header stamp, which a bag recorded by ROS tools has apart
-    # from its bag time (the time of receipt).
-    stamped = stamped_topics(bag, inputs)
-    published_as = {t: publisher.topic_name for t, publisher in replayer.publishers.items()}
-    first_stamp = todo[0][1] if todo else 0
-    next_report = next_discovery = started + 2.0
-    deferred_pending: list[tuple[str, int]] = []   # (output, stamp) of outputs that answer later
-    for i, (topic, stamp, raw) in enumerate(todo):
-        if mode == 'timed':
-            due = started + (stamp - first_stamp) * 1e-9 / rate
+@dataclass(frozen=True)
+class PassSettings:
+    """How a pass publishes the inputs and waits for the graph's answers (play_pass): 'lockstep'
+    (each input's answers awaited, timeout_s at most) or 'timed' (the stamps' pace times rate),
+    then quiet_s without arrivals ends the pass."""
+
+    mode: str = 'lockstep'
+    rate: float = 1.0
+    timeout_s: float = 10.0
+    quiet_s: float = 1.5
+    settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER
+    settle_s: float = 0.002
+    settle_before: tuple[tuple[str, float], ...] = tuple(DEFAULT_SETTLE_BEFORE.items())
+    flush: FlushWait | None = None     # the fusion's end of pass, when it is launched
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    """What sensing_replay plays, launches and writes (replay)."""
+
+    passes: PassSettings = PassSettings()
+    expectations: dict[str, tuple[str, ...]] | None = None   # None: this package's graph
+    extra_outputs: tuple[str, ...] = DEFAULT_EXTRA_OUTPUTS
+    remaps: dict[str, str] = field(default_factory=dict)
+    launch: bool = False
+    nodes: tuple[str, ...] = PROCESSING_NODES
+    node_params: dict[str, list[str]] = field(default_factory=dict)
+    params_file: Path | None = None
+    one_process: bool = False
+    loops: int = 1
+    startup_timeout_s: float = 60.0
+    warmup_s: float = 2.0
+    progress: bool = True
+    logs: Path | None = None
+    compress: bool = False
+
+
+class _Pass:
+    """One pass's bookkeeping: what was published, which answers are outstanding."""
+
+    def __init__(self, replayer: Replayer, bag: InputBag, inputs: set[str],
+                 settings: PassSettings, progress: str | None) -> None:
+        self.replayer, self.settings, self.progress = replayer, settings, progress
+        self.result = PassResult()
+        self.started = time.monotonic()
+        self.todo = [(t, s, raw) for t, s, raw in bag.messages if t in inputs]
+        # The outputs carry the input's header stamp, which a bag recorded by ROS tools has
+        # apart from its bag time (the time of receipt).
+        self.stamped = stamped_topics(bag, inputs)
+        self.published_as = {t: pub.topic_name for t, pub in replayer.publishers.items()}
+        self.first_stamp = self.todo[0][1] if self.todo else 0
+        self.next_report = self.next_discovery = self.started + 2.0
+        self.later: list[tuple[str, int]] = []   # (output, stamp) of answers that come later
+        replayer.current = self.result
+        replayer.latest_stamp_ns = {}
+
+    def publish(self, topic: str, bag_stamp: int, raw: bytes) -> int:
+        """Publish one input (paced in timed mode); the stamp its answers carry."""
+        replayer, settings = self.replayer, self.settings
+        if settings.mode == 'timed':
+            due = self.started + (bag_stamp - self.first_stamp) * 1e-9 / settings.rate
             while time.monotonic() < due:
                 replayer.spin(min(0.005, max(0.0, due - time.monotonic())))
-            replayer.publish_clock(stamp)
-        if mode == 'lockstep' and settle_before.get(topic, 0.0) > 0.0:
-            replayer.spin(settle_before[topic])
+            replayer.publish_clock(bag_stamp)
+        settle = dict(settings.settle_before).get(topic, 0.0)
+        if settings.mode == 'lockstep' and settle > 0.0:
+            replayer.spin(settle)
         replayer.publishers[topic].publish(raw)
-        stamp = leading_stamp_ns(raw) if topic in stamped else stamp   # what the outputs carry
+        stamp = leading_stamp_ns(raw) if topic in self.stamped else bag_stamp
         replayer.input_stamp_ns = stamp
-        published = published_as[topic]
+        published = self.published_as[topic]
         replayer.latest_stamp_ns[published] = max(stamp, replayer.latest_stamp_ns.get(published,
                                                                                    stamp))
-        result.inputs_published += 1
-        if mode == 'lockstep':
-            expected = replayer.expectations.get(topic, ())
-            deferred_pending += [(o, stamp) for o in expected if o in replayer.deferred]
-            waited_from = time.monotonic()
-            deadline = waited_from + timeout_s
-            while True:
-                pending = [o for o in expected
-                           if o not in replayer.deferred and replayer.seen[(o, stamp)] < 1]
-                if not pending:
-                    break
-                if time.monotonic() >= deadline:
-                    # A node that buffers (the fusion's reorder window) answers only after later
-                    # inputs: from now on that output is not waited for per input; whether every
-                    # stamp came is checked at the end of the pass.
-                    replayer.deferred.update(pending)
-                    deferred_pending += [(o, stamp) for o in pending]
-                    print(f'sensing_replay: warning: no {", ".join(pending)} stamped {stamp} ns '
-                          f'within {timeout_s:g} s of publishing {topic}; taking it to answer '
-                          'later (not waited for per input from now on, counted at the end of '
-                          'the pass)', file=sys.stderr, flush=True)
-                    break
-                replayer.executor.spin_once(timeout_sec=0.005)
-            for o in expected:
-                if o not in replayer.deferred:
-                    replayer.seen.pop((o, stamp), None)
-            deferred_pending = [k for k in deferred_pending if replayer.seen[k] < 1]
-            while len(deferred_pending) > MAX_OUTSTANDING_LATER \
-                    and time.monotonic() < deadline:
-                replayer.executor.spin_once(timeout_sec=0.005)
-                deferred_pending = [k for k in deferred_pending if replayer.seen[k] < 1]
-            # Nothing to wait for when all its outputs answer later: let it land at least.
-            if (topic in settle_after or any(o in replayer.deferred for o in expected)) \
-                    and settle_s > 0:
-                replayer.spin(settle_s)
-            result.wait_s[topic] += time.monotonic() - waited_from
+        self.result.inputs_published += 1
+        return stamp
+
+    def await_answers(self, topic: str, stamp: int) -> None:
+        """Lockstep: until every output expected of this input has come with its stamp (or it
+        is taken to answer later), and the outstanding later answers are few enough."""
+        replayer, settings = self.replayer, self.settings
+        expected = replayer.expectations.get(topic, ())
+        self.later += [(o, stamp) for o in expected if o in replayer.deferred]
+        waited_from = time.monotonic()
+        deadline = waited_from + settings.timeout_s
+        while True:
+            pending = [o for o in expected
+                       if o not in replayer.deferred and replayer.seen[(o, stamp)] < 1]
+            if not pending:
+                break
+            if time.monotonic() >= deadline:
+                # A node that buffers (the fusion's reorder window) answers only after later
+                # inputs: from now on that output is not waited for per input; whether every
+                # stamp came is checked at the end of the pass.
+                replayer.deferred.update(pending)
+                self.later += [(o, stamp) for o in pending]
+                print(f'sensing_replay: warning: no {", ".join(pending)} stamped {stamp} ns '
+                      f'within {settings.timeout_s:g} s of publishing {topic}; taking it to '
+                      'answer later (not waited for per input from now on, counted at the end '
+                      'of the pass)', file=sys.stderr, flush=True)
+                break
+            replayer.executor.spin_once(timeout_sec=0.005)
+        for o in expected:
+            if o not in replayer.deferred:
+                replayer.seen.pop((o, stamp), None)
+        self.later = [k for k in self.later if replayer.seen[k] < 1]
+        while len(self.later) > MAX_OUTSTANDING_LATER and time.monotonic() < deadline:
+            replayer.executor.spin_once(timeout_sec=0.005)
+            self.later = [k for k in self.later if replayer.seen[k] < 1]
+        # Nothing to wait for when all its outputs answer later: let it land at least.
+        if (topic in settings.settle_after or any(o in replayer.deferred for o in expected)) \
+                and settings.settle_s > 0:
+            replayer.spin(settings.settle_s)
+        self.result.wait_s[topic] += time.monotonic() - waited_from
+
+    def housekeeping(self, done: int, stamp: int) -> None:
+        """Outputs whose publisher came late, and a progress line every 2 s."""
+        now = time.monotonic()
+        if now >= self.next_discovery:
+            self.replayer.discover()
+            self.next_discovery = now + 0.5
+        if self.progress is not None and now >= self.next_report:
+            self.next_report = now + 2.0
+            outputs = sum(len(v) for v in self.result.outputs.values())
+            print(f'  {self.progress}{done:6d} / {len(self.todo)} inputs '
+                  f'({100 * done / len(self.todo):3.0f} %), '
+                  f'{(stamp - self.first_stamp) * 1e-9:6.1f} s of bag time, {outputs} outputs',
+                  file=sys.stderr, flush=True)
+
+    def finish(self) -> PassResult:
+        """The answers still outstanding, then quiet; what never came is counted missing."""
+        replayer, settings = self.replayer, self.settings
+        deadline = time.monotonic() + settings.timeout_s
+        while any(replayer.seen[k] < 1 for k in self.later) and time.monotonic() < deadline:
+            replayer.spin(0.02)
+        if settings.flush is not None:
+            replayer.wait_for_flush(settings.flush)
+        replayer.drain(settings.quiet_s)
+        for o, stamp in self.later:
+            if replayer.seen[(o, stamp)] < 1:
+                self.result.missing[o] += 1
+        replayer.seen.clear()
+        replayer.current = None
+        self.result.wall_s = time.monotonic() - self.started
+        return self.result
+
+
+def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], settings: PassSettings,
+              progress: str | None = None) -> PassResult:
+    """One pass over the bag's inputs; returns what the graph published during it."""
+    run = _Pass(replayer, bag, inputs, settings, progress)
+    for i, (topic, bag_stamp, raw) in enumerate(run.todo):
+        stamp = run.publish(topic, bag_stamp, raw)
+        if settings.mode == 'lockstep':
+            run.await_answers(topic, stamp)
         else:
             replayer.executor.spin_once(timeout_sec=0.0)
-        now = time.monotonic()
-        if now >= next_discovery:   # outputs whose publisher came late
-            replayer.discover()
-            next_discovery = now + 0.5
-        if progress is not None and now >= next_report:
-            next_report = now + 2.0
-            outputs = sum(len(v) for v in result.outputs.values())
-            print(
-                f'  {progress}{i + 1:6d} / {len(todo)} inputs '
-                f'({100 * (i + 1) / len(todo):3.0f} %), '
-                f'{(stamp - first_stamp) * 1e-9:6.1f} s of bag time, {outputs} outputs',
-                file=sys.stderr,
-                flush=True,
-            )
-    deadline = time.monotonic() + timeout_s   # the answers still outstanding, then quiet
-    while any(replayer.seen[k] < 1 for k in deferred_pending) and time.monotonic() < deadline:
-        replayer.spin(0.02)
-    if flush is not None:
-        replayer.wait_for_flush(flush)
-    replayer.drain(quiet_s)
-    for o, stamp in deferred_pending:
-        if replayer.seen[(o, stamp)] < 1:
-            result.missing[o] += 1
-    replayer.seen.clear()
-    replayer.current = None
-    result.wall_s = time.monotonic() - started
-    return result
+        run.housekeeping(i + 1, stamp)
+    return run.finish()
 
 
+@dataclass(frozen=True)
+class _Plan:
+    """What a replay publishes (inputs: bag topic -> published name), expects and records."""
 
-def replay(
-    bag_path: str | Path,
-    out: str | Path | None,
-    *,
-    mode: str = 'lockstep',
-    rate: float = 1.0,
-    expectations: dict[str, tuple[str, ...]] | None = None,
-    extra_outputs: tuple[str, ...] = DEFAULT_EXTRA_OUTPUTS,
-    remaps: dict[str, str] | None = None,
-    launch: bool = False,
-    nodes: tuple[str, ...] = PROCESSING_NODES,
-    node_params: dict[str, list[str]] | None = None,
-    loops: int = 1,
-    timeout_s: float = 10.0,
-    quiet_s: float = 1.5,
-    startup_timeout_s: float = 60.0,
-    progress: bool = True,
-    logs: Path | None = None,
-    compress: bool = False,
-    settle_after: tuple[str, ...] = DEFAULT_SETTLE_AFTER,
-    settle_s: float = 0.002,
-    warmup_s: float = 2.0,
-    settle_before: dict[str, float] | None = None,
-    params_file: Path | None = None,
-    one_process: bool = False,
-) -> list[PassResult]:
-    """Replay a bag through the graph (started here when `launch`: with one_process, in one
-    sensing_graph process), `loops` times back to back; writes `out` (one pass) or out/pass-K
-    (several), complete or not at all."""
-    remaps = dict(remaps or {})
-    # the default table names node inputs: a remapped bag topic feeds one
+    expectations: dict[str, tuple[str, ...]]
+    inputs: dict[str, str]
+    outputs: set[str]
+    required: set[str]      # outputs whose publisher must be there before the first input
+
+
+def _plan(bag: InputBag, options: ReplayOptions) -> _Plan:
+    """The expectation table (the default one names node inputs: a remapped bag topic feeds
+    one), checked against the bag; the outputs to record and those to wait for."""
+    remaps = options.remaps
+    expectations = options.expectations
     if expectations is None:
         published_as = {dst: src for src, dst in remaps.items()}
         expectations = {published_as.get(t, t): o for t, o in DEFAULT_EXPECTATIONS.items()}
-    expectations = dict(expectations)
-    bag = load_bag(bag_path)
     check_inputs(bag, list(expectations), remaps)
-    if params_file is not None:
+    published_names = {remaps.get(t, t) for t in expectations}
+    outputs = ({o for outs in expectations.values() for o in outs}
+               | set(options.extra_outputs)) - published_names
+    required = {o for outs in expectations.values() for o in outs}
+    if options.launch:   # every output asked for that a launched node publishes
+        required |= outputs & {o for n in options.nodes for o in NODES[n].outputs}
+    return _Plan(dict(expectations), {t: remaps.get(t, t) for t in expectations}, outputs,
+                 required)
+
+
+def _launch(options: ReplayOptions, params_file: Path | None, log_dir: Path
+            ) -> tuple[Graph, PassSettings]:
+    """Start the processing nodes; the pass settings with the fusion's end of pass when it is
+    launched in lockstep."""
+    (log_dir / 'logs').mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    lockstep = options.passes.mode == 'lockstep'
+    if lockstep:
+        # Publish hands the message to every matched reader before it returns, so an output
+        # the replay has received is already on its way to the other subscribers (asynchronous
+        # publishing sends from a separate thread, later).
+        env.setdefault('RMW_FASTRTPS_PUBLICATION_MODE', 'SYNCHRONOUS')
+    graph = Graph(log_dir, env, params_file)
+    settings = options.passes
+    extras = {}
+    for name in options.nodes:
+        extra = list(options.node_params.get(name, []))
+        if name == 'complementary_fusion' and lockstep \
+                and not any(a.startswith('flush_after_s:=') for a in extra):
+            # The fusion processes what it holds after flush_after_s of wall time without
+            # input; a lockstep wait that long (a scan match on an overloaded machine) would
+            # flush before the match arrives and change the outputs.
+            extra = ['-p', f'flush_after_s:={LOCKSTEP_FUSION_FLUSH_S}', *extra]
+            quiet_s = max(settings.quiet_s, 1.5 * LOCKSTEP_FUSION_FLUSH_S + 1.0)
+            settings = replace(settings, flush=FlushWait(FUSED, FUSION_ANSWERED, quiet_s))
+        extras[name] = extra
+    if options.one_process:
+        graph.start_one_process(options.nodes, extras)
+    else:
+        for name in options.nodes:
+            graph.start(name, extras[name])
+    return graph, settings
+
+
+def _output_types(replayer: Replayer, results: list[PassResult]
+                  ) -> tuple[dict[str, str], dict[str, list]]:
+    """Each recorded output's type and the QoS its publishers offered (inputs: the replay's)."""
+    output_types, offered = {}, {}
+    for t in replayer.subscribed:
+        infos = replayer.node.get_publishers_info_by_topic(t)
+        if infos:
+            output_types[t] = infos[0].topic_type
+            offered[t] = [i.qos_profile for i in infos]
+    for t, publisher in replayer.publishers.items():
+        offered[t] = [publisher.qos_profile]
+    for r in results:
+        for t in r.outputs:
+            if t not in output_types:
+                raise ReplayError(f'output {t}: its publisher vanished before its type was read')
+    return output_types, offered
+
+
+def _write(partial: Path, bag: InputBag, results: list[PassResult], plan: _Plan,
+           replayer: Replayer, compress: bool) -> None:
+    """The output bag (one pass) or a folder of pass-K bags."""
+    output_types, offered = _output_types(replayer, results)
+    if len(results) == 1:
+        write_output_bag(partial, bag, results[0], output_types, plan.outputs, compress, offered)
+        return
+    partial.mkdir(parents=True)
+    for k, r in enumerate(results):
+        write_output_bag(partial / f'pass-{k + 1}', bag, r, output_types, plan.outputs,
+                         compress, offered)
+
+
+def replay(bag_path: str | Path, out: str | Path | None,
+           options: ReplayOptions = ReplayOptions()) -> list[PassResult]:
+    """Replay a bag through the graph (started here with options.launch: with one_process, in
+    one sensing_graph process), options.loops times back to back; writes `out` (one pass) or
+    out/pass-K (several), complete or not at all."""
+    bag = load_bag(bag_path)
+    plan = _plan(bag, options)
+    params_file = None
+    if options.params_file is not None:
         try:
-            params_file = params_file_path(params_file)
+            params_file = params_file_path(options.params_file)
         except GraphArgumentError as exc:
             raise ReplayError(str(exc)) from None
-    published_names = {remaps.get(t, t) for t in expectations}
-    outputs = ({o for outs in expectations.values() for o in outs} | set(extra_outputs)) \
-        - published_names
-    required = {o for outs in expectations.values() for o in outs}
-    if launch:   # every output asked for that a launched node publishes
-        required |= outputs & {o for n in nodes for o in NODES[n].outputs}
     out = Path(out) if out is not None else None
     if out is not None and out.exists():
         raise ReplayError(f'{out}: already exists; choose a new output folder')
     # Written under a hidden sibling folder and moved into place only when complete (rosbag2
     # names the .mcap after its folder, so the folder already has its final name there).
     staging = out.with_name(f'.{out.name}.partial') if out is not None else None
-    partial = staging / out.name if staging is not None else None
     if staging is not None:
         discard(staging)
         staging.mkdir(parents=True)
-
-    graph = None
-    flush = None       # the fusion's end of pass, when it is launched in lockstep
+    log_dir = Path(tempfile.mkdtemp(prefix='sensing_replay-')) if options.logs is None \
+        else Path(options.logs)
+    graph = replayer = None
     succeeded = False
-    log_dir = Path(tempfile.mkdtemp(prefix='sensing_replay-')) if logs is None else Path(logs)
-    replayer = None
     try:
-        replayer = Replayer({t: remaps.get(t, t) for t in expectations},
-                            {t: bag.types[t] for t in expectations}, outputs, expectations)
-        if launch:
-            (log_dir / 'logs').mkdir(parents=True, exist_ok=True)
-            env = dict(os.environ)
-            if mode == 'lockstep':
-                # Publish hands the message to every matched reader before it returns, so an
-                # output the replay has received is already on its way to the other subscribers
-                # (asynchronous publishing sends from a separate thread, later).
-                env.setdefault('RMW_FASTRTPS_PUBLICATION_MODE', 'SYNCHRONOUS')
-            graph = Graph(log_dir, env, params_file)
-            extras = {}
-            for name in nodes:
-                extra = list((node_params or {}).get(name, []))
-                if name == 'complementary_fusion' and mode == 'lockstep' \
-                        and not any(a.startswith('flush_after_s:=') for a in extra):
-                    # The fusion processes what it holds after flush_after_s of wall time
-                    # without input; a lockstep wait that long (a scan match on an overloaded
-                    # machine) would flush before the match arrives and change the outputs.
-                    extra = ['-p', f'flush_after_s:={LOCKSTEP_FUSION_FLUSH_S}', *extra]
-                    flush = FlushWait(FUSED, FUSION_ANSWERED,
-                                      max(quiet_s, 1.5 * LOCKSTEP_FUSION_FLUSH_S + 1.0))
-                extras[name] = extra
-            if one_process:
-                graph.start_one_process(nodes, extras)
-            else:
-                for name in nodes:
-                    graph.start(name, extras[name])
-        if mode == 'timed':
-            replayer.lead_in_clock_ns = next(s for t, s, _ in bag.messages if t in expectations) \
-                - int((startup_timeout_s + 1.0) * 1e9)
-        try:
-            replayer.wait_for_graph(
-                required, startup_timeout_s,
-                failed=(graph.failed if graph is not None else lambda: []),
-                nodes=nodes if launch and DIAGNOSTICS in outputs else ())
-        except (ReplayError, GraphArgumentError) as exc:
-            raise ReplayError(f'{exc}; node logs in {log_dir / "logs"}' if launch else str(exc)) \
-                from None
-        if warmup_s > 0 and launch:
-            # Two nodes that have just discovered each other may still be matching: a message
-            # sent then is lost. So the first warmup_s of the bag, and at least one message of
-            # every input topic (a keyframe log may hold seconds between two scans), goes
-            # through first and is discarded. Its stamps are moved after the bag's end, so the
-            # pass proper starts with time jumping backwards on every input, which resets every
-            # node (the same path every later loop takes), even an input whose first message
-            # the warm-up played.
-            play_pass(replayer, warm_up_bag(bag, set(expectations), warmup_s),
-                      set(expectations), 'lockstep', rate, timeout_s, quiet_s,
-                      'warm-up: ' if progress else None, settle_after, settle_s, settle_before,
-                      flush)
-        results = []
-        for k in range(loops):
-            label = f'pass {k + 1}/{loops}: ' if loops > 1 else ''
-            results.append(play_pass(replayer, bag, set(expectations), mode, rate, timeout_s,
-                                     quiet_s, label if progress else None, settle_after,
-                                     settle_s, settle_before, flush))
-            if graph is not None and graph.failed():
-                raise ReplayError(
-                    f'node(s) exited during the replay: {", ".join(graph.failed())}; '
-                    f'logs in {log_dir / "logs"}'
-                )
-        output_types, offered = {}, {}
-        for t in replayer.subscribed:
-            infos = replayer.node.get_publishers_info_by_topic(t)
-            if infos:
-                output_types[t] = infos[0].topic_type
-                offered[t] = [i.qos_profile for i in infos]
-        for t, publisher in replayer.publishers.items():   # the inputs, as the replay offered them
-            offered[t] = [publisher.qos_profile]
-        for r in results:
-            for t in r.outputs:
-                if t not in output_types:
-                    raise ReplayError(
-                        f'output {t}: its publisher vanished before its type was read'
-                    )
-        if partial is not None:
-            if loops == 1:
-                write_output_bag(partial, bag, results[0], output_types, outputs, compress,
-                                 offered)
-            else:
-                partial.mkdir(parents=True)
-                for k, r in enumerate(results):
-                    write_output_bag(partial / f'pass-{k + 1}', bag, r, output_types, outputs,
-                                     compress, offered)
-            partial.rename(out)
+        replayer = Replayer(plan.inputs, {t: bag.types[t] for t in plan.expectations},
+                            plan.outputs, plan.expectations)
+        settings = options.passes
+        if options.launch:
+            graph, settings = _launch(options, params_file, log_dir)
+        _wait_for_graph(replayer, bag, plan, options, graph, log_dir)
+        results = _play(replayer, bag, plan, options, settings, graph, log_dir)
+        if staging is not None:
+            _write(staging / out.name, bag, results, plan, replayer, options.compress)
+            (staging / out.name).rename(out)
         succeeded = True
         return results
     finally:
@@ -502,5 +538,47 @@ def replay(
             graph.stop()
         if replayer is not None:
             replayer.close()
-        if logs is None and (graph is None or succeeded):
+        if options.logs is None and (graph is None or succeeded):
             shutil.rmtree(log_dir, ignore_errors=True)   # kept after a failure: it names them
+
+
+def _wait_for_graph(replayer: Replayer, bag: InputBag, plan: _Plan, options: ReplayOptions,
+                    graph: Graph | None, log_dir: Path) -> None:
+    """Until the graph is up (Replayer.wait_for_graph); timed mode runs a lead-in /clock."""
+    if options.passes.mode == 'timed':
+        replayer.lead_in_clock_ns = next(s for t, s, _ in bag.messages
+                                         if t in plan.expectations) \
+            - int((options.startup_timeout_s + 1.0) * 1e9)
+    try:
+        replayer.wait_for_graph(
+            plan.required, options.startup_timeout_s,
+            failed=(graph.failed if graph is not None else lambda: []),
+            nodes=options.nodes if options.launch and DIAGNOSTICS in plan.outputs else ())
+    except (ReplayError, GraphArgumentError) as exc:
+        raise ReplayError(f'{exc}; node logs in {log_dir / "logs"}' if options.launch
+                          else str(exc)) from None
+
+
+def _play(replayer: Replayer, bag: InputBag, plan: _Plan, options: ReplayOptions,
+          settings: PassSettings, graph: Graph | None, log_dir: Path) -> list[PassResult]:
+    """The warm-up (launched graphs) and options.loops passes."""
+    inputs = set(plan.expectations)
+    if options.warmup_s > 0 and options.launch:
+        # Two nodes that have just discovered each other may still be matching: a message sent
+        # then is lost. So the first warmup_s of the bag, and at least one message of every
+        # input topic (a keyframe log may hold seconds between two scans), goes through first
+        # and is discarded. Its stamps are moved after the bag's end, so the pass proper starts
+        # with time jumping backwards on every input, which resets every node (the same path
+        # every later loop takes), even an input whose first message the warm-up played.
+        play_pass(replayer, warm_up_bag(bag, inputs, options.warmup_s), inputs,
+                  replace(settings, mode='lockstep'),
+                  'warm-up: ' if options.progress else None)
+    results = []
+    for k in range(options.loops):
+        label = f'pass {k + 1}/{options.loops}: ' if options.loops > 1 else ''
+        results.append(play_pass(replayer, bag, inputs, settings,
+                                 label if options.progress else None))
+        if graph is not None and graph.failed():
+            raise ReplayError(f'node(s) exited during the replay: {", ".join(graph.failed())}; '
+                              f'logs in {log_dir / "logs"}')
+    return results

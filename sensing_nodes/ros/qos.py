@@ -1,6 +1,9 @@
-"""The two QoS profiles of the package: sensor streams and estimates."""
+"""The package's QoS profiles (sensor streams, estimates, /clock, /tf, /tf_static written and
+read) and the one the graph uses on each of its topics."""
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from sensing_nodes.topics import CLOCK, SENSOR_TOPICS, TF, TF_STATIC
 
 # Sensor streams: best effort, as drivers publish them (a reliable subscriber would not match a
 # best-effort driver). The queue is deeper than rclpy's qos_profile_sensor_data (5) so that a
@@ -53,3 +56,17 @@ TF_STATIC_READER_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=100,
 )
+
+
+def topic_qos(topic: str) -> QoSProfile:
+    """The profile the graph's nodes publish `topic` with, which a tool publishing it in their
+    place or reading it must match (a /tf_static reader: TF_STATIC_READER_QOS)."""
+    if topic in SENSOR_TOPICS:
+        return SENSOR_QOS
+    if topic == CLOCK:
+        return CLOCK_QOS
+    if topic == TF:
+        return TF_QOS
+    if topic == TF_STATIC:
+        return TF_STATIC_QOS
+    return ESTIMATE_QOS

@@ -22,9 +22,8 @@ from sensing_nodes.core.geometry import se2
 from sensing_nodes.graph.cli import GraphArgumentError, new_run_folder, parse_node_params
 from sensing_nodes.graph.processes import Graph, isolated_environment
 from sensing_nodes.paths import config_file
-from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
+from sensing_nodes.ros.qos import topic_qos
 from sensing_nodes.topics import (
-    CLOCK,
     DIAGNOSTICS,
     FUSED,
     GROUND_TRUTH,
@@ -54,12 +53,8 @@ NODE_TOPICS = {'sensor_sim': (None, list(SIMULATOR_TOPICS)),
                **{name: (t.answers, [t.outputs[0]]) for name, t in NODES.items()}}
 
 
-def _qos(topic: str):
-    return SENSOR_QOS if topic in SENSOR_TOPICS else CLOCK_QOS if topic == CLOCK else ESTIMATE_QOS
-
-
 # Simulator topics the recorder subscribes to before the simulator starts.
-SIM_TOPICS = {t: (TOPIC_TYPES[t], _qos(t)) for t in SIMULATOR_TOPICS}
+SIM_TOPICS = {t: (TOPIC_TYPES[t], topic_qos(t)) for t in SIMULATOR_TOPICS}
 # Topics between processing nodes, and how many subscribers each has in the graph (the
 # recorder included) once every node has matched, with config/'s parameters.
 # /scan_match/odom: the recorder; /scan_match/keyframe_odom: the fusion (method ekf).

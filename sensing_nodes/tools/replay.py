@@ -33,7 +33,9 @@ from sensing_nodes.graph.replayer import (
     DEFAULT_EXTRA_OUTPUTS,
     DEFAULT_SETTLE_AFTER,
     DEFAULT_SETTLE_BEFORE,
+    PassSettings,
     ReplayError,
+    ReplayOptions,
     replay,
 )
 from sensing_nodes.topics import PROCESSING_NODES
@@ -88,7 +90,8 @@ def make_bags(folder: str | Path, names: list[str] | None = None, progress: bool
                             str(config_file(params_file)), '--quiet'], check=True)
             target = folder / name
             discard(target)
-            results = replay(inputs, target, launch=True, progress=progress, compress=True)
+            results = replay(inputs, target,
+                             ReplayOptions(launch=True, progress=progress, compress=True))
             missing = dict(results[0].missing)
             if missing:
                 discard(target)
@@ -176,11 +179,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def _settle_before(specs: list[str] | None) -> dict[str, float] | None:
-    if specs is None:
-        return None
+def _settle_before(specs: list[str] | None) -> dict[str, float]:
     table = dict(DEFAULT_SETTLE_BEFORE)
-    for spec in specs:
+    for spec in specs or []:
         topic, sep, ms = spec.partition('=')
         try:
             table[topic] = float(ms) * 1e-3
@@ -195,6 +196,24 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
+def options_from_args(args: argparse.Namespace) -> ReplayOptions:
+    """The command line's ReplayOptions (GraphArgumentError on a bad --param/--remap/--nodes)."""
+    passes = PassSettings(
+        mode=args.mode, rate=args.rate, timeout_s=args.timeout, quiet_s=args.quiet_s,
+        settle_s=args.settle_ms * 1e-3,
+        settle_before=tuple(_settle_before(args.settle_before).items()),
+        settle_after=(tuple(args.settle_after) if args.settle_after is not None
+                      else DEFAULT_SETTLE_AFTER))
+    return ReplayOptions(
+        passes=passes,
+        expectations=parse_expectations(args.expect) if args.expect else None,
+        extra_outputs=tuple(args.record) if args.record is not None else DEFAULT_EXTRA_OUTPUTS,
+        remaps=parse_remaps(args.remap), launch=args.launch, nodes=parse_nodes(args.nodes),
+        node_params=dict(parse_node_params(args.param)), params_file=args.params_file,
+        one_process=args.one_process, loops=args.loops, warmup_s=args.warmup_s,
+        progress=not args.no_progress, logs=args.logs, compress=args.compress)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     _find_executables_next_to_python()
@@ -203,20 +222,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.make_bags is not None:
             make_bags(args.make_bags, progress=not args.no_progress)
             return 0
-        remaps = parse_remaps(args.remap)
-        nodes = parse_nodes(args.nodes)
-        results = replay(
-            args.bag, args.out, mode=args.mode, rate=args.rate,
-            expectations=parse_expectations(args.expect) if args.expect else None,
-            extra_outputs=tuple(args.record) if args.record is not None else DEFAULT_EXTRA_OUTPUTS,
-            remaps=remaps, launch=args.launch, nodes=nodes,
-            node_params=parse_node_params(args.param), loops=args.loops, timeout_s=args.timeout,
-            quiet_s=args.quiet_s, progress=not args.no_progress, logs=args.logs,
-            compress=args.compress, settle_s=args.settle_ms * 1e-3, warmup_s=args.warmup_s,
-            settle_before=_settle_before(args.settle_before), params_file=args.params_file,
-            one_process=args.one_process,
-            settle_after=(tuple(args.settle_after) if args.settle_after is not None
-                          else DEFAULT_SETTLE_AFTER))
+        results = replay(args.bag, args.out, options_from_args(args))
     except (InputBagError, GraphArgumentError) as exc:
         print(f'sensing_replay: error: {exc}', file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -29,7 +29,6 @@ from sensing_nodes.topics import (
     SCAN,
     SCAN_LINES_TABLE,
     SCAN_MATCH,
-    SENSOR_TOPICS,
     TOPIC_TYPES,
 )
 
@@ -76,17 +75,123 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+class _Watch:
+    """This process's view of the graph: answers counted per topic with the scan stamps they
+    carry (simulated time), each node's latest diagnostics, and RSS samples per node."""
+
+    def __init__(self, node, graph: Graph) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from sensing_nodes.bags.storage import message_class
+        from sensing_nodes.ros.qos import topic_qos
+
+        self.graph = graph
+        self.counts = {topic: 0 for topic in COUNTED}
+        self.stamps_by_topic: dict[str, set[int]] = {t: set() for t in COUNTED if t != FUSED}
+        self.first: int | None = None
+        self.newest = 0
+        self.diagnostics: dict[str, dict[str, str]] = {}
+        self.samples: list[dict] = []        # {'sim_s', 'wall_s', 'rss_kb': {node: kB}}
+        for topic, type_name in COUNTED.items():
+            node.create_subscription(message_class(type_name), topic, self._counter(topic),
+                                     topic_qos(topic), raw=True)
+        node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diagnostics, 50)
+
+    def _counter(self, topic: str):
+        from sensing_nodes.bags.stamps import leading_stamp_ns
+
+        def on_message(raw):
+            self.counts[topic] += 1
+            if topic in self.stamps_by_topic:
+                # Every answer carries its scan's stamp, so simulated time is known even while
+                # this process's own /scan reader is still being matched at the start.
+                stamp = leading_stamp_ns(raw)
+                self.stamps_by_topic[topic].add(stamp)
+                self.first = stamp if self.first is None else min(self.first, stamp)
+                self.newest = max(self.newest, stamp)
+        return on_message
+
+    def _on_diagnostics(self, msg) -> None:
+        for status in msg.status:
+            self.diagnostics[status.name] = {'message': status.message,
+                                             **{kv.key: kv.value for kv in status.values}}
+
+    def sim_s(self) -> float:
+        """Simulated seconds answered so far."""
+        return (self.newest - self.first) / NS if self.first else 0.0
+
+    def sample(self, sim_s: float, wall_s: float) -> None:
+        rss = {n: rss_kb(p.pid) for n, p in self.graph.processes.items()}
+        self.samples.append({'sim_s': round(sim_s, 1), 'wall_s': round(wall_s, 1), 'rss_kb': rss})
+
+    def answered_span_s(self) -> float:
+        """Simulated seconds between the first and last stamp any answer carried."""
+        known = set().union(*self.stamps_by_topic.values())
+        self.first = min(known) if known else None
+        return (max(known) - min(known)) / NS if known else 0.0
+
+
+def _start_processing_nodes(graph: Graph, node, executor, out: Path) -> None:
+    """The five processing nodes, until each is on the graph (90 s at most)."""
+    for name in PROCESSING_NODES:
+        graph.start(name, [])
+    deadline = time.monotonic() + 90.0
+    while not set(PROCESSING_NODES) <= set(node.get_node_names()):
+        executor.spin_once(timeout_sec=0.1)
+        if graph.failed() or time.monotonic() > deadline:
+            raise SystemExit(f'sensing_soak: the graph did not come up (failed: '
+                             f'{graph.failed()}); see {out / "logs"}')
+
+
+def _sim_arguments(args: argparse.Namespace) -> list[str]:
+    """sensor_sim's parameters: the run, paced by the fused output or at a fixed rate."""
+    # Simulated time starts once every /scan reader (this process's counter included) is
+    # matched: a scan published earlier is lost to a late reader (line_extractor missed the
+    # first 2 s of a run that way).
+    scan_readers = sum(SCAN in n.inputs for n in NODES.values()) + int(SCAN in COUNTED)
+    sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
+                '-p', f'wait_for_scan_subscribers:={scan_readers}']
+    if args.rate == 'paced':
+        return sim_args + ['-p', 'pace_topic:=/odometry/filtered', '-p', 'pace_timeout_s:=5.0',
+                           '-p', 'real_time_factor:=1000.0']    # no cap: as fast as the graph
+    return sim_args + ['-p', f'real_time_factor:={args.rate}']
+
+
+def _follow_the_run(args: argparse.Namespace, watch: _Watch, executor, out: Path) -> float:
+    """Spin until sensor_sim ends, an RSS sample each simulated minute and a progress line each
+    10 s of wall time; the run's wall seconds."""
+    graph = watch.graph
+    wall_start = time.monotonic()
+    graph.start('sensor_sim', _sim_arguments(args))
+    sim = graph.processes['sensor_sim']
+    next_minute, next_progress = 60.0, wall_start + 10.0
+    while sim.poll() is None:
+        executor.spin_once(timeout_sec=0.05)
+        now = time.monotonic()
+        sim_s = watch.sim_s()
+        if sim_s >= next_minute:
+            watch.sample(sim_s, now - wall_start)
+            next_minute += 60.0
+        if now >= next_progress:
+            next_progress = now + 10.0
+            if graph.failed():
+                raise SystemExit(f'sensing_soak: node(s) exited early: {graph.failed()}; '
+                                 f'see {out / "logs"}')
+            if not args.quiet:
+                print(f'  simulated {sim_s:7.1f} / {args.duration:.0f} s  '
+                      f'({sim_s / (now - wall_start):4.1f}x real time)  '
+                      f'scans {watch.counts["/scan"]:6d}  '
+                      f'matched {watch.counts["/scan_match/odom"]:6d}', flush=True)
+    return time.monotonic() - wall_start
+
+
 def run(args: argparse.Namespace, out: Path) -> dict:
     """Run the graph for the simulated duration; return the soak report."""
     env = isolated_environment(args.domain_id, offset=37)
 
     import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
 
-    from sensing_nodes.bags.stamps import leading_stamp_ns
-    from sensing_nodes.bags.storage import message_class
-    from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
     from sensing_nodes.ros.run import make_executor, spin_until_quiet
 
     (out / 'logs').mkdir(parents=True, exist_ok=True)
@@ -95,95 +200,22 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     node = Node('sensing_soak')
     executor = make_executor()
     executor.add_node(node)
-    counts = {topic: 0 for topic in COUNTED}
-    stamps_by_topic: dict[str, set[int]] = {topic: set() for topic in COUNTED
-                                            if topic != FUSED}
-    stamps = {'first': None, 'newest': 0}
-    diagnostics: dict[str, dict[str, str]] = {}
-
-    def counter(topic):
-        def on_message(raw):
-            counts[topic] += 1
-            if topic in stamps_by_topic:
-                # Every answer carries its scan's stamp, so simulated time is known even while
-                # this process's own /scan reader is still being matched at the start.
-                stamp = leading_stamp_ns(raw)
-                stamps_by_topic[topic].add(stamp)
-                stamps['first'] = stamp if stamps['first'] is None else min(stamps['first'], stamp)
-                stamps['newest'] = max(stamps['newest'], stamp)
-        return on_message
-
-    def on_diagnostics(msg):
-        for status in msg.status:
-            diagnostics[status.name] = {'message': status.message,
-                                        **{kv.key: kv.value for kv in status.values}}
-
-    for topic, type_name in COUNTED.items():
-        qos = SENSOR_QOS if topic in SENSOR_TOPICS else ESTIMATE_QOS
-        node.create_subscription(message_class(type_name), topic, counter(topic), qos, raw=True)
-    node.create_subscription(DiagnosticArray, DIAGNOSTICS, on_diagnostics, 50)
-
-    samples: list[dict] = []        # {'sim_s', 'wall_s', 'rss_kb': {node: kB}}
-
-    def sample(sim_s: float, wall_s: float) -> None:
-        samples.append({'sim_s': round(sim_s, 1), 'wall_s': round(wall_s, 1),
-                        'rss_kb': {n: rss_kb(p.pid) for n, p in graph.processes.items()}})
-
+    watch = _Watch(node, graph)
     try:
-        for name in PROCESSING_NODES:
-            graph.start(name, [])
-        deadline = time.monotonic() + 90.0
-        while not set(PROCESSING_NODES) <= set(node.get_node_names()):
-            executor.spin_once(timeout_sec=0.1)
-            if graph.failed() or time.monotonic() > deadline:
-                raise SystemExit(f'sensing_soak: the graph did not come up (failed: '
-                                 f'{graph.failed()}); see {out / "logs"}')
-        # Simulated time starts once every /scan reader (this process's counter included) is
-        # matched: a scan published earlier is lost to a late reader (line_extractor missed the
-        # first 2 s of a run that way).
-        scan_readers = sum(SCAN in n.inputs for n in NODES.values()) + int(SCAN in COUNTED)
-        sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
-                    '-p', f'wait_for_scan_subscribers:={scan_readers}']
-        if args.rate == 'paced':
-            sim_args += ['-p', 'pace_topic:=/odometry/filtered', '-p', 'pace_timeout_s:=5.0',
-                         '-p', 'real_time_factor:=1000.0']    # no cap: as fast as the graph
-        else:
-            sim_args += ['-p', f'real_time_factor:={args.rate}']
-        wall_start = time.monotonic()
-        graph.start('sensor_sim', sim_args)
-        sim = graph.processes['sensor_sim']
-        next_minute, next_progress = 60.0, wall_start + 10.0
-        while sim.poll() is None:
-            executor.spin_once(timeout_sec=0.05)
-            now = time.monotonic()
-            sim_s = ((stamps['newest'] - stamps['first']) / NS) if stamps['first'] else 0.0
-            if sim_s >= next_minute:
-                sample(sim_s, now - wall_start)
-                next_minute += 60.0
-            if now >= next_progress:
-                next_progress = now + 10.0
-                if graph.failed():
-                    raise SystemExit(f'sensing_soak: node(s) exited early: {graph.failed()}; '
-                                     f'see {out / "logs"}')
-                if not args.quiet:
-                    print(f'  simulated {sim_s:7.1f} / {args.duration:.0f} s  '
-                          f'({sim_s / (now - wall_start):4.1f}x real time)  '
-                          f'scans {counts["/scan"]:6d}  matched {counts["/scan_match/odom"]:6d}',
-                          flush=True)
-        wall_s = time.monotonic() - wall_start
+        _start_processing_nodes(graph, node, executor, out)
+        wall_s = _follow_the_run(args, watch, executor, out)
         # Let the last scans work through matching and fusion: until nothing arrives for 2 s.
-        spin_until_quiet(executor, lambda: sum(counts.values()), 2.0, timeout_s=60.0, step_s=0.05)
-        known = set().union(*stamps_by_topic.values())   # every answer carries its scan's stamp
-        sim_s = (max(known) - min(known)) / NS if known else 0.0
-        stamps['first'] = min(known) if known else None
-        sample(sim_s, wall_s)
+        spin_until_quiet(executor, lambda: sum(watch.counts.values()), 2.0, timeout_s=60.0,
+                         step_s=0.05)
+        sim_s = watch.answered_span_s()
+        watch.sample(sim_s, wall_s)
         failed = graph.failed()
     finally:
         codes = graph.stop()
         node.destroy_node()
         rclpy.try_shutdown()
-    return report(args, samples, counts, stamps_by_topic, stamps['first'], diagnostics, wall_s,
-                  sim_s, failed, codes)
+    return report(args, watch.samples, watch.counts, watch.stamps_by_topic, watch.first,
+                  watch.diagnostics, wall_s, sim_s, failed, codes)
 
 
 def report(args, samples, counts, stamps_by_topic, first_stamp, diagnostics, wall_s, sim_s, failed,
