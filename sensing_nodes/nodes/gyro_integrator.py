@@ -19,7 +19,7 @@ from sensing_nodes.ros.cdr import imu_cdr
 from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
-from sensing_nodes.ros.params import declare, require
+from sensing_nodes.ros.params import Param, declare, declare_config
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
@@ -28,95 +28,38 @@ from sensing_nodes.topics import IMU, IMU_RAW, WHEEL_ODOM
 
 _HEADING_ONLY = (0.0,) * 8   # orientation covariance: only yaw's variance (last) is known
 
+# The integrator's parameters: GyroConfig's fields, with their defaults.
+GYRO_PARAMS = (
+    Param('bias_estimation', 'estimate the gyro bias whenever the robot stands still'),
+    Param('stillness_window_s', 'stillness is decided over this trailing window (s)'),
+    Param('gyro_std_threshold_rad_s',
+          'still only if every gyro axis std over the window is below this (rad/s)'),
+    Param('accel_std_threshold_m_s2',
+          'still only if every accelerometer axis std over the window is below this (m/s^2)'),
+    Param('max_gyro_bias_rad_s',
+          'still only if every gyro axis mean over the window is within this (rad/s)'),
+    Param('noise_density', 'white rate noise density (rad/s/sqrt(Hz)): sample std * sqrt(dt)',
+          name='gyro_noise_density'),
+    Param('bias_random_walk', 'bias random walk density (rad/s/sqrt(s))'),
+    Param('initial_bias_sigma_rad_s', 'std of the bias before any calibration (rad/s)'),
+    Param('initial_bias_z_rad_s',
+          'z bias estimate before the first stillness (rad/s; sensing_calibrate writes it)',
+          minimum=-1.0, maximum=1.0),
+    Param('max_gap_s', 'a stamp gap longer than this (s) is not integrated across'),
+    Param('wheel_timeout_s',
+          '/wheel/odom counts as available while its newest stamp is this close (s)'),
+    Param('wheel_still_linear_m_s', '/wheel/odom reports zero motion when |vx| is at most this '
+          '(m/s)'),
+    Param('wheel_still_angular_rad_s',
+          '/wheel/odom reports zero motion when |wz| is at most this (rad/s)'),
+)
+
 
 class GyroIntegratorNode(Node):
-    # long: the parameter declarations (descriptors, ranges), then validation and wiring.
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('gyro_integrator', **node_options)
-        d = GyroConfig()
-        config = GyroConfig(
-            bias_estimation=declare(
-                self,
-                'bias_estimation',
-                d.bias_estimation,
-                'estimate the gyro bias whenever the robot stands still',
-            ),
-            stillness_window_s=declare(
-                self,
-                'stillness_window_s',
-                d.stillness_window_s,
-                'stillness is decided over this trailing window (s)',
-            ),
-            gyro_std_threshold_rad_s=declare(
-                self,
-                'gyro_std_threshold_rad_s',
-                d.gyro_std_threshold_rad_s,
-                'still only if every gyro axis std over the window is below this (rad/s)',
-            ),
-            accel_std_threshold_m_s2=declare(
-                self,
-                'accel_std_threshold_m_s2',
-                d.accel_std_threshold_m_s2,
-                'still only if every accelerometer axis std over the window is below this (m/s^2)',
-            ),
-            max_gyro_bias_rad_s=declare(
-                self,
-                'max_gyro_bias_rad_s',
-                d.max_gyro_bias_rad_s,
-                'still only if every gyro axis mean over the window is within this (rad/s)',
-            ),
-            noise_density=declare(
-                self,
-                'gyro_noise_density',
-                d.noise_density,
-                'white rate noise density (rad/s/sqrt(Hz)): sample std * sqrt(dt)',
-            ),
-            bias_random_walk=declare(
-                self,
-                'bias_random_walk',
-                d.bias_random_walk,
-                'bias random walk density (rad/s/sqrt(s))',
-            ),
-            initial_bias_sigma_rad_s=declare(
-                self,
-                'initial_bias_sigma_rad_s',
-                d.initial_bias_sigma_rad_s,
-                'std of the bias before any calibration (rad/s)',
-            ),
-            initial_bias_z_rad_s=declare(
-                self,
-                'initial_bias_z_rad_s',
-                d.initial_bias_z_rad_s,
-                'z bias estimate before the first stillness (rad/s; sensing_calibrate writes it)',
-                minimum=-1.0,
-                maximum=1.0,
-            ),
-            max_gap_s=declare(
-                self,
-                'max_gap_s',
-                d.max_gap_s,
-                'a stamp gap longer than this (s) is not integrated across',
-            ),
-            wheel_timeout_s=declare(
-                self,
-                'wheel_timeout_s',
-                d.wheel_timeout_s,
-                '/wheel/odom counts as available while its newest stamp is this close (s)',
-            ),
-            wheel_still_linear_m_s=declare(
-                self,
-                'wheel_still_linear_m_s',
-                d.wheel_still_linear_m_s,
-                '/wheel/odom reports zero motion when |vx| is at most this (m/s)',
-            ),
-            wheel_still_angular_rad_s=declare(
-                self,
-                'wheel_still_angular_rad_s',
-                d.wheel_still_angular_rad_s,
-                '/wheel/odom reports zero motion when |wz| is at most this (rad/s)',
-            ),
-        )
+        config = declare_config(self, GyroConfig(), GYRO_PARAMS)
         self._restart_on_backwards = declare(
             self, 'restart_on_backwards', True,
             'a stamp going backwards (looping bag) restarts the integrator from scratch, bias '
@@ -141,8 +84,6 @@ class GyroIntegratorNode(Node):
         # anything else, so stillness, bias and heading are about base_link's z.
         mount_source = imu_mount(self, base_frame, tuple(mount), frame_id,
                                  on_update=lambda: self.processor.mount_changed())
-        for name, problem, value in config.problems():
-            require(False, {'noise_density': 'gyro_noise_density'}.get(name, name), problem, value)
 
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self.processor = GyroIntegratorProcessor(

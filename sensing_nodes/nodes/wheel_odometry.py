@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
 import numpy as np
 from nav_msgs.msg import Odometry
@@ -13,12 +14,12 @@ from tf2_msgs.msg import TFMessage
 
 from sensing_nodes.core.geometry.transform import Transform
 from sensing_nodes.core.timing import StampStep
-from sensing_nodes.core.wheel_odometry import METHODS, WheelOdometry, WheelOdometryConfig
+from sensing_nodes.core.wheel_odometry import WheelOdometry, WheelOdometryConfig
 from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
 from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
-from sensing_nodes.ros.params import declare, require
+from sensing_nodes.ros.params import Param, declare, declare_config, require
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
@@ -27,75 +28,18 @@ from sensing_nodes.topics import JOINT_STATES, WHEEL_ODOM
 
 
 class WheelOdometryNode(Node):
-    # long: the parameter declarations (descriptors, ranges), then validation and wiring.
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('wheel_odometry', **node_options)
-        left = declare(
-            self, 'left_wheel_joint', 'left_wheel_joint', 'name of the left wheel joint'
-        )
-        right = declare(self, 'right_wheel_joint', 'right_wheel_joint',
-                        'name of the right wheel joint')
-        radius = declare(self, 'wheel_radius_m', 0.05, 'nominal wheel radius (m)')
-        separation = declare(self, 'wheel_separation_m', 0.30,
-                             'distance between the wheel contact points (m)')
-        left_mult = declare(self, 'left_radius_multiplier', 1.0,
-                            'calibration: left radius = wheel_radius_m * this',
-                            minimum=0.5, maximum=1.5)
-        right_mult = declare(self, 'right_radius_multiplier', 1.0,
-                             'calibration: right radius = wheel_radius_m * this',
-                             minimum=0.5, maximum=1.5)
-        method = declare(self, 'integration_method', 'exact_arc',
-                         "'exact_arc' (default) or 'euler' (the textbook update, for teaching)")
-        variance = declare(self, 'wheel_variance_per_m', 4e-6,
-                           'random error model: variance (m^2) of a wheel distance is '
-                           'this * |distance (m)|',
-                           minimum=0.0)
-        radius_std = declare(self, 'radius_multiplier_std', 0.0,
-                             'systematic error model: std of each wheel\'s relative radius error '
-                             '(what calibration leaves)', minimum=0.0, maximum=0.49)
-        max_gap = declare(self, 'max_gap_s', 0.5,
-                          'a stamp gap longer than this (s) is not integrated across')
-        max_speed = declare(self, 'max_wheel_speed_rad_s', 50.0,
-                            'fastest plausible wheel rate (rad/s): larger increments are wrapped '
-                            'encoder readings, or rejected')
+        config, (left, right) = self._declare_odometry()
+        mode, static_pose, static_twist = self._declare_covariance_mode()
         self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the published pose')
         self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame (robot base)')
         publish_tf = declare(self, 'publish_tf', False,
                              'broadcast odom_frame -> base_frame on /tf (one owner per tree: '
                              'the fusion broadcasts it by default)')
-        mode = declare(self, 'covariance_mode', 'propagated',
-                       "'propagated' (from the wheel error model) or 'static' (the lists below)")
-        static_pose = declare(
-            self,
-            'static_pose_variances',
-            [1e-3, 1e-3, 1e-3],
-            "with covariance_mode 'static': variances of x, y (m^2), yaw (rad^2)",
-        )
-        static_twist = declare(self, 'static_twist_variances', [1e-3, 1e-9, 1e-3],
-                               "with covariance_mode 'static': variances of vx, vy, wz")
-
-        require(bool(left), 'left_wheel_joint', 'must not be empty', left)
-        require(bool(right), 'right_wheel_joint', 'must not be empty', right)
-        require(left != right, 'right_wheel_joint', 'must differ from left_wheel_joint', right)
-        require(method in METHODS, 'integration_method', f'must be one of {list(METHODS)}', method)
-        require(mode in ('propagated', 'static'), 'covariance_mode',
-                "must be 'propagated' or 'static'", mode)
-        for name, values in (('static_pose_variances', static_pose),
-                             ('static_twist_variances', static_twist)):
-            require(len(values) == 3 and all(np.isfinite(values)) and min(values) >= 0.0, name,
-                    'must be three finite variances >= 0', list(values))
         require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
                 'must not be empty')
-        config = WheelOdometryConfig(
-            wheel_radius_m=radius, wheel_separation_m=separation,
-            left_radius_multiplier=left_mult, right_radius_multiplier=right_mult,
-            method=method, variance_per_m=(variance, variance), max_gap_s=max_gap,
-            max_wheel_speed_rad_s=max_speed, radius_multiplier_std=radius_std)
-        names = {'wheel_radius_m': 'wheel_radius_m', 'wheel_separation_m': 'wheel_separation_m',
-                 'method': 'integration_method', 'variance_per_m': 'wheel_variance_per_m'}
-        for field_name, problem, value in config.problems():
-            require(False, names.get(field_name, field_name), problem, value)
 
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self.processor = WheelOdometryProcessor(
@@ -106,8 +50,56 @@ class WheelOdometryNode(Node):
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.get_logger().info(
-            f'wheels {left!r} / {right!r}: radius {radius} m (x {left_mult}, x {right_mult}), '
-            f'separation {separation} m, {method}, covariance {mode}')
+            f'wheels {left!r} / {right!r}: radius {config.wheel_radius_m} m '
+            f'(x {config.left_radius_multiplier}, x {config.right_radius_multiplier}), '
+            f'separation {config.wheel_separation_m} m, {config.method}, covariance {mode}')
+
+    def _declare_odometry(self) -> tuple[WheelOdometryConfig, tuple[str, str]]:
+        """The dead reckoning's parameters (defaults: WheelOdometryConfig's) and the joints."""
+        d = WheelOdometryConfig()
+        left = declare(self, 'left_wheel_joint', 'left_wheel_joint',
+                       'name of the left wheel joint')
+        right = declare(self, 'right_wheel_joint', 'right_wheel_joint',
+                        'name of the right wheel joint')
+        variance = declare(self, 'wheel_variance_per_m', d.variance_per_m[0],
+                           'random error model: variance (m^2) of a wheel distance is '
+                           'this * |distance (m)|', minimum=0.0)
+        config = declare_config(self, replace(d, variance_per_m=(variance, variance)), (
+            Param('wheel_radius_m', 'nominal wheel radius (m)'),
+            Param('wheel_separation_m', 'distance between the wheel contact points (m)'),
+            Param('left_radius_multiplier', 'calibration: left radius = wheel_radius_m * this',
+                  minimum=0.5, maximum=1.5),
+            Param('right_radius_multiplier', 'calibration: right radius = wheel_radius_m * this',
+                  minimum=0.5, maximum=1.5),
+            Param('method', "'exact_arc' (default) or 'euler' (the textbook update, for "
+                  'teaching)', name='integration_method'),
+            Param('radius_multiplier_std', "systematic error model: std of each wheel's "
+                  'relative radius error (what calibration leaves)', minimum=0.0, maximum=0.49),
+            Param('max_gap_s', 'a stamp gap longer than this (s) is not integrated across'),
+            Param('max_wheel_speed_rad_s', 'fastest plausible wheel rate (rad/s): larger '
+                  'increments are wrapped encoder readings, or rejected'),
+        ), declared={'variance_per_m': 'wheel_variance_per_m'})
+        require(bool(left), 'left_wheel_joint', 'must not be empty', left)
+        require(bool(right), 'right_wheel_joint', 'must not be empty', right)
+        require(left != right, 'right_wheel_joint', 'must differ from left_wheel_joint', right)
+        return config, (left, right)
+
+    def _declare_covariance_mode(self) -> tuple[str, list[float], list[float]]:
+        """covariance_mode and the static variances it may use, validated."""
+        mode = declare(self, 'covariance_mode', 'propagated',
+                       "'propagated' (from the wheel error model) or 'static' (the lists below)")
+        static_pose = declare(self, 'static_pose_variances', [1e-3, 1e-3, 1e-3],
+                              "with covariance_mode 'static': variances of x, y (m^2), yaw "
+                              '(rad^2)')
+        static_twist = declare(self, 'static_twist_variances', [1e-3, 1e-9, 1e-3],
+                               "with covariance_mode 'static': variances of vx, vy, wz")
+        require(mode in ('propagated', 'static'), 'covariance_mode',
+                "must be 'propagated' or 'static'", mode)
+        for name, values in (('static_pose_variances', static_pose),
+                             ('static_twist_variances', static_twist)):
+            require(len(values) == 3 and all(np.isfinite(values)) and min(values) >= 0.0, name,
+                    'must be three finite variances >= 0', list(values))
+        return mode, static_pose, static_twist
 
     def _refresh_diagnostics(self, diag: Diagnostics) -> None:
         odo = self.processor.odometry

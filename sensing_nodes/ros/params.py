@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
-from typing import Any
+from typing import Any, TypeVar
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
@@ -57,3 +58,37 @@ def require(condition: bool, name: str, problem: str, value: Any = None) -> None
     """Raise ParameterError(name, problem) unless condition holds."""
     if not condition:
         raise ParameterError(name, problem, value)
+
+
+@dataclasses.dataclass(frozen=True)
+class Param:
+    """One field of a core config dataclass as a ROS parameter: its name, description and
+    inclusive range (the default is the dataclass's own, never copied)."""
+
+    field: str
+    description: str
+    name: str = ''          # the parameter's name when it differs from the field's
+    minimum: float | None = None
+    maximum: float | None = None
+
+    @property
+    def parameter(self) -> str:
+        return self.name or self.field
+
+
+Config = TypeVar('Config')
+
+
+def declare_config(node: Node, defaults: Config, params: tuple[Param, ...],
+                   declared: dict[str, str] | None = None) -> Config:
+    """Declare a parameter per Param with the default from `defaults` (a dataclass) and return
+    the dataclass with the values given; ParameterError, naming the parameter, for each value
+    its `problems()` refuses (`declared`: field -> parameter for fields the caller declared
+    itself and put into `defaults`)."""
+    values = {p.field: declare(node, p.parameter, getattr(defaults, p.field), p.description,
+                               minimum=p.minimum, maximum=p.maximum) for p in params}
+    config = dataclasses.replace(defaults, **values)
+    names = {**(declared or {}), **{p.field: p.parameter for p in params}}
+    for field, problem, value in config.problems():
+        require(False, names.get(field, field), problem, value)
+    return config
