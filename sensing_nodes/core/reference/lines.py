@@ -63,6 +63,7 @@ def _textbook_split(rho, theta, lo, hi, split_distance, min_points, out):
     _textbook_split(rho, theta, k, hi, split_distance, min_points, out)
 
 
+# long: the lesson's form on purpose, one function from scan to lines as a lesson writes it.
 def textbook_extract_lines(
     ranges,
     angles,
@@ -220,6 +221,7 @@ def _lesson_split(rho, theta, x, y, lo, hi, split_distance, min_points, out):
     _lesson_split(rho, theta, x, y, k, hi, split_distance, min_points, out)
 
 
+# long: the lesson's form on purpose, one function from scan to lines as a lesson writes it.
 def textbook_loops_extract_lines(ranges, angles, split_distance=0.05, max_line_gap=0.5,
                                  min_line_points=6, min_line_length=0.2, range_sigma=0.01,
                                  merge_chi2=9.21):
