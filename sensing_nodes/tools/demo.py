@@ -157,6 +157,59 @@ class Collected:
         return np.array([r[0] for r in rows], dtype=np.int64), data
 
 
+def _start_graph(args: argparse.Namespace, graph: Graph) -> None:
+    """The processing nodes (separate processes or one), then sensor_sim: it starts simulated
+    time once the recorder has subscribed, paced by the fusion's answers (at most --rate)."""
+    # Paced by the fusion's answer: the graph and the recorder take ~0.8 of a core per 1x of
+    # simulated time (EKF fusion, /tf), so unpaced at 5x a 2-core machine fell seconds behind
+    # and the fusion dropped late scan matches.
+    sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
+                '-p', f'real_time_factor:={args.rate}', '-p', 'wait_for_subscribers:=1',
+                '-p', f'wait_for_scan_subscribers:={SCAN_SUBSCRIBERS}',
+                '-p', f'pace_topic:={PACE_TOPIC}', '-p', 'pace_timeout_s:=5.0',
+                *args.node_params['sensor_sim']]
+    if args.one_process:
+        graph.start_one_process(PROCESSING_NODES, args.node_params)
+    else:
+        for name in PROCESSING_NODES:
+            graph.start(name, args.node_params.get(name, []))
+    graph.start('sensor_sim', sim_args)
+
+
+def _follow(args: argparse.Namespace, graph: Graph, recorder, executor, launched: float,
+            out: Path) -> float:
+    """Spin until sensor_sim ends: late publishers discovered, a progress line every 2 s; the
+    wall seconds from the recorder's subscription to the end."""
+    wall_start = time.monotonic()
+    sim = graph.processes['sensor_sim']
+    next_progress = next_discovery = wall_start
+    start_stamp = None
+    while sim.poll() is None:
+        executor.spin_once(timeout_sec=0.01)
+        now = time.monotonic()
+        if now >= next_discovery:
+            recorder.discover()
+            next_discovery = now + 0.25
+        if start_stamp is None and recorder.newest_stamp_ns:
+            start_stamp = recorder.newest_stamp_ns
+            if not args.quiet:
+                print(f'  graph up: simulation started {now - launched:.1f} s after launch',
+                      flush=True)
+        if now < next_progress:
+            continue
+        next_progress = now + 2.0
+        if not args.quiet and start_stamp is not None:
+            sim_s = (recorder.newest_stamp_ns - start_stamp) * 1e-9
+            print(f'  simulated {sim_s:6.1f} / {args.duration:g} s  '
+                  f'({sim_s / max(now - wall_start, 1e-9):4.1f}x real time)  '
+                  f'scans {recorder.counts.get("/scan", 0):5d}  '
+                  f'fused {recorder.counts.get("/odometry/filtered", 0):6d}', flush=True)
+        if graph.failed():
+            raise SystemExit(f'sensing_demo: node(s) exited early: {graph.failed()}; '
+                             f'see {out / "logs"}')
+    return time.monotonic() - wall_start
+
+
 def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, float, float]:
     """Run the graph to the end of the simulated duration; returns what was collected, the
     recorder's counts, the wall time taken and the simulated time covered."""
@@ -182,61 +235,18 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
             # recorder is the only subscriber of the ground truth and subscribes only once every
             # edge between the processing nodes is matched: simulated time starts then, so
             # neither the bag nor any node misses the first messages.
-            # Paced by the fusion's answer (at most --rate): the graph and the recorder take
-            # ~0.8 of a core per 1x of simulated time (EKF fusion, /tf), so unpaced at 5x a
-            # 2-core machine fell seconds behind and the fusion dropped late scan matches.
-            sim_args = ['-p', f'seed:={args.seed}', '-p', f'duration_s:={args.duration}',
-                        '-p', f'real_time_factor:={args.rate}', '-p', 'wait_for_subscribers:=1',
-                        '-p', f'wait_for_scan_subscribers:={SCAN_SUBSCRIBERS}',
-                        '-p', f'pace_topic:={PACE_TOPIC}', '-p', 'pace_timeout_s:=5.0',
-                        *args.node_params['sensor_sim']]
             launched = time.monotonic()
-            if args.one_process:
-                graph.start_one_process(PROCESSING_NODES, args.node_params)
-            else:
-                for name in PROCESSING_NODES:
-                    graph.start(name, args.node_params.get(name, []))
-            graph.start('sensor_sim', sim_args)
+            _start_graph(args, graph)
             _wait_for_nodes(node, executor, PROCESSING_NODES, graph, recorder)
             for topic, (type_name, qos) in SIM_TOPICS.items():
                 recorder.subscribe(topic, type_name, qos)
-            wall_start = time.monotonic()
-            sim = graph.processes['sensor_sim']
-            next_progress = next_discovery = wall_start
-            start_stamp = None
-            while sim.poll() is None:
-                executor.spin_once(timeout_sec=0.01)
-                now = time.monotonic()
-                if now >= next_discovery:
-                    recorder.discover()
-                    next_discovery = now + 0.25
-                if start_stamp is None and recorder.newest_stamp_ns:
-                    start_stamp = recorder.newest_stamp_ns
-                    if not args.quiet:
-                        print(f'  graph up: simulation started {now - launched:.1f} s after '
-                              'launch', flush=True)
-                if now >= next_progress:
-                    if not args.quiet and start_stamp is not None:
-                        sim_s = (recorder.newest_stamp_ns - start_stamp) * 1e-9
-                        print(
-                            f'  simulated {sim_s:6.1f} / {args.duration:g} s  '
-                            f'({sim_s / max(now - wall_start, 1e-9):4.1f}x real time)  '
-                            f'scans {recorder.counts.get("/scan", 0):5d}  '
-                            f'fused {recorder.counts.get("/odometry/filtered", 0):6d}',
-                            flush=True,
-                        )
-                    next_progress = now + 2.0
-                    if graph.failed():
-                        raise SystemExit(f'sensing_demo: node(s) exited early: {graph.failed()}; '
-                                         f'see {out / "logs"}')
-            wall_s = time.monotonic() - wall_start
+            wall_s = _follow(args, graph, recorder, executor, launched, out)
             # Let the last scans work through matching and fusion (and fusion's idle flush):
             # until no output has arrived for a second. /diagnostics comes every wall second
             # from every node whatever the data, so it does not count.
-            def outputs() -> int:
-                return sum(n for t, n in recorder.counts.items() if t not in WALL_PERIODIC_TOPICS)
-
-            spin_until_quiet(executor, outputs, DRAIN_QUIET_S, timeout_s=30.0)
+            spin_until_quiet(executor, lambda: sum(
+                n for t, n in recorder.counts.items() if t not in WALL_PERIODIC_TOPICS),
+                DRAIN_QUIET_S, timeout_s=30.0)
             counts = dict(recorder.counts)
     finally:
         codes = graph.stop()
