@@ -76,14 +76,8 @@ def _wheel_columns(names: tuple[str, ...], left: str, right: str) -> tuple[int, 
                          '--left-joint and --right-joint')
 
 
-def params_yaml(result: cal.CalibrationResult, wheel_radius_m: float, bag: str,
-                gyro: cal.GyroCalibration | None) -> str:
-    """The parameter file text: node sections with their own parameter names, comments with
-    the uncertainties, and a sensing_calibrate section with every figure."""
-    g = result.geometry()
-    est = {e.name: e for e in result.estimates}
-    radius_std = [est[n].std / est[n].value for n in ('left_radius_m', 'right_radius_m')
-                  if est[n].excited]
+def _yaml_header(result: cal.CalibrationResult, bag: str) -> list[str]:
+    """The parameter file's comment lines: what was used, each estimate with its std."""
     lines = [
         f'# {PROG} {bag}',
         f'# {result.intervals_used} scan-matched intervals used, {result.outliers} outliers, '
@@ -95,8 +89,15 @@ def params_yaml(result: cal.CalibrationResult, wheel_radius_m: float, bag: str,
             lines.append(f'#   {e.name:<20} {e.value:.6f} +- {e.std:.2g} {e.unit}')
         else:
             lines.append(f'#   {e.name:<20} not estimated: {e.note} (nominal kept)')
-    for note in result.notes:
-        lines.append(f'#   note: {note}')
+    return lines + [f'#   note: {note}' for note in result.notes]
+
+
+def _wheel_parameters(result: cal.CalibrationResult, wheel_radius_m: float) -> dict[str, float]:
+    """wheel_odometry's parameters from the calibrated geometry and error model."""
+    g = result.geometry()
+    est = {e.name: e for e in result.estimates}
+    radius_std = [est[n].std / est[n].value for n in ('left_radius_m', 'right_radius_m')
+                  if est[n].excited]
     wheel = {
         'wheel_radius_m': float(wheel_radius_m),
         'wheel_separation_m': round(g.wheel_separation_m, 7),
@@ -108,10 +109,39 @@ def params_yaml(result: cal.CalibrationResult, wheel_radius_m: float, bag: str,
     if math.isfinite(result.wheel_variance_per_m):
         # The random part: what the residuals show beyond the matcher's own noise.
         wheel['wheel_variance_per_m'] = float(f'{result.wheel_variance_per_m:.3g}')
+    return wheel
+
+
+def _gyro_section(gyro: cal.GyroCalibration, lines: list[str], doc: dict, report: dict) -> None:
+    """The gyro's comment lines, gyro_integrator's parameters and the report's gyro figures."""
+    lines.append(f'#   gyro z bias {gyro.bias.value:.6g} +- {gyro.bias.std:.2g} rad/s'
+                 + (f', scale factor error {gyro.scale.value:+.5f} +- {gyro.scale.std:.2g}'
+                    if gyro.scale.excited else f', scale not estimated: {gyro.scale.note}'))
+    lines.append('#   (read about the IMU\'s own z, taken as base_link\'s: a level, unrotated '
+                 'IMU; gyro_integrator refines the bias itself while still)')
+    gyro_params = {'max_gyro_bias_rad_s': round(max(0.05, 3.0 * abs(gyro.bias.value)), 6),
+                   'initial_bias_z_rad_s': float(gyro.bias.value)}
+    if gyro.scale.excited:
+        gyro_params['gyro_scale_error'] = float(gyro.scale.value)
+    doc['gyro_integrator'] = {'ros__parameters': gyro_params}
+    report['gyro_bias_rad_s'] = float(gyro.bias.value)
+    report['gyro_bias_std_rad_s'] = float(gyro.bias.std)
+    report['gyro_scale_estimated'] = gyro.scale.excited
+    report['gyro_scale_error'] = float(gyro.scale.value) if gyro.scale.excited else 0.0
+    report['gyro_scale_error_std'] = float(gyro.scale.std) if gyro.scale.excited else 0.0
+
+
+def params_yaml(result: cal.CalibrationResult, wheel_radius_m: float, bag: str,
+                gyro: cal.GyroCalibration | None) -> str:
+    """The parameter file text: node sections with their own parameter names, comments with
+    the uncertainties, and a sensing_calibrate section with every figure."""
+    g = result.geometry()
+    lines = _yaml_header(result, bag)
     laser = {'laser_x_m': round(g.laser_x_m, 6), 'laser_y_m': round(g.laser_y_m, 6),
              'laser_yaw_rad': round(g.laser_yaw_rad, 7)}
-    doc: dict[str, Any] = {'wheel_odometry': {'ros__parameters': wheel},
-                           'icp_matcher': {'ros__parameters': laser}}
+    doc: dict[str, Any] = {
+        'wheel_odometry': {'ros__parameters': _wheel_parameters(result, wheel_radius_m)},
+        'icp_matcher': {'ros__parameters': laser}}
     report: dict[str, Any] = {
         'parameters': list(cal.PARAMETERS),
         # ROS 2 parameter arrays take one type and no NaN: a parameter not estimated is
@@ -125,21 +155,7 @@ def params_yaml(result: cal.CalibrationResult, wheel_radius_m: float, bag: str,
         'outliers': result.outliers,
     }
     if gyro is not None:
-        lines.append(f'#   gyro z bias {gyro.bias.value:.6g} +- {gyro.bias.std:.2g} rad/s'
-                     + (f', scale factor error {gyro.scale.value:+.5f} +- {gyro.scale.std:.2g}'
-                        if gyro.scale.excited else f', scale not estimated: {gyro.scale.note}'))
-        lines.append('#   (read about the IMU\'s own z, taken as base_link\'s: a level, unrotated '
-                     'IMU; gyro_integrator refines the bias itself while still)')
-        gyro_params = {'max_gyro_bias_rad_s': round(max(0.05, 3.0 * abs(gyro.bias.value)), 6),
-                       'initial_bias_z_rad_s': float(gyro.bias.value)}
-        if gyro.scale.excited:
-            gyro_params['gyro_scale_error'] = float(gyro.scale.value)
-        doc['gyro_integrator'] = {'ros__parameters': gyro_params}
-        report['gyro_bias_rad_s'] = float(gyro.bias.value)
-        report['gyro_bias_std_rad_s'] = float(gyro.bias.std)
-        report['gyro_scale_estimated'] = gyro.scale.excited
-        report['gyro_scale_error'] = float(gyro.scale.value) if gyro.scale.excited else 0.0
-        report['gyro_scale_error_std'] = float(gyro.scale.std) if gyro.scale.excited else 0.0
+        _gyro_section(gyro, lines, doc, report)
     doc['sensing_calibrate'] = {'ros__parameters': report}
     return '\n'.join(lines) + '\n' + yaml.safe_dump(doc, sort_keys=False)
 
@@ -173,33 +189,24 @@ def plot(result: cal.CalibrationResult, intervals: cal.Intervals, path: Path) ->
     plt.close(fig)
 
 
-def run(args: argparse.Namespace) -> int:
-    progress = None if args.quiet else stderr_progress(PROG)
-    data = read_sensor_bag(args.bag, joint_topic=args.joint_topic, scan_topic=args.scan_topic,
-                           imu_topic=args.imu_topic, want=('joints', 'scan', 'imu'),
-                           required=('joints', 'scan'), purpose='calibration needs both',
-                           progress=progress)
-    nominal_values = nominal_settings(args.nominal)
-    radius = args.wheel_radius or float(nominal_values.get('wheel_radius_m', 0.05))
-    separation = args.wheel_separation or float(nominal_values.get('wheel_separation_m', 0.30))
-    laser = args.laser or [float(nominal_values.get(k, 0.0)) for k in
+def _nominal(args: argparse.Namespace) -> tuple[cal.Geometry, float, dict]:
+    """The nominal geometry (command line over the --nominal parameter file over defaults),
+    the nominal wheel radius (m) and the file's values."""
+    values = nominal_settings(args.nominal)
+    radius = args.wheel_radius or float(values.get('wheel_radius_m', 0.05))
+    separation = args.wheel_separation or float(values.get('wheel_separation_m', 0.30))
+    laser = args.laser or [float(values.get(k, 0.0)) for k in
                            ('laser_x_m', 'laser_y_m', 'laser_yaw_rad')]
-    left_mult = (
-        1.0 if args.wheel_radius else float(nominal_values.get('left_radius_multiplier', 1.0))
-    )
-    right_mult = (
-        1.0 if args.wheel_radius else float(nominal_values.get('right_radius_multiplier', 1.0))
-    )
-    nominal = cal.Geometry(radius * left_mult, radius * right_mult, separation, *laser)
-    left, right = _wheel_columns(data.joint_names,
-                                 args.left_joint or nominal_values.get('left_wheel_joint', ''),
-                                 args.right_joint or nominal_values.get('right_wheel_joint', ''))
-    joints = data.joint_position[:, [left, right]]
-    if np.ptp(joints, axis=0).max() < 1e-6:
-        raise SensorBagError(f'{args.bag}: the wheels never turn: no motion to calibrate from')
+    # A radius given on the command line replaces the file's, multipliers included.
+    left_mult = 1.0 if args.wheel_radius else float(values.get('left_radius_multiplier', 1.0))
+    right_mult = 1.0 if args.wheel_radius else float(values.get('right_radius_multiplier', 1.0))
+    return cal.Geometry(radius * left_mult, radius * right_mult, separation, *laser), radius, \
+        values
+
+
+def _print_inputs(args, data, columns: tuple[int, int], nominal: cal.Geometry) -> None:
+    left, right = columns
     scans = data.scans
-    points = [scan_to_points(r, scans.angles, scans.range_min, scans.range_max)[0]
-              for r in scans.ranges]
     print(f'{args.bag}: {len(data.joint_t)} encoder samples ({data.joint_names[left]}, '
           f'{data.joint_names[right]}), {len(scans.t)} scans on {scans.topic}'
           + (f', {len(data.imu_t)} IMU samples on {data.imu_topic}' if data.imu_t is not None
@@ -207,42 +214,29 @@ def run(args: argparse.Namespace) -> int:
     print(f'nominal: radii {nominal.left_radius_m:.5f} / {nominal.right_radius_m:.5f} m, '
           f'separation {nominal.wheel_separation_m:.4f} m, laser ({nominal.laser_x_m:.3f}, '
           f'{nominal.laser_y_m:.3f}) m {math.degrees(nominal.laser_yaw_rad):.2f} deg')
-    options = cal.IntervalOptions(distance_m=args.interval_distance,
-                                  angle_rad=math.radians(args.interval_angle))
 
-    def match_progress(done: int, total: int) -> None:
-        if progress is not None and total:
-            progress(f'scan matching interval {done}/{total}')
 
-    intervals = cal.make_intervals(data.joint_t, joints, scans.t, points, nominal, options,
-                                   match_progress)
-    result = cal.calibrate(intervals, nominal)
-    gyro = None
-    if data.imu_t is not None:
-        try:
-            gyro = cal.calibrate_gyro(intervals, data.imu_t, data.imu_gyro[:, 2])
-        except cal.CalibrationError as exc:
-            print(f'gyro: not calibrated: {exc}')
+def _print_result(result: cal.CalibrationResult, nominal: cal.Geometry,
+                  gyro: cal.GyroCalibration | None) -> None:
     print(f'{result.intervals_used} intervals used ({result.outliers} outliers rejected; '
           f'matcher refused {sum(result.refused.values())}: {result.refused or "none"}); '
           f'{result.distance_m:.1f} m driven, {math.degrees(result.turned_rad):.0f} deg turned')
     if result.closed_form is not None:
         cf = result.closed_form
-        print(
-            f'closed form (Censi et al. 2013): radii {cf.left_radius_m:.6f} / '
-            f'{cf.right_radius_m:.6f} m, separation {cf.wheel_separation_m:.5f} m, laser '
-            f'({cf.laser_x_m:.4f}, {cf.laser_y_m:.4f}) m {math.degrees(cf.laser_yaw_rad):.3f} deg'
-        )
+        print(f'closed form (Censi et al. 2013): radii {cf.left_radius_m:.6f} / '
+              f'{cf.right_radius_m:.6f} m, separation {cf.wheel_separation_m:.5f} m, laser '
+              f'({cf.laser_x_m:.4f}, {cf.laser_y_m:.4f}) m '
+              f'{math.degrees(cf.laser_yaw_rad):.3f} deg')
     print('refined (nonlinear least squares):')
     for e, nom in zip(result.estimates, nominal.vector()):
-        if e.excited:
-            shown = (f'{math.degrees(e.value):.4f} +- {math.degrees(e.std):.4f} deg'
-                     if e.unit == 'rad' else f'{e.value:.6f} +- {e.std:.6f} m')
-            rel = f' ({100 * (e.value / nom - 1):+.3f} % vs nominal)' if e.name in (
-                'left_radius_m', 'right_radius_m', 'wheel_separation_m') else ''
-            print(f'  {e.name:<20} {shown}{rel}')
-        else:
+        if not e.excited:
             print(f'  {e.name:<20} NOT ESTIMATED: {e.note}')
+            continue
+        shown = (f'{math.degrees(e.value):.4f} +- {math.degrees(e.std):.4f} deg'
+                 if e.unit == 'rad' else f'{e.value:.6f} +- {e.std:.6f} m')
+        rel = f' ({100 * (e.value / nom - 1):+.3f} % vs nominal)' if e.name in (
+            'left_radius_m', 'right_radius_m', 'wheel_separation_m') else ''
+        print(f'  {e.name:<20} {shown}{rel}')
     print(f'  random wheel error seen in the residuals: {result.wheel_variance_per_m:.3g} m^2 per '
           'm of wheel travel (wheel_odometry wheel_variance_per_m)')
     for note in result.notes:
@@ -260,6 +254,42 @@ def run(args: argparse.Namespace) -> int:
               + (f'scale factor error {gyro.scale.value:+.5f} +- {gyro.scale.std:.5f}'
                  if gyro.scale.excited else f'scale NOT ESTIMATED: {gyro.scale.note}')
               + f' ({gyro.intervals} intervals)')
+
+
+def run(args: argparse.Namespace) -> int:
+    progress = None if args.quiet else stderr_progress(PROG)
+    data = read_sensor_bag(args.bag, joint_topic=args.joint_topic, scan_topic=args.scan_topic,
+                           imu_topic=args.imu_topic, want=('joints', 'scan', 'imu'),
+                           required=('joints', 'scan'), purpose='calibration needs both',
+                           progress=progress)
+    nominal, radius, nominal_values = _nominal(args)
+    columns = _wheel_columns(data.joint_names,
+                             args.left_joint or nominal_values.get('left_wheel_joint', ''),
+                             args.right_joint or nominal_values.get('right_wheel_joint', ''))
+    joints = data.joint_position[:, list(columns)]
+    if np.ptp(joints, axis=0).max() < 1e-6:
+        raise SensorBagError(f'{args.bag}: the wheels never turn: no motion to calibrate from')
+    scans = data.scans
+    points = [scan_to_points(r, scans.angles, scans.range_min, scans.range_max)[0]
+              for r in scans.ranges]
+    _print_inputs(args, data, columns, nominal)
+    options = cal.IntervalOptions(distance_m=args.interval_distance,
+                                  angle_rad=math.radians(args.interval_angle))
+
+    def match_progress(done: int, total: int) -> None:
+        if progress is not None and total:
+            progress(f'scan matching interval {done}/{total}')
+
+    intervals = cal.make_intervals(data.joint_t, joints, scans.t, points, nominal, options,
+                                   match_progress)
+    result = cal.calibrate(intervals, nominal)
+    gyro = None
+    if data.imu_t is not None:
+        try:
+            gyro = cal.calibrate_gyro(intervals, data.imu_t, data.imu_gyro[:, 2])
+        except cal.CalibrationError as exc:
+            print(f'gyro: not calibrated: {exc}')
+    _print_result(result, nominal, gyro)
     if not any(e.excited for e in result.estimates):
         raise SensorBagError('the motion in the bag excites none of the parameters')
     if args.out is not None:
