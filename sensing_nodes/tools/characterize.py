@@ -79,6 +79,86 @@ def _plot_allan(results: dict, rate: float, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def _imu_moving(data: SensorData, rate: float, duration: float, png_dir: Path | None,
+                spans: tuple[float, float]) -> None:
+    """A moving IMU: only upper bounds on N, from the shortest cluster time."""
+    print(f'  NOT STILL: 1 s gyro means span {spans[0]:.3f} rad/s, accelerometer means span '
+          f'{spans[1]:.2f} m/s^2 (still: <= {STILL_GYRO_RAD_S} rad/s, <= '
+          f'{STILL_ACCEL_M_S2} m/s^2).')
+    print('  The Allan deviation of a moving IMU measures the motion, not the sensor: B and K '
+          'cannot be read, nor N itself. What it can show: at the shortest cluster time the '
+          'motion changes little between samples, so adev(tau0) * sqrt(tau0) bounds N from '
+          'above (tight when the motion is slow against the sample rate):')
+    results = {}
+    for sensor, values, unit in (('gyro', data.imu_gyro, 'rad/s/sqrt(Hz)'),
+                                 ('accel', data.imu_accel, 'm/s^2/sqrt(Hz)')):
+        for i, axis in enumerate(AXES):
+            ad = ch.allan_deviation(values[:, i], rate, min_clusters=9)
+            bound = float(ad.adev[0] * math.sqrt(ad.tau[0]))
+            results[(sensor, axis)] = (ad, ch.NoiseTerms(None, None, None, ()), bound)
+            print(f'    {sensor} {axis}: N <= {bound:.3g} {unit}')
+    if png_dir is not None:
+        path = png_dir / 'imu_allan.png'
+        atomic_write(path, lambda p: _plot_allan(
+            results, rate, p, f'{Path(data.path).name}: {data.imu_topic}, {duration:.0f} s, '
+            'NOT STILL: the curves show the motion; only the N bounds are the sensor\'s'))
+        print(f'  wrote {path}')
+
+
+def _print_gyro_parameters(results: dict, rate: float) -> None:
+    """gyro_integrator's noise parameters from the still recording's Allan fits."""
+    gz = results[('gyro', 'z')][1]
+    ax_terms = [results[('accel', a)][1].n for a in AXES]
+    print('  gyro_integrator parameters (config/gyro_integrator.yaml units):')
+    if gz.n is not None:
+        print(f'    gyro_noise_density: {gz.n:.3g}          # rad/s/sqrt(Hz), N of gyro z')
+        print(f'    gyro_std_threshold_rad_s: {3.0 * gz.n * math.sqrt(rate):.3g}   '
+              '# 3x the per-sample std N*sqrt(rate)')
+    if gz.k is not None:
+        print(f'    bias_random_walk: {gz.k:.3g}            # rad/s/sqrt(s), K of gyro z')
+    else:
+        print('    bias_random_walk: not seen in this recording (keep the configured value)')
+    if all(v is not None for v in ax_terms):
+        print(f'    accel_std_threshold_m_s2: {3.0 * max(ax_terms) * math.sqrt(rate):.3g}   '
+              '# 3x the largest per-sample accelerometer std')
+
+
+def _imu_still(data: SensorData, rate: float, period: float, duration: float,
+               png_dir: Path | None) -> None:
+    """A still IMU: N, B and K per axis from the Allan deviation, and the node's parameters."""
+    t, dt = data.imu_t, np.diff(data.imu_t) * 1e-9
+    gaps = np.flatnonzero(dt > 5.0 * period)
+    if gaps.size:
+        raise SensorBagError(f'{data.imu_topic}: the still recording has {gaps.size} gap(s), the '
+                             f'first {dt[gaps[0]]:.3f} s long at {t[gaps[0]] * 1e-9:.3f} s; the '
+                             'Allan deviation needs one unbroken, evenly sampled recording')
+    irregular = float(np.std(dt) / period)
+    if irregular > 0.1:
+        print(f'  note: sample intervals vary by {100 * irregular:.0f} % (treated as even)')
+    results = {}
+    for sensor, values in (('gyro', data.imu_gyro), ('accel', data.imu_accel)):
+        for i, axis in enumerate(AXES):
+            ad = ch.allan_deviation(values[:, i], rate)
+            results[(sensor, axis)] = (ad, ch.fit_noise_terms(ad), None)
+
+    def show(v):
+        return f'{v:12.4g}' if v is not None else '    not seen'
+
+    print('  axis      N (/sqrt(Hz))   B            K (x sqrt(Hz))')
+    for (sensor, axis), (_, terms, _) in results.items():
+        print(f'  {sensor:5s} {axis}  {show(terms.n)}   {show(terms.b)}   {show(terms.k)}')
+    for (sensor, axis), (_, terms, _) in results.items():
+        for note in terms.notes:
+            print(f'  {sensor} {axis}: {note}')
+    _print_gyro_parameters(results, rate)
+    if png_dir is not None:
+        path = png_dir / 'imu_allan.png'
+        atomic_write(path, lambda p: _plot_allan(results, rate, p,
+                                                 f'{Path(data.path).name}: {data.imu_topic}, '
+                                                 f'{duration:.0f} s still'))
+        print(f'  wrote {path}')
+
+
 def characterize_imu(data: SensorData, png_dir: Path | None) -> bool:
     """Print the IMU's Allan figures; True when they could be computed."""
     t, gyro, accel = data.imu_t, data.imu_gyro, data.imu_accel
@@ -96,71 +176,10 @@ def characterize_imu(data: SensorData, png_dir: Path | None) -> bool:
     accel_means = accel[:usable].reshape(-1, window, 3).mean(axis=1)
     gyro_span = float(np.ptp(gyro_means, axis=0).max()) if gyro_means.shape[0] > 1 else 0.0
     accel_span = float(np.ptp(accel_means, axis=0).max()) if accel_means.shape[0] > 1 else 0.0
-    still = gyro_span <= STILL_GYRO_RAD_S and accel_span <= STILL_ACCEL_M_S2
-    if not still:
-        print(f'  NOT STILL: 1 s gyro means span {gyro_span:.3f} rad/s, accelerometer means span '
-              f'{accel_span:.2f} m/s^2 (still: <= {STILL_GYRO_RAD_S} rad/s, <= '
-              f'{STILL_ACCEL_M_S2} m/s^2).')
-        print('  The Allan deviation of a moving IMU measures the motion, not the sensor: B and K '
-              'cannot be read, nor N itself. What it can show: at the shortest cluster time the '
-              'motion changes little between samples, so adev(tau0) * sqrt(tau0) bounds N from '
-              'above (tight when the motion is slow against the sample rate):')
-        results = {}
-        for sensor, values, unit in (('gyro', gyro, 'rad/s/sqrt(Hz)'),
-                                     ('accel', accel, 'm/s^2/sqrt(Hz)')):
-            for i, axis in enumerate(AXES):
-                ad = ch.allan_deviation(values[:, i], rate, min_clusters=9)
-                bound = float(ad.adev[0] * math.sqrt(ad.tau[0]))
-                results[(sensor, axis)] = (ad, ch.NoiseTerms(None, None, None, ()), bound)
-                print(f'    {sensor} {axis}: N <= {bound:.3g} {unit}')
-        if png_dir is not None:
-            path = png_dir / 'imu_allan.png'
-            atomic_write(path, lambda p: _plot_allan(
-                results, rate, p, f'{Path(data.path).name}: {data.imu_topic}, {duration:.0f} s, '
-                'NOT STILL: the curves show the motion; only the N bounds are the sensor\'s'))
-            print(f'  wrote {path}')
-        return True
-    gaps = np.flatnonzero(dt > 5.0 * period)
-    if gaps.size:
-        raise SensorBagError(f'{data.imu_topic}: the still recording has {gaps.size} gap(s), the '
-                             f'first {dt[gaps[0]]:.3f} s long at {t[gaps[0]] * 1e-9:.3f} s; the '
-                             'Allan deviation needs one unbroken, evenly sampled recording')
-    irregular = float(np.std(dt) / period)
-    if irregular > 0.1:
-        print(f'  note: sample intervals vary by {100 * irregular:.0f} % (treated as even)')
-    results = {}
-    for sensor, values in (('gyro', gyro), ('accel', accel)):
-        for i, axis in enumerate(AXES):
-            ad = ch.allan_deviation(values[:, i], rate)
-            results[(sensor, axis)] = (ad, ch.fit_noise_terms(ad), None)
-    print('  axis      N (/sqrt(Hz))   B            K (x sqrt(Hz))')
-    for (sensor, axis), (_, terms, _) in results.items():
-        def show(v):
-            return f'{v:12.4g}' if v is not None else '    not seen'
-        print(f'  {sensor:5s} {axis}  {show(terms.n)}   {show(terms.b)}   {show(terms.k)}')
-    for (sensor, axis), (_, terms, _) in results.items():
-        for note in terms.notes:
-            print(f'  {sensor} {axis}: {note}')
-    gz = results[('gyro', 'z')][1]
-    ax_terms = [results[('accel', a)][1].n for a in AXES]
-    print('  gyro_integrator parameters (config/gyro_integrator.yaml units):')
-    if gz.n is not None:
-        print(f'    gyro_noise_density: {gz.n:.3g}          # rad/s/sqrt(Hz), N of gyro z')
-        print(f'    gyro_std_threshold_rad_s: {3.0 * gz.n * math.sqrt(rate):.3g}   '
-              '# 3x the per-sample std N*sqrt(rate)')
-    if gz.k is not None:
-        print(f'    bias_random_walk: {gz.k:.3g}            # rad/s/sqrt(s), K of gyro z')
+    if gyro_span <= STILL_GYRO_RAD_S and accel_span <= STILL_ACCEL_M_S2:
+        _imu_still(data, rate, period, duration, png_dir)
     else:
-        print('    bias_random_walk: not seen in this recording (keep the configured value)')
-    if all(v is not None for v in ax_terms):
-        print(f'    accel_std_threshold_m_s2: {3.0 * max(ax_terms) * math.sqrt(rate):.3g}   '
-              '# 3x the largest per-sample accelerometer std')
-    if png_dir is not None:
-        path = png_dir / 'imu_allan.png'
-        atomic_write(path, lambda p: _plot_allan(results, rate, p,
-                                                 f'{Path(data.path).name}: {data.imu_topic}, '
-                                                 f'{duration:.0f} s still'))
-        print(f'  wrote {path}')
+        _imu_moving(data, rate, duration, png_dir, (gyro_span, accel_span))
     return True
 
 
@@ -205,40 +224,69 @@ def _line_residuals(data: SensorData, every: int):
     return np.concatenate(measured), np.concatenate(fitted)
 
 
-def characterize_lidar(data: SensorData, png_dir: Path | None, world_file: Path, laser,
-                       every: int) -> bool:
-    scans = data.scans
-    span = scans.range_max - scans.range_min
-    print(f'LiDAR {scans.topic}: {len(scans.t)} scans x {scans.angles.size} beams, '
-          f'{scans.range_min:g}-{scans.range_max:g} m')
-    use_truth = data.truth_t is not None
-    if use_truth:
+def _range_reference(data: SensorData, world_file: Path, laser, every: int):
+    """(measured, reference ranges, what the reference is, whether it is the truth): the
+    ray-cast truth when the bag has ground truth in this world, else the fitted lines."""
+    if data.truth_t is not None:
         measured, true = _truth_ranges(data, world_file, laser, every)
-        reference = f'ray-cast truth ({world_file.name}, laser at {tuple(laser)})'
         both = np.isfinite(measured) & np.isfinite(true)
         with np.errstate(invalid='ignore'):
             agree = float(np.mean(np.abs(measured[both] - true[both]) <= 0.2)) if both.any() \
                 else 0.0
-        if agree < MIN_WORLD_AGREEMENT:
-            # /ground_truth/odom of a converted log (CARMEN's corrected poses) is not in the
-            # world file's map: the ray cast would compare with the wrong walls.
-            print(f'  the bag has {data.truth_t.size} ground-truth poses, but only '
-                  f'{100 * agree:.0f} % of the beams agree with {world_file.name} within 0.2 m: '
-                  'not its world (give --world); using the fitted lines instead')
-            use_truth = False
-    if not use_truth:
-        measured, true = _line_residuals(data, every)
-        reference = 'lines fitted by line_extractor (core/lines.py)'
+        if agree >= MIN_WORLD_AGREEMENT:
+            return measured, true, \
+                f'ray-cast truth ({world_file.name}, laser at {tuple(laser)})', True
+        # /ground_truth/odom of a converted log (CARMEN's corrected poses) is not in the
+        # world file's map: the ray cast would compare with the wrong walls.
+        print(f'  the bag has {data.truth_t.size} ground-truth poses, but only '
+              f'{100 * agree:.0f} % of the beams agree with {world_file.name} within 0.2 m: '
+              'not its world (give --world); using the fitted lines instead')
+    measured, fitted = _line_residuals(data, every)
+    return measured, fitted, 'lines fitted by line_extractor (core/lines.py)', False
+
+
+def _plot_range_residuals(path: Path, topic: str, measured, reference, errors,
+                          reference_name: str) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    finite = np.isfinite(measured) & np.isfinite(reference)
+    res = measured[finite] - reference[finite]
+    res = res[np.abs(res) <= 0.2]
+    fig, ax = plt.subplots(figsize=(8, 5))
+    ax.hist(res * 1000.0, bins=120, color='tab:blue')
+    ax.axvline((errors.bias_m or 0.0) * 1000.0, color='tab:red',
+               label=(f'bias {1000 * errors.bias_m:+.2f} mm' if errors.bias_m is not None
+                      else 'bias not measurable'))
+    ax.set_xlabel('measured - reference range (mm)')
+    ax.set_ylabel('beams')
+    ax.set_title(f'{topic} range residuals against the {reference_name.split(" (")[0]}: '
+                 f'σ = {1000 * errors.sigma_m:.2f} mm')
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def characterize_lidar(data: SensorData, png_dir: Path | None, world_file: Path, laser,
+                       every: int) -> bool:
+    """Print the LiDAR's range noise (and bias, against a ray-cast truth); True when done."""
+    scans = data.scans
+    span = scans.range_max - scans.range_min
+    print(f'LiDAR {scans.topic}: {len(scans.t)} scans x {scans.angles.size} beams, '
+          f'{scans.range_min:g}-{scans.range_max:g} m')
+    measured, reference, name, truth = _range_reference(data, world_file, laser, every)
     try:
-        errors = ch.range_errors(measured, true, span)
+        errors = ch.range_errors(measured, reference, span)
     except ValueError as exc:
         print(f'  no range statistics: {exc}')
         return False
-    if not use_truth:
+    if not truth:
         # The lines were fitted to these very ranges: they absorb any bias, and each line's two
         # parameters take a little of the scatter.
         errors = ch.RangeErrors(None, errors.sigma_m, None, errors.precision, errors.beams)
-    print(f'  against the {reference}, {errors.beams} beams:')
+    print(f'  against the {name}, {errors.beams} beams:')
     if errors.bias_m is not None:
         print(f'    range bias {1000 * errors.bias_m:+.2f} mm, noise sigma '
               f'{1000 * errors.sigma_m:.2f} mm, accuracy 1-|m-v|/v = {errors.accuracy:.5f}, '
@@ -248,31 +296,9 @@ def characterize_lidar(data: SensorData, png_dir: Path | None, world_file: Path,
               f'{errors.precision:.0f}; range bias and accuracy NOT MEASURABLE without ground '
               'truth (the lines absorb a bias)')
     if png_dir is not None:
-        finite = np.isfinite(measured) & np.isfinite(true)
-        res = measured[finite] - true[finite]
-        res = res[np.abs(res) <= 0.2]
-
-        def plot(path: Path) -> None:
-            import matplotlib
-            matplotlib.use('Agg')
-            import matplotlib.pyplot as plt
-
-            fig, ax = plt.subplots(figsize=(8, 5))
-            ax.hist(res * 1000.0, bins=120, color='tab:blue')
-            ax.axvline((errors.bias_m or 0.0) * 1000.0, color='tab:red',
-                       label=(f'bias {1000 * errors.bias_m:+.2f} mm' if errors.bias_m is not None
-                              else 'bias not measurable'))
-            ax.set_xlabel('measured - reference range (mm)')
-            ax.set_ylabel('beams')
-            ax.set_title(f'{scans.topic} range residuals against the {reference.split(" (")[0]}: '
-                         f'σ = {1000 * errors.sigma_m:.2f} mm')
-            ax.legend()
-            fig.tight_layout()
-            fig.savefig(path, dpi=100)
-            plt.close(fig)
-
         path = png_dir / 'lidar_ranges.png'
-        atomic_write(path, plot)
+        atomic_write(path, lambda p: _plot_range_residuals(p, scans.topic, measured, reference,
+                                                           errors, name))
         print(f'  wrote {path}')
     return True
 
