@@ -26,6 +26,8 @@ EXECUTABLES = {
     'sensing_soak': 'sensing_nodes.tools.soak:main',
     'sensing_calibrate': 'sensing_nodes.tools.calibrate:main',
     'sensing_characterize': 'sensing_nodes.tools.characterize:main',
+    'sensing_fuse_bag': 'sensing_nodes.tools.fuse_bag:main',
+    'sensing_fusion_eval': 'sensing_nodes.tools.fusion_eval:main',
 }
 
 def bag_files():

@@ -3,9 +3,8 @@ package's own wheel odometry, gyro integrator and keyframe scan matcher over cor
 sensors, then the EKF as config/complementary_fusion.yaml sets it; no DDS).
 
 Figures over all 8 seeds of both configurations are in docs/fusion.md (measured with
-`python -m sensing_nodes.core.evaluation.fusion`); these tests pin what holds: the strong_errors
-route
-on 8 seeds and the default route on seed 0.
+`sensing_fusion_eval`); these tests pin what holds: the strong_errors route on 8 seeds and the
+default route on seed 0.
 """
 
 import numpy as np

@@ -8,14 +8,16 @@ import pytest
 from sensing_nodes.core.fusion.complementary import (
     ComplementaryFusion,
     FusionSettings,
-    StampOrderedBuffer,
     auto_alpha,
     complementary_heading,
-    compounded_increment_covariance,
     fuse_information,
-    increment_covariance,
     inverse_variance,
 )
+from sensing_nodes.core.fusion.increments import (
+    compounded_increment_covariance,
+    increment_covariance,
+)
+from sensing_nodes.core.fusion.timeline import StampOrderedBuffer
 from sensing_nodes.core.geometry import se2
 
 
@@ -156,7 +158,7 @@ def test_an_input_that_sent_nothing_does_not_claim_the_robot_stood_still():
 def test_covariance_problem_judges_the_eigenvalues_not_the_path(eigenvalues, verdict):
     """The plain-float positive-definite test (_plainly_positive_definite) and the
     eigendecomposition give one verdict: a rotated diagonal, eigenvalues known exactly enough."""
-    from sensing_nodes.core.fusion.complementary import (
+    from sensing_nodes.core.fusion.validation import (
         _plainly_positive_definite,
         covariance_problem,
     )

@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import Imu
 
-from sensing_nodes.core.fusion.complementary import InputRecord
-from sensing_nodes.core.fusion.ekf import EkfFusion, EkfSettings, input_config
+from sensing_nodes.core.fusion.ekf import EkfFusion, EkfSettings
+from sensing_nodes.core.fusion.inputs import IMU, SCAN, WHEEL, input_config
+from sensing_nodes.core.fusion.timeline import InputRecord
 from sensing_nodes.ros.conversions import (
     keyframe_frame_id,
     make_odometry,
     ns_to_stamp,
 )
-from sensing_nodes.ros.fusion_readings import IMU, SCAN, WHEEL, ReadingConverter
+from sensing_nodes.ros.fusion_readings import ReadingConverter
 
 S = 1_000_000_000
 T0 = 100 * S

@@ -5,16 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from sensing_nodes.core.fusion.ekf import (
-    EkfFusion,
-    EkfSettings,
+from sensing_nodes.core.fusion.ekf import EkfFusion, EkfSettings, adjoint, relative_jacobian
+from sensing_nodes.core.fusion.inputs import (
     InputConfig,
     NoiseModel,
     Reading,
-    adjoint,
     input_config,
     mask_from_names,
-    relative_jacobian,
 )
 from sensing_nodes.core.geometry import se2
 

@@ -20,9 +20,9 @@ UPSIDE_DOWN = DATASETS / 'imu_tools-phidgets_imu_upside_down.bag'
 @pytest.mark.skipif(not TEST2.is_file(), reason=f'{TEST2} not present')
 def test_test2_bag_ends_where_robot_localization_expects():
     """robot_localization's EKF test expects (1.0206, 3.4292) within 0.1383 m."""
-    from sensing_nodes.tools.fuse_bag import fuse_bag, load_params
+    from sensing_nodes.tools.fuse_bag import fuse_bag
 
-    result = fuse_bag(TEST2, load_params(config_file('fusion_jackal_test2.yaml')))
+    result = fuse_bag(TEST2, [config_file('fusion_jackal_test2.yaml')])
     x, y, _ = result['final_pose']
     assert result['rejected'] == {} and result['received'] == {'wheel_odom': 3060, 'imu': 3061}
     assert math.hypot(x - 1.0206, y - 3.4292) <= 0.1383

@@ -17,9 +17,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core.fusion.complementary import InputRecord, covariance_problem, pose_problem
-from sensing_nodes.core.fusion.ekf import InputConfig, Reading
-from sensing_nodes.core.geometry.imu_mount import base_orientation, to_base
+from sensing_nodes.core.fusion.config import SessionConfig
+from sensing_nodes.core.fusion.inputs import IMU, SCAN, InputConfig, Reading
+from sensing_nodes.core.fusion.timeline import InputRecord
+from sensing_nodes.core.fusion.validation import covariance_problem, pose_problem
+from sensing_nodes.core.geometry.imu_mount import base_orientation, mount_rotation, to_base
 from sensing_nodes.ros.conversions import (
     NO_KEYFRAME,
     keyframe_stamp,
@@ -28,9 +30,6 @@ from sensing_nodes.ros.conversions import (
     quaternion_to_yaw,
     stamp_to_ns,
 )
-
-WHEEL, IMU, SCAN = 'wheel_odom', 'imu', 'scan_match'
-IMU_SOURCES = ('integrated', 'orientation', 'rate')
 
 
 def _yaw_only(variance: float) -> NDArray[np.float64]:
@@ -64,6 +63,13 @@ class ReadingConverter:
     tilt: NDArray[np.float64] = field(default_factory=lambda: np.eye(3))
     _identity_mount: bool | None = field(default=None, init=False, repr=False)
     _delay_ns: dict[str, int] = field(default_factory=dict, init=False, repr=False)
+
+    @classmethod
+    def for_config(cls, config: SessionConfig) -> ReadingConverter:
+        """The converter of a fusion configuration (its method, EKF inputs, IMU source and
+        mount parameters)."""
+        return cls(config.method, config.input_map, config.imu_source,
+                   mount_rotation(*config.imu_mount_rpy), config.level_with_imu_tilt)
 
     def __post_init__(self) -> None:
         self._delay_ns = {name: round(cfg.delay_s * 1e9) for name, cfg in self.configs.items()

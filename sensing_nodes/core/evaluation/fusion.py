@@ -7,46 +7,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
 from sensing_nodes.core.evaluation.metrics import express_in_reference_frame, interpolate_poses
-from sensing_nodes.core.fusion.complementary import ComplementaryFusion, FusionSettings
-from sensing_nodes.core.fusion.ekf import (
-    INPUT_DEFAULTS,
-    EkfFusion,
-    EkfSettings,
-    InputConfig,
-    Reading,
-    input_config,
-)
+from sensing_nodes.core.fusion.config import SessionConfig, default_config
+from sensing_nodes.core.fusion.ekf import EkfFusion
+from sensing_nodes.core.fusion.filter import FusedState
+from sensing_nodes.core.fusion.inputs import IMU, RANK, SCAN, WHEEL, Reading
+from sensing_nodes.core.fusion.session import FusionSession
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.sim.inputs import FusionInputs
-from sensing_nodes.paths import config_file
-
-WHEEL, GYRO, SCAN = 0, 1, 2   # processing rank at equal stamps (as the node)
-
-
-def inputs_from_params(params: dict) -> tuple[InputConfig, ...]:
-    """The EKF inputs a complementary_fusion parameter dict (as in its YAML file) configures,
-    the IMU as gyro_integrator's heading unless imu.source says otherwise."""
-    use = {'wheel_odom': params.get('use_wheel_odom', True), 'imu': params.get('use_imu', True),
-           'scan_match': params.get('use_scan_match_position', True)
-           or params.get('use_scan_match_heading', True)}
-    max_gap_s = float(params.get('max_gap_s', 2.0))
-    return tuple(
-        input_config(name, {k: v for k, v in params.get(name, {}).items()
-                            if k in INPUT_DEFAULTS[name]},
-                     keyframes=name == 'scan_match', max_gap_s=max_gap_s,
-                     gyro_bias=name == 'imu' and params.get('imu', {}).get('source') == 'rate')
-        for name in ('wheel_odom', 'imu', 'scan_match') if use[name])
-
-
-def default_inputs() -> tuple[InputConfig, ...]:
-    """The EKF inputs of config/complementary_fusion.yaml."""
-    with open(config_file('complementary_fusion.yaml')) as f:
-        params = yaml.safe_load(f)['complementary_fusion']['ros__parameters']
-    return inputs_from_params(params)
 
 
 @dataclass(frozen=True)
@@ -62,75 +32,97 @@ class FusedTrack:
     heading_step_variance: NDArray[np.float64] | None = None
 
 
-def _events(inputs: FusionInputs) -> list[tuple[int, int, int]]:
-    return sorted([(int(t), WHEEL, i) for i, t in enumerate(inputs.wheel_t)]
-                  + [(int(t), GYRO, i) for i, t in enumerate(inputs.gyro_t)]
-                  + [(int(t), SCAN, i) for i, t in enumerate(inputs.scan_t)])
+def _yaw_only(variance: float) -> NDArray[np.float64]:
+    out = np.zeros((3, 3))
+    out[2, 2] = variance
+    return out
 
 
-def run_ekf(inputs: FusionInputs, configs: tuple[InputConfig, ...] | None = None,
-            settings: EkfSettings | None = None) -> FusedTrack:
-    """The EKF over every stream in stamp order; output at each wheel and scan stamp."""
-    ekf = EkfFusion(configs or default_inputs(), settings)
-    ekf.follow_heading_steps()
-    names = {cfg.name for cfg in ekf.inputs.values()}
-    out_t, out_p, out_c, out_step = [], [], [], []
-    for stamp, kind, i in _events(inputs):
-        if kind == WHEEL and 'wheel_odom' in names:
-            ekf.update('wheel_odom', Reading(
-                stamp, tuple(inputs.wheel_pose[i]), inputs.wheel_cov[i],
-                tuple(inputs.wheel_twist[i]), None))
-        elif kind == GYRO and 'imu' in names:
-            cfg = ekf.inputs['imu']
-            rate = inputs.raw_rate[i] if cfg.gyro_bias else inputs.gyro_rate[i]
-            var = np.zeros((3, 3))
-            var[2, 2] = inputs.gyro_yaw_var[i]
-            ekf.update('imu', Reading(
-                stamp, (0.0, 0.0, float(inputs.gyro_yaw[i])), var, (0.0, 0.0, float(rate)),
-                None))
-            continue
-        elif kind == SCAN and 'scan_match' in names:
-            kf = int(inputs.scan_keyframe_t[i])
-            ekf.update('scan_match', Reading(
-                stamp, tuple(inputs.scan_relative[i]) if kf >= 0 else None,
-                inputs.scan_relative_cov[i], keyframe_ns=kf if kf >= 0 else None,
-                new_keyframe=bool(inputs.scan_new_keyframe[i])))
-        else:
-            continue
-        state = ekf.state
-        out_t.append(stamp)
-        out_p.append(state.pose)
-        out_c.append(state.covariance)
-        step_variance = ekf.heading_step_variance()    # and the next step starts here
-        out_step.append(step_variance if len(out_t) > 1 else math.nan)
-    return FusedTrack(np.array(out_t, dtype=np.int64), np.array(out_p), np.array(out_c),
-                      sum(ekf.gated.values()), np.array(out_step))
-
-
-def run_complementary(inputs: FusionInputs, settings: FusionSettings | None = None
-                      ) -> FusedTrack:
-    """The seed's complementary filter over the streams (as the node feeds it)."""
-    fusion = ComplementaryFusion(settings or FusionSettings(max_gap_s=2.0))
-    out_t, out_p, out_c = [], [], []
+def input_readings(inputs: FusionInputs, config: SessionConfig) -> list[tuple[str, Reading]]:
+    """The simulated streams as the fusion's readings of its enabled inputs, in stamp order
+    (ties: wheel, IMU, scan match), as the node reads the messages: wheel odometry poses, the
+    gyro's integrated heading with its rate (the raw rate where the EKF estimates the bias),
+    and scan matches keyframe-relative (EKF) or cumulative with the increment covariance
+    (complementary filter)."""
+    imu = config.input_map.get(IMU)
+    raw_rate = imu is not None and imu.gyro_bias
+    events = []
+    if config.enabled[WHEEL]:
+        events += [(int(t), RANK[WHEEL], i, WHEEL) for i, t in enumerate(inputs.wheel_t)]
+    if config.enabled[IMU]:
+        events += [(int(t), RANK[IMU], i, IMU) for i, t in enumerate(inputs.gyro_t)]
+    if config.enabled[SCAN]:
+        events += [(int(t), RANK[SCAN], i, SCAN) for i, t in enumerate(inputs.scan_t)]
+    readings = []
     previous_scan = None
-    for stamp, kind, i in _events(inputs):
-        if kind == WHEEL:
-            fusion.add_wheel(stamp, tuple(inputs.wheel_pose[i]), inputs.wheel_cov[i])
-        elif kind == GYRO:
-            fusion.add_gyro(stamp, float(inputs.gyro_yaw[i]), float(inputs.gyro_yaw_var[i]))
-            continue
+    for stamp, _, i, name in sorted(events):
+        if name == WHEEL:
+            reading = Reading(stamp, tuple(inputs.wheel_pose[i]), inputs.wheel_cov[i],
+                              tuple(inputs.wheel_twist[i]), None)
+        elif name == IMU:
+            rate = inputs.raw_rate[i] if raw_rate else inputs.gyro_rate[i]
+            reading = Reading(stamp, (0.0, 0.0, float(inputs.gyro_yaw[i])),
+                              _yaw_only(inputs.gyro_yaw_var[i]), (0.0, 0.0, float(rate)), None)
+        elif config.method == 'ekf':
+            kf = int(inputs.scan_keyframe_t[i])
+            reading = Reading(stamp, tuple(inputs.scan_relative[i]) if kf >= 0 else None,
+                              inputs.scan_relative_cov[i], keyframe_ns=kf if kf >= 0 else None,
+                              new_keyframe=bool(inputs.scan_new_keyframe[i]))
         else:
             # The node's increment covariance from the matcher's twist covariance: for a match,
             # the relative covariance against its keyframe.
-            inc = inputs.scan_relative_cov[i] if inputs.scan_keyframe_t[i] >= 0 else None
-            fusion.add_scan_match(stamp, tuple(inputs.scan_pose[i]), inputs.scan_cov[i],
-                                  inc if previous_scan is not None else None)
+            increment = inputs.scan_relative_cov[i] \
+                if inputs.scan_keyframe_t[i] >= 0 and previous_scan is not None else None
+            reading = Reading(stamp, tuple(inputs.scan_pose[i]), inputs.scan_cov[i],
+                              twist_covariance=increment)
             previous_scan = stamp
-        state = fusion.state
+        readings.append((name, reading))
+    return readings
+
+
+def run_session(config: SessionConfig, readings, follow_heading_steps: bool = False
+                ) -> FusedTrack:
+    """The fusion session (as the node runs it) over (input name, Reading) pairs in arrival
+    order, flushed at the end: every output. follow_heading_steps (EKF): with the variance of
+    each output's heading step (FusedTrack.heading_step_variance)."""
+    steps: list[float] = []
+    out_t, out_p, out_c = [], [], []
+
+    def on_output(stamp: int, state: FusedState) -> None:
         out_t.append(stamp)
         out_p.append(state.pose)
         out_c.append(state.covariance)
-    return FusedTrack(np.array(out_t, dtype=np.int64), np.array(out_p), np.array(out_c), 0)
+        if follow_heading_steps:
+            variance = session.fusion.heading_step_variance()   # and the next step starts here
+            steps.append(variance if len(out_t) > 1 else math.nan)
+
+    session = FusionSession(config, on_output=on_output)
+    if follow_heading_steps:
+        assert isinstance(session.fusion, EkfFusion), 'heading steps: the EKF only'
+        session.fusion.follow_heading_steps()
+    for name, reading in readings:
+        session.feed(name, reading)
+    session.flush()
+    return FusedTrack(np.array(out_t, dtype=np.int64), np.array(out_p), np.array(out_c),
+                      sum(session.fusion.gated.values()),
+                      np.array(steps) if follow_heading_steps else None)
+
+
+def run_ekf(inputs: FusionInputs, config: SessionConfig | None = None) -> FusedTrack:
+    """The EKF over every stream, as config (default: config/complementary_fusion.yaml) sets
+    it; output at each wheel and scan stamp, with the heading steps' variances."""
+    config = config or default_config()
+    assert config.method == 'ekf', config.method
+    return run_session(config, input_readings(inputs, config), follow_heading_steps=True)
+
+
+def run_complementary(inputs: FusionInputs, config: SessionConfig | None = None
+                      ) -> FusedTrack:
+    """The seed's complementary filter over the streams, as the node runs it with
+    `method: complementary` (default: config/complementary_fusion.yaml with that method)."""
+    config = config or default_config(overrides={'method': 'complementary'})
+    assert config.method == 'complementary', config.method
+    return run_session(config, input_readings(inputs, config))
 
 
 def track_errors(truth_t, truth_pose, t, poses, covariances=None,
@@ -263,84 +255,3 @@ def stop_corrections(truth_t, truth_pose, t, yaw, bias, bias_variance, still,
                     'bias_std_before_rad_s': float(math.sqrt(bias_variance[before])),
                     'bias_std_after_rad_s': float(math.sqrt(bias_variance[last]))})
     return out
-
-
-def _rounded(figures: dict[str, float]) -> dict[str, float]:
-    return {k: round(v, 4) if abs(v) >= 1e-3 else float(f'{v:.2e}') for k, v in figures.items()}
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Table of fused (EKF and complementary) and per-input errors over seeds of the default
-    route and of the strong_errors configuration (docs/fusion.md's figures)."""
-    import argparse
-    import json
-
-    from sensing_nodes.core.sim.inputs import simulated_inputs
-    from sensing_nodes.core.sim.simulator import load_params_file, params_from_dict
-
-    parser = argparse.ArgumentParser(description=main.__doc__)
-    parser.add_argument('--seeds', type=int, default=8)
-    parser.add_argument('--configs', default='default,strong_errors')
-    parser.add_argument('--json', help='write every figure here')
-    parser.add_argument('--inputs', action='store_true',
-                        help="also print how the gyro's heading increments and the scan "
-                             "matches meet the noise models the filter gives them")
-    args = parser.parse_args(argv)
-    rows = []
-    run_configs = default_inputs()
-    for name in args.configs.split(','):
-        params = None if name == 'default' else params_from_dict(
-            load_params_file(config_file(f'bags_{name}.yaml')))
-        for seed in range(args.seeds):
-            inputs = simulated_inputs(seed, params)
-            track = run_ekf(inputs)
-            comp = run_complementary(inputs)
-            row = {'config': name, 'seed': seed, **input_errors(inputs),
-                   'ekf': track_errors(inputs.truth_t, inputs.truth_pose, track.t, track.pose,
-                                       track.covariance, track.heading_step_variance),
-                   'complementary': track_errors(inputs.truth_t, inputs.truth_pose, comp.t,
-                                                 comp.pose, comp.covariance),
-                   'gated': track.gated}
-            rows.append(row)
-            e, c = row['ekf'], row['complementary']
-            print(f"{name} seed {seed}: RMS position ekf {e['rms_position_m']:.4f} "
-                  f"complementary {c['rms_position_m']:.4f} wheel "
-                  f"{row['wheel']['rms_position_m']:.4f} scan {row['scan']['rms_position_m']:.4f}"
-                  f" | RMS heading ekf {e['rms_heading_deg']:.4f} complementary "
-                  f"{c['rms_heading_deg']:.4f} gyro {row['gyro']['rms_heading_deg']:.4f} scan "
-                  f"{row['scan']['rms_heading_deg']:.4f} wheel "
-                  f"{row['wheel']['rms_heading_deg']:.4f} | within 3 / beyond 1: position "
-                  f"{e['position_within_3']:.3f} / {e['position_beyond_1']:.3f}, heading "
-                  f"{e['heading_within_3']:.3f} / {e['heading_beyond_1']:.3f} | heading steps "
-                  f"beyond 3 sigma {100 * e['chatter_beyond_3']:.3f} %, largest "
-                  f"{e['chatter_max_sigma']:.1f} sigma", flush=True)
-            if args.inputs:
-                imu = next(c for c in run_configs if c.name == 'imu')
-                # As the filter reads them: delay-compensated (InputConfig.heading_delay_s).
-                row['gyro_increments'] = heading_increment_consistency(
-                    inputs.truth_t, inputs.truth_pose, inputs.gyro_t,
-                    inputs.gyro_yaw + inputs.gyro_rate * imu.heading_delay_s,
-                    imu.noise.yaw_variance_per_s)
-                row['scan_matches'] = keyframe_match_consistency(
-                    inputs.truth_t, inputs.truth_pose, inputs.scan_keyframe_t, inputs.scan_t,
-                    inputs.scan_relative, inputs.scan_relative_cov)
-                row['stop_corrections'] = stop_corrections(
-                    inputs.truth_t, inputs.truth_pose, inputs.gyro_t, inputs.gyro_yaw,
-                    inputs.gyro_bias, inputs.gyro_bias_var, inputs.gyro_still)
-                print('  gyro 0.1 s increments:', _rounded(row['gyro_increments']),
-                      '| scan matches:', _rounded(row['scan_matches']), flush=True)
-                for stop in row['stop_corrections']:
-                    print(f"  integrator at the stop {stop['start_s']:.1f}-{stop['end_s']:.1f} s:"
-                          f" heading error {stop['heading_error_before_deg']:+.3f} -> "
-                          f"{stop['heading_error_after_deg']:+.3f} deg, bias "
-                          f"{stop['bias_change_rad_s']:+.1e} rad/s (std "
-                          f"{stop['bias_std_before_rad_s']:.1e} -> "
-                          f"{stop['bias_std_after_rad_s']:.1e})", flush=True)
-    if args.json:
-        with open(args.json, 'w') as f:
-            json.dump(rows, f, indent=1)
-    return 0
-
-
-if __name__ == '__main__':
-    raise SystemExit(main())

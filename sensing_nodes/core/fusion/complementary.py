@@ -1,4 +1,5 @@
-"""Complementary fusion of fast-but-drifting dead reckoning with slow-but-absolute scan matching.
+"""Complementary fusion of fast-but-drifting dead reckoning with slow-but-absolute scan matching
+(the lesson's filter, `method: complementary`), and its worked-number helpers.
 
 All poses are planar (x, y, yaw) in metres and radians; covariances are 3x3 over (x, y, yaw).
 The fused pose lives in its own `odom` frame, which starts where the first input starts.
@@ -6,13 +7,15 @@ The fused pose lives in its own `odom` frame, which starts where the first input
 
 from __future__ import annotations
 
-import bisect
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from sensing_nodes.core.fusion.filter import FusedState
+from sensing_nodes.core.fusion.increments import increment_covariance
+from sensing_nodes.core.fusion.inputs import IMU, SCAN, WHEEL, Reading
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.geometry.se2 import Pose2
 
@@ -57,44 +60,6 @@ def complementary_heading(
 def auto_alpha(var_predicted: float, var_absolute: float) -> float:
     """The α that weights prediction and absolute heading by inverse variance."""
     return var_absolute / (var_predicted + var_absolute)
-
-
-def _added_covariance(
-    pose_prev: Pose2, cov_prev: NDArray[np.float64], pose_now: Pose2, cov_now: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """cov_now minus cov_prev compounded to pose_now, in the increment's frame (unclipped)."""
-    increment = se2.between(pose_prev, pose_now)
-    j_a, j_b = se2.compose_jacobians(pose_prev, increment)
-    added = cov_now - j_a @ cov_prev @ j_a.T
-    j_b_inv = j_b.T  # j_b is a rotation about z
-    q = j_b_inv @ added @ j_b_inv.T
-    return 0.5 * (q + q.T)
-
-
-def increment_covariance(
-    pose_prev: Pose2, cov_prev: NDArray[np.float64], pose_now: Pose2, cov_now: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Covariance of the body-frame increment between two cumulative odometry poses, recovered
-    from their covariances under first-order compounding (cov_now = Ja·cov_prev·Jaᵀ + Jb·Q·Jbᵀ).
-    Negative parts (a source that does not propagate this way) are clipped to zero."""
-    values, vectors = np.linalg.eigh(_added_covariance(pose_prev, cov_prev, pose_now, cov_now))
-    return (vectors * np.clip(values, 0.0, None)) @ vectors.T
-
-
-def compounded_increment_covariance(
-    pose_prev: Pose2, cov_prev: NDArray[np.float64], pose_now: Pose2, cov_now: NDArray[np.float64],
-    tolerance: float = 0.1,
-) -> NDArray[np.float64] | None:
-    """increment_covariance, or None when the source's covariance does not grow by compounding:
-    the negative part the clip would remove exceeds `tolerance` times the positive part kept.
-    A covariance that grows with distance alone (carmen_to_bag's) is such a source: the clip
-    leaves directions of zero variance, which a filter would take as exact."""
-    values, vectors = np.linalg.eigh(_added_covariance(pose_prev, cov_prev, pose_now, cov_now))
-    # Three eigenvalues: plain floats (summed in numpy's order) cost less than numpy's calls.
-    listed = values.tolist()
-    if -sum(v for v in listed if v < 0.0) > tolerance * sum(v for v in listed if v > 0.0):
-        return None
-    return (vectors * np.maximum(values, 0.0)) @ vectors.T
 
 
 @dataclass
@@ -247,6 +212,16 @@ class ComplementaryFusion:
         self._wheel_steps = self._gyro_steps = 0
         self.updates += 1
 
+    def restart(self, name: str) -> None:
+        """Input `name` (wheel_odom, imu, scan_match) starts again from its next message: no
+        increment spans the restart, and the scan matcher's frame is tied to ours again."""
+        if name == WHEEL:
+            self._wheel.stamp_ns = None
+        elif name == IMU:
+            self._gyro_stamp = None
+        elif name == SCAN:
+            self._scan_offset = None
+
     def _restarted(self, stamp_ns: int, pose: Pose2, predicted: Pose2) -> bool:
         """After a silence longer than max_gap_s, did the matcher start over in a new frame?
         Judged by whether its motion over the silence disagrees with dead reckoning's."""
@@ -324,193 +299,13 @@ class ComplementaryFusion:
         return fused, fused_cov
 
 
-class StampOrderedBuffer:
-    """Releases items in stamp order once they are `window_ns` older than the newest stamp seen
-    (or once every live input is past them), so the order of processing depends on stamps only,
-    not on arrival timing.
-
-    Ties are broken by `rank` (an input's fixed priority), then by arrival. An item whose stamp is
-    older than what was already released is late: refused (push returns False) and counted.
-    """
-
-    def __init__(self, window_ns: int) -> None:
-        self.window_ns = int(window_ns)
-        self.clear()
-        self.late = 0
-
-    def clear(self) -> None:
-        self._items: list[tuple[int, int, int, object]] = []
-        self._arrivals = 0
-        self.newest_ns: int | None = None
-        self.released_ns: int | None = None
-
-    def push(self, stamp_ns: int, rank: int, item: object) -> bool:
-        if self.released_ns is not None and stamp_ns < self.released_ns:
-            self.late += 1
-            return False
-        self._arrivals += 1
-        # Kept sorted (arrival numbers are unique, so items themselves are never compared).
-        bisect.insort(self._items, (stamp_ns, rank, self._arrivals, item))
-        self.newest_ns = stamp_ns if self.newest_ns is None else max(self.newest_ns, stamp_ns)
-        return True
-
-    def pop_ready(self, watermark_ns: int | None = None) -> list[tuple[int, object]]:
-        """(stamp, item) of every item at least window_ns older than the newest, or not newer
-        than `watermark_ns` (a stamp every live input has already reached), in order."""
-        if self.newest_ns is None:
-            return []
-        up_to = self.newest_ns - self.window_ns
-        if watermark_ns is not None:
-            up_to = max(up_to, watermark_ns)
-        return self._release(up_to)
-
-    def flush(self) -> list[tuple[int, object]]:
-        """Everything still held, in order (end of a stream)."""
-        return self._release(None)
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    def _release(self, up_to_ns: int | None) -> list[tuple[int, object]]:
-        count = len(self._items) if up_to_ns is None else \
-            bisect.bisect_right(self._items, up_to_ns, key=_stamp_of)
-        ready, self._items = self._items[:count], self._items[count:]
-        if ready:
-            self.released_ns = ready[-1][0]
-        return [(stamp, item) for stamp, _, _, item in ready]
-
-
-def _stamp_of(entry: tuple) -> int:
-    return entry[0]
-
-
-# -- what the fusion node keeps per input, and the acceptance rules of its messages ----------
-@dataclass
-class InputRecord:
-    """Bookkeeping of one fusion input (stamps ns): what arrived, what was processed, and the
-    reference an exactly-known covariance is allowed at (its first accepted value)."""
-
-    name: str
-    enabled: bool = True
-    received: int = 0
-    processed: int = 0
-    arrived_ns: int | None = None    # newest stamp accepted into the reorder buffer
-    first_ns: int | None = None      # first and last processed stamps
-    last_ns: int | None = None
-    origin: object = None            # first accepted pose or yaw
-
-    def clear(self) -> None:
-        """Forget the timeline (time went backwards): keep the counts of received messages."""
-        self.processed = 0
-        self.arrived_ns = self.first_ns = self.last_ns = None
-        self.origin = None
-
-    def processed_at(self, stamp_ns: int) -> None:
-        self.processed += 1
-        self.last_ns = stamp_ns
-        if self.first_ns is None:
-            self.first_ns = stamp_ns
-
-    def rate_hz(self) -> float:
-        """Processed messages per second of stamp time (0 before two)."""
-        if self.first_ns is None or self.last_ns is None or self.last_ns <= self.first_ns:
-            return 0.0
-        return (self.processed - 1) / ((self.last_ns - self.first_ns) * 1e-9)
-
-    def age_s(self, newest_ns: int | None) -> float:
-        """Stamp time since this input's last processed message (inf before any)."""
-        if self.last_ns is None or newest_ns is None:
-            return math.inf
-        return (newest_ns - self.last_ns) * 1e-9
-
-
-def watermark(records: list[InputRecord], newest_ns: int | None, start_ns: int | None,
-              timeout_s: float) -> int | None:
-    """The stamp every live input has reached: nothing at or before it can still arrive (each
-    input arrives in order), so it can be processed without waiting for the reorder window.
-    An enabled input not heard from for timeout_s (stamp time) is not waited for."""
-    if newest_ns is None:
-        return None
-    timeout_ns = timeout_s * 1e9
-    reached = []
-    for record in records:
-        if not record.enabled:
-            continue
-        if record.arrived_ns is None:
-            if start_ns is None or newest_ns - start_ns <= timeout_ns:
-                return None  # not heard from yet, but may still be starting up
-            continue
-        if newest_ns - record.arrived_ns <= timeout_ns:
-            reached.append(record.arrived_ns)
-    return min(reached) if reached else None
-
-
-def covariance_problem(cov: ArrayLike) -> str:
-    """Why a covariance cannot be used ('' when it can): not finite, not symmetric, or not
-    positive semi-definite (beyond rounding)."""
-    c = np.asarray(cov, dtype=float)
-    if c.shape == (3, 3) and _plainly_positive_definite(c.tolist()):
-        return ''
-    if not np.all(np.isfinite(c)):
-        return 'covariance is not finite'
-    scale = max(float(np.max(np.abs(c))), 1e-300)
-    if np.max(np.abs(c - c.T)) > 1e-9 * scale:
-        return 'covariance is not symmetric'
-    if float(np.min(np.linalg.eigvalsh(0.5 * (c + c.T)))) < -1e-9 * scale:
-        return 'covariance is not positive semi-definite'
-    return ''
-
-
-def _plainly_positive_definite(rows: list[list[float]]) -> bool:
-    """True when a 3x3 covariance (nested lists) is finite, symmetric within covariance_problem's
-    tolerance and positive definite (its LDLt pivots > 0, which rounding cannot fake beyond
-    ~1e-15 of its scale): what covariance_problem accepts, decided in plain floats for the
-    common case (a 3x3 eigendecomposition per message cost more than the rest of a reading).
-    False: covariance_problem decides with numpy."""
-    (a, b, c), (d, e, f), (g, h, i) = rows
-    values = (a, b, c, d, e, f, g, h, i)
-    if not all(math.isfinite(v) for v in values):
-        return False
-    scale = max(max(abs(v) for v in values), 1e-300)
-    if max(abs(b - d), abs(c - g), abs(f - h)) > 1e-9 * scale:
-        return False
-    b, c, f = 0.5 * (b + d), 0.5 * (c + g), 0.5 * (f + h)   # the symmetric part
-    if not a > 0.0:
-        return False
-    l1, l2 = b / a, c / a
-    d2 = e - l1 * b
-    if not d2 > 0.0:
-        return False
-    l3 = (f - l1 * c) / d2
-    return i - l2 * c - l3 * l3 * d2 > 0.0
-
-
-def pose_problem(pose: Pose2, cov: ArrayLike, origin: Pose2 | None, zero_allowed: bool) -> str:
-    """Why an odometry pose and its 3x3 covariance cannot be used ('' when they can). An exactly
-    known (zero) covariance is only believable at the source's starting pose, unless the input
-    replaces the covariance by its noise model anyway (zero_allowed)."""
-    if not all(math.isfinite(v) for v in pose):
-        return 'pose is not finite'
-    reason = covariance_problem(cov)
-    if reason:
-        return reason
-    diagonal = np.diag(np.asarray(cov, dtype=float)).tolist()
-    if any(v < 0.0 for v in diagonal):
-        return 'covariance has a negative variance'
-    at_origin = origin is None or tuple(pose) == tuple(origin)
-    if not zero_allowed and not all(v > 0.0 for v in diagonal) and \
-            not (all(v == 0.0 for v in diagonal) and at_origin):
-        return 'covariance is zero after moving (only a starting pose may be exactly known)'
-    return ''
-
-
 class ComplementaryMethod:
-    """The seed's complementary filter behind the EKF's interface (update(name, Reading),
-    state, reset, set_pose, gated), fed by the inputs named wheel_odom, imu, scan_match."""
+    """The complementary filter behind the fusion's filter interface (filter.FusionFilter), fed
+    by the inputs named wheel_odom, imu and scan_match."""
 
     def __init__(self, settings: FusionSettings) -> None:
         self._filter = ComplementaryFusion(settings)
-        self.gated: dict[str, int] = {}
+        self.gated: dict[str, int] = {}   # (this filter has no gate)
 
     def reset(self) -> None:
         self._filter.reset()
@@ -523,12 +318,15 @@ class ComplementaryMethod:
         """Restart at pose: the filter restarts and later inputs continue from there."""
         self._filter.reset(pose, covariance)
 
-    def update(self, name: str, reading) -> None:
+    def restart(self, name: str) -> None:
+        self._filter.restart(name)
+
+    def update(self, name: str, reading: Reading) -> None:
         """One Reading of wheel_odom (pose, covariance), imu (pose[2] = yaw, covariance[2, 2])
         or scan_match (pose, covariance; twist covariance x dt^2 as increment covariance)."""
-        if name == 'wheel_odom':
+        if name == WHEEL:
             self._filter.add_wheel(reading.stamp_ns, reading.pose, reading.pose_covariance)
-        elif name == 'imu':
+        elif name == IMU:
             self._filter.add_gyro(reading.stamp_ns, reading.pose[2],
                                   float(reading.pose_covariance[2, 2]))
         else:
@@ -536,5 +334,9 @@ class ComplementaryMethod:
                                         reading.twist_covariance)
 
     @property
-    def state(self) -> FusionState | None:
-        return self._filter.state
+    def state(self) -> FusedState | None:
+        """The filter's state as the fusion's output (no twist estimated: zero)."""
+        state = self._filter.state
+        if state is None:
+            return None
+        return FusedState(state.stamp_ns, state.pose, state.covariance)

@@ -35,103 +35,21 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core.fusion.complementary import (
+from sensing_nodes.core.fusion.filter import FusedState
+from sensing_nodes.core.fusion.increments import (
     compounded_increment_covariance,
     increment_covariance,
 )
+from sensing_nodes.core.fusion.inputs import InputConfig, Reading
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.geometry.se2 import Pose2
 
-QUANTITIES = ('x', 'y', 'yaw', 'vx', 'vy', 'vyaw')
-POSE_MODES = ('absolute', 'relative', 'differential')
 BASE = 7                      # x, y, yaw, vx, vy, wz, bg
 X, Y, YAW, VX, VY, WZ, BG = range(BASE)
 # Smallest variance a measurement component may claim: an exactly known increment would make
 # the innovation covariance singular.
 MIN_VARIANCE = 1e-12
 _DIAG3 = (np.arange(3), np.arange(3))        # the diagonal of a 3x3 (fancy index, made once)
-
-
-@dataclass(frozen=True)
-class NoiseModel:
-    """Variance of a differential pose input's increment, used when the source publishes a
-    static or zero covariance: x and y get variance_per_m per metre travelled, yaw
-    variance_per_rad per radian turned (plus yaw_variance_per_m per metre), each at least
-    min_variance."""
-
-    variance_per_m: float = 1e-4          # m^2 per m
-    variance_per_rad: float = 1e-3        # rad^2 per rad
-    yaw_variance_per_m: float = 1e-4      # rad^2 per m
-    yaw_variance_per_s: float = 0.0       # rad^2 per s (a gyro's white rate noise density^2)
-    min_variance: float = 1e-12
-
-    def increment_covariance(self, increment: Pose2, dt: float = 0.0) -> NDArray[np.float64]:
-        """3x3 covariance over (x, y, yaw) of a body-frame increment over dt seconds."""
-        distance = math.hypot(increment[0], increment[1])
-        xy = max(self.variance_per_m * distance, self.min_variance)
-        yaw = max(self.variance_per_rad * abs(increment[2]) + self.yaw_variance_per_m * distance
-                  + self.yaw_variance_per_s * dt, self.min_variance)
-        return np.diag([xy, xy, yaw])
-
-
-@dataclass(frozen=True)
-class InputConfig:
-    """What one input contributes: mask over QUANTITIES, how its pose is read, its gate.
-
-    covariance 'auto' uses the message's covariance unless it is static (does not change
-    between messages), zero, or (differential) does not grow by compounding, then the noise
-    model; 'message' and 'model' force one of them.
-    """
-
-    name: str
-    mask: tuple[bool, bool, bool, bool, bool, bool] = (False,) * 6
-    pose_mode: str = 'differential'
-    covariance: str = 'auto'
-    noise: NoiseModel = NoiseModel()
-    twist_variance: tuple[float, float, float] = (1e-4, 1e-4, 1e-4)  # when the message has none
-    covariance_scale: float = 1.0        # the message's covariance times this (>= 1: distrust)
-    gate_chi2: float = math.inf          # squared Mahalanobis distance above which: rejected
-    # The input is a gyro whose bias the filter estimates: a vyaw rate measures wz + bias, a
-    # differential yaw measures the heading change + bias x interval.
-    gyro_bias: bool = False
-    keyframes: bool = False              # pose is relative to a keyframe (scan matcher)
-    max_gap_s: float = 2.0               # differential: no increment across a longer silence
-    # The reading's yaw is the heading this long before its stamp (s): the fusion reads it as
-    # yaw + (the reading's yaw rate) x heading_delay_s. A gyro integrator whose samples are
-    # the mean rate over the sample period before their stamp (a delta-angle IMU, as
-    # sensor_sim's) and which integrates them by the trapezoid lags by half a period.
-    heading_delay_s: float = 0.0
-    # The input's messages describe the robot at stamp - delay_s (s; < 0: after the stamp): the
-    # whole reading is retimed where messages are read (ros/fusion_readings.py), so it is fused,
-    # ordered and published at that time. The node bounds it by its reorder window.
-    delay_s: float = 0.0
-
-    def problems(self) -> list[tuple[str, str, object]]:
-        """(field, problem, value) for each setting the filter cannot run with."""
-        out: list[tuple[str, str, object]] = []
-        if self.pose_mode not in POSE_MODES:
-            out.append(('pose_mode', f'must be one of {POSE_MODES}', self.pose_mode))
-        if self.covariance not in ('auto', 'message', 'model'):
-            out.append(('covariance', "must be 'auto', 'message' or 'model'", self.covariance))
-        if not (math.isfinite(self.covariance_scale) and self.covariance_scale > 0.0):
-            out.append(('covariance_scale', 'must be finite and > 0', self.covariance_scale))
-        if not (self.gate_chi2 > 0.0):
-            out.append(('gate_chi2', 'must be > 0 (inf: no gate)', self.gate_chi2))
-        if not any(self.mask):
-            out.append(('mask', 'must select at least one of ' + ', '.join(QUANTITIES),
-                        self.mask))
-        for name in ('variance_per_m', 'variance_per_rad', 'yaw_variance_per_m',
-                     'yaw_variance_per_s', 'min_variance'):
-            value = getattr(self.noise, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                out.append((name, 'must be finite and >= 0', value))
-        if not all(math.isfinite(v) and v > 0.0 for v in self.twist_variance):
-            out.append(('twist_variance', 'must be finite and > 0', self.twist_variance))
-        if not (math.isfinite(self.heading_delay_s) and self.heading_delay_s >= 0.0):
-            out.append(('heading_delay_s', 'must be finite and >= 0', self.heading_delay_s))
-        if not math.isfinite(self.delay_s):
-            out.append(('delay_s', 'must be finite', self.delay_s))
-        return out
 
 
 @dataclass(frozen=True)
@@ -148,24 +66,6 @@ class EkfSettings:
 
 
 @dataclass(frozen=True)
-class Reading:
-    """One input message, already in base_link / the source's odom frame (m, rad, s).
-
-    pose/pose_covariance: a pose (absolute or cumulative); twist/twist_covariance: body
-    velocities (vx, vy, wz); for a keyframe input, pose is relative to keyframe_ns and
-    new_keyframe says this stamp starts the next keyframe (pose None: no match, keyframe only).
-    """
-
-    stamp_ns: int
-    pose: Pose2 | None = None
-    pose_covariance: NDArray[np.float64] | None = None
-    twist: tuple[float, float, float] | None = None
-    twist_covariance: NDArray[np.float64] | None = None
-    keyframe_ns: int | None = None
-    new_keyframe: bool = False
-
-
-@dataclass(frozen=True)
 class Outcome:
     """What the filter did with a reading: fused, gated (rejected by the Mahalanobis test, with
     its squared distance), or neither (first message of a differential input, unknown
@@ -178,20 +78,6 @@ class Outcome:
 
 
 _HELD = Outcome(fused=True, note='increment held until the next output')
-
-
-@dataclass(frozen=True)
-class FusedState:
-    """Fused estimate at stamp_ns: pose (odom), 3x3 pose covariance, body twist and its
-    covariance, gyro bias (rad/s) and its variance."""
-
-    stamp_ns: int
-    pose: Pose2
-    covariance: NDArray[np.float64]
-    twist: tuple[float, float, float]
-    twist_covariance: NDArray[np.float64]
-    bias: float
-    bias_variance: float
 
 
 def _symmetric(m: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -490,8 +376,8 @@ class EkfFusion:
         return cfg.pose_mode == 'differential' and not cfg.keyframes and not any(cfg.mask[3:])
 
     def update(self, name: str, reading: Reading) -> Outcome:
-        """Fuse one reading of input `name` (stamps must not go backwards: use a
-        StampOrderedBuffer)."""
+        """Fuse one reading of input `name` (stamps must not go backwards: FusionSession
+        orders them)."""
         cfg = self.inputs[name]
         previous_stamp = self._last_seen.get(name)
         self._last_seen[name] = reading.stamp_ns
@@ -711,66 +597,3 @@ def _with_heading_delay(cfg: InputConfig, reading: Reading) -> Reading:
         return replace(reading, pose=(pose[0], pose[1],
                                       pose[2] + reading.twist[2] * cfg.heading_delay_s))
     return reading
-
-
-def with_mask(cfg: InputConfig, **quantities: bool) -> InputConfig:
-    """cfg with the named QUANTITIES switched on or off."""
-    mask = list(cfg.mask)
-    for name, used in quantities.items():
-        mask[QUANTITIES.index(name)] = used
-    return replace(cfg, mask=tuple(mask))
-
-
-def mask_from_names(names: list[str] | tuple[str, ...]) -> tuple[bool, ...]:
-    """Mask tuple from quantity names (e.g. ['x', 'y', 'yaw']); ValueError for unknown ones."""
-    unknown = [n for n in names if n not in QUANTITIES]
-    if unknown:
-        raise ValueError(f'unknown quantities {unknown}: use {list(QUANTITIES)}')
-    return tuple(q in names for q in QUANTITIES)
-
-
-
-# The fusion node's per-input parameters (`<input>.<key>`) and their defaults: one table for
-# the node, the YAML files and the tools that run the core over a bag.
-INPUT_DEFAULTS: dict[str, dict] = {
-    'wheel_odom': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential', 'covariance': 'auto',
-                   'covariance_scale': 1.0, 'variance_per_m': 1e-4, 'variance_per_rad': 1e-3,
-                   'yaw_variance_per_m': 1e-4, 'yaw_variance_per_s': 0.0,
-                   'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 0.0, 'max_gap_s': 0.0,
-                   'delay_s': 0.0},
-    'imu': {'mask': ['yaw'], 'pose_mode': 'differential', 'covariance': 'model',
-            'covariance_scale': 1.0, 'variance_per_m': 0.0, 'variance_per_rad': 0.0,
-            'yaw_variance_per_m': 0.0, 'yaw_variance_per_s': 1e-8,
-            'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 16.0,
-            # gyro_integrator's max_gap_s: across a longer silence of its input it holds the
-            # heading (the turn in the gap is not in its output), so no increment spans one.
-            'max_gap_s': 0.5, 'heading_delay_s': 0.0, 'delay_s': 0.0},
-    'scan_match': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential',
-                   'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,
-                   'variance_per_rad': 1e-3, 'yaw_variance_per_m': 1e-4,
-                   'yaw_variance_per_s': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
-                   'gate_chi2': 25.0, 'max_gap_s': 0.0, 'delay_s': 0.0},
-}
-
-
-def input_config(name: str, values: dict, **fixed) -> InputConfig:
-    """InputConfig of input `name` from its parameter values (missing ones: INPUT_DEFAULTS);
-    `fixed` sets what the input's kind decides (keyframes, gyro_bias, max_gap_s: the node-wide
-    gap, which the input's own max_gap_s, when > 0, shortens). ValueError for an unknown
-    quantity in the mask."""
-    v = {**INPUT_DEFAULTS[name], **values}
-    gate = float(v['gate_chi2'])
-    own_gap = float(v.get('max_gap_s', 0.0))
-    if own_gap > 0.0:
-        fixed = {**fixed, 'max_gap_s': min(own_gap, fixed.get('max_gap_s', own_gap))}
-    return InputConfig(
-        name=name, mask=mask_from_names(list(v['mask'])), pose_mode=v['pose_mode'],
-        covariance=v['covariance'], covariance_scale=float(v['covariance_scale']),
-        noise=NoiseModel(variance_per_m=float(v['variance_per_m']),
-                         variance_per_rad=float(v['variance_per_rad']),
-                         yaw_variance_per_m=float(v['yaw_variance_per_m']),
-                         yaw_variance_per_s=float(v['yaw_variance_per_s'])),
-        twist_variance=tuple(float(x) for x in v['twist_variance']),
-        heading_delay_s=float(v.get('heading_delay_s', 0.0)),   # imu only
-        delay_s=float(v['delay_s']),
-        gate_chi2=gate if gate > 0.0 else math.inf, **fixed)

@@ -1,0 +1,137 @@
+"""sensing_fusion_eval: the fusion's accuracy on the simulated robot, without ROS (docs/fusion.md's
+figures): for each seed of each simulator configuration, the package's wheel odometry, gyro
+integrator and keyframe scan matcher over core-simulated sensors (core/sim/inputs.py), then the
+fusion session as the node runs it (the EKF and the seed's complementary filter), scored against
+the ground truth (core/evaluation/fusion.py): RMS and final errors (m, deg), consistency shares,
+heading-step chatter, and each input's own errors.
+
+    sensing_fusion_eval [--seeds 8] [--configs default,strong_errors] [--params-file FILE]
+                        [--inputs] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from sensing_nodes.core.evaluation.fusion import (
+    heading_increment_consistency,
+    input_errors,
+    keyframe_match_consistency,
+    run_complementary,
+    run_ekf,
+    stop_corrections,
+    track_errors,
+)
+from sensing_nodes.core.fusion.config import ConfigError, SessionConfig, default_config
+from sensing_nodes.core.fusion.inputs import IMU
+from sensing_nodes.core.sim.inputs import FusionInputs, simulated_inputs
+from sensing_nodes.core.sim.simulator import load_params_file, params_from_dict
+from sensing_nodes.paths import config_file
+
+EXIT_BAD_INPUT = 2
+
+
+def _rounded(figures: dict[str, float]) -> dict[str, float]:
+    return {k: round(v, 4) if abs(v) >= 1e-3 else float(f'{v:.2e}') for k, v in figures.items()}
+
+
+def score(inputs: FusionInputs, ekf: SessionConfig, complementary: SessionConfig) -> dict:
+    """Each input's errors, the EKF's and the complementary filter's, and the EKF's gate
+    refusals, on one simulated run."""
+    track = run_ekf(inputs, ekf)
+    comp = run_complementary(inputs, complementary)
+    return {**input_errors(inputs),
+            'ekf': track_errors(inputs.truth_t, inputs.truth_pose, track.t, track.pose,
+                                track.covariance, track.heading_step_variance),
+            'complementary': track_errors(inputs.truth_t, inputs.truth_pose, comp.t, comp.pose,
+                                          comp.covariance),
+            'gated': track.gated}
+
+
+def input_figures(inputs: FusionInputs, ekf: SessionConfig) -> dict:
+    """How the gyro's heading increments and the scan matches meet the noise models the EKF
+    gives them, and what gyro_integrator's bias re-estimates at stops did to its heading."""
+    imu = ekf.input_map[IMU]
+    return {
+        # As the filter reads them: delay-compensated (InputConfig.heading_delay_s).
+        'gyro_increments': heading_increment_consistency(
+            inputs.truth_t, inputs.truth_pose, inputs.gyro_t,
+            inputs.gyro_yaw + inputs.gyro_rate * imu.heading_delay_s,
+            imu.noise.yaw_variance_per_s),
+        'scan_matches': keyframe_match_consistency(
+            inputs.truth_t, inputs.truth_pose, inputs.scan_keyframe_t, inputs.scan_t,
+            inputs.scan_relative, inputs.scan_relative_cov),
+        'stop_corrections': stop_corrections(
+            inputs.truth_t, inputs.truth_pose, inputs.gyro_t, inputs.gyro_yaw,
+            inputs.gyro_bias, inputs.gyro_bias_var, inputs.gyro_still),
+    }
+
+
+def _print_row(row: dict) -> None:
+    e, c = row['ekf'], row['complementary']
+    print(f"{row['config']} seed {row['seed']}: RMS position ekf {e['rms_position_m']:.4f} "
+          f"complementary {c['rms_position_m']:.4f} wheel "
+          f"{row['wheel']['rms_position_m']:.4f} scan {row['scan']['rms_position_m']:.4f}"
+          f" | RMS heading ekf {e['rms_heading_deg']:.4f} complementary "
+          f"{c['rms_heading_deg']:.4f} gyro {row['gyro']['rms_heading_deg']:.4f} scan "
+          f"{row['scan']['rms_heading_deg']:.4f} wheel "
+          f"{row['wheel']['rms_heading_deg']:.4f} | within 3 / beyond 1: position "
+          f"{e['position_within_3']:.3f} / {e['position_beyond_1']:.3f}, heading "
+          f"{e['heading_within_3']:.3f} / {e['heading_beyond_1']:.3f} | heading steps "
+          f"beyond 3 sigma {100 * e['chatter_beyond_3']:.3f} %, largest "
+          f"{e['chatter_max_sigma']:.1f} sigma", flush=True)
+    if 'gyro_increments' in row:
+        print('  gyro 0.1 s increments:', _rounded(row['gyro_increments']),
+              '| scan matches:', _rounded(row['scan_matches']), flush=True)
+        for stop in row['stop_corrections']:
+            print(f"  integrator at the stop {stop['start_s']:.1f}-{stop['end_s']:.1f} s:"
+                  f" heading error {stop['heading_error_before_deg']:+.3f} -> "
+                  f"{stop['heading_error_after_deg']:+.3f} deg, bias "
+                  f"{stop['bias_change_rad_s']:+.1e} rad/s (std "
+                  f"{stop['bias_std_before_rad_s']:.1e} -> "
+                  f"{stop['bias_std_after_rad_s']:.1e})", flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog='sensing_fusion_eval', description=__doc__.split('\n\n')[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--seeds', type=int, default=8)
+    parser.add_argument('--configs', default='default,strong_errors',
+                        help='simulator configurations: default, or NAME for '
+                             'config/bags_NAME.yaml (comma separated)')
+    parser.add_argument('--params-file', action='append', default=[],
+                        help="complementary_fusion parameters over its config/ file's "
+                             '(repeatable; the EKF with them, and the complementary filter)')
+    parser.add_argument('--json', help='write every figure here')
+    parser.add_argument('--inputs', action='store_true',
+                        help="also print how the gyro's heading increments and the scan "
+                             "matches meet the noise models the filter gives them")
+    args = parser.parse_args(argv)
+    try:
+        ekf = default_config(*args.params_file, overrides={'method': 'ekf'})
+        complementary = default_config(*args.params_file, overrides={'method': 'complementary'})
+    except (ConfigError, OSError) as error:
+        print(f'sensing_fusion_eval: {error}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    rows = []
+    for name in args.configs.split(','):
+        params = None if name == 'default' else params_from_dict(
+            load_params_file(config_file(f'bags_{name}.yaml')))
+        for seed in range(args.seeds):
+            inputs = simulated_inputs(seed, params)
+            row = {'config': name, 'seed': seed, **score(inputs, ekf, complementary)}
+            if args.inputs:
+                row.update(input_figures(inputs, ekf))
+            rows.append(row)
+            _print_row(row)
+    if args.json:
+        with open(args.json, 'w') as f:
+            json.dump(rows, f, indent=1)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
