@@ -88,8 +88,6 @@ _WALKERS: dict[tuple[str, bool], Callable] = {}
 _ZEROS = bytes(16)
 
 
-# long: a code generator that mirrors rosbags' generate_deserialize_cdr branch by branch (the
-# same alignment decisions in the same order), kept side by side with it in one place.
 def _padding_walker(msgtype: str, little_endian: bool) -> Callable:
     """A function of a CDR message body (bytes after the encapsulation header) -> (end of its
     last field, [start, end, start, end, ...] of its alignment padding), positions from the
@@ -99,119 +97,144 @@ def _padding_walker(msgtype: str, little_endian: bool) -> Callable:
     round trip would change a value's bytes or fail: a bool byte other than 0 or 1, a float32
     NaN (widened to a Python float: a signalling NaN comes back quiet), a string without its
     terminator, a sequence longer than the bytes left."""
-    from rosbags.interfaces import Nodetype
-    from rosbags.serde.utils import SIZEMAP, align, align_after
-
-    order = '<' if little_endian else '>'
-    lines = ['def walk(raw):', ' size = len(raw)', ' pos = 0', ' gaps = []']
-    names = iter(range(1_000_000))
-
-    def pad(to: int, indent: str) -> None:
-        lines.extend([f'{indent}new = (pos + {to - 1}) & -{to}',
-                      f'{indent}if new != pos:',
-                      f'{indent} gaps.append(pos)', f'{indent} gaps.append(new)',
-                      f'{indent} pos = new'])
-
-    def string(indent: str) -> None:
-        lines.extend([f'{indent}n = u32(raw, pos)[0]',
-                      f'{indent}if n < 1 or pos + 4 + n > size or raw[pos + 3 + n]:',
-                      f'{indent} raise _NotPlain',
-                      f'{indent}str(raw[pos + 4:pos + 3 + n], "utf-8")',
-                      f'{indent}pos += 4 + n'])
-
-    def scalar(kind: str, indent: str) -> None:
-        if kind == 'bool':
-            lines.extend([f'{indent}if raw[pos] > 1:', f'{indent} raise _NotPlain'])
-        elif kind == 'float32':
-            lines.extend([f'{indent}v = f32(raw, pos)[0]',
-                          f'{indent}if v != v:', f'{indent} raise _NotPlain'])
-        elif kind not in SIZEMAP or kind == 'float128':
-            raise _NotPlain
-        lines.append(f'{indent}pos += {SIZEMAP[kind]}')
-
-    def fields(desc_fields, indent: str) -> None:
-        aligned = 8    # as each generated rosbags function assumes at its start
-        for current, following in zip(desc_fields, [*desc_fields[1:], None]):
-            desc = current[1]
-            if desc[0] == Nodetype.NAME:
-                fields(TYPESTORE.get_msgdef(desc[1]).fields, indent)
-                aligned = align_after(desc, TYPESTORE)
-            elif desc[0] == Nodetype.BASE:
-                kind = desc[1][0]
-                if kind == 'string':
-                    string(indent)
-                    aligned = 1
-                else:
-                    scalar(kind, indent)
-                    aligned = SIZEMAP[kind]
-            elif desc[0] == Nodetype.ARRAY:
-                sub, length = desc[1]
-                if sub[0] == Nodetype.BASE and sub[1][0] == 'string':
-                    for index in range(length):
-                        if index:
-                            pad(4, indent)
-                        string(indent)
-                    aligned = 1
-                elif sub[0] == Nodetype.BASE:
-                    if sub[1][0] not in SIZEMAP or sub[1][0] == 'float128':
-                        raise _NotPlain
-                    # numpy arrays in the round trip: their bytes come back as they were
-                    lines.append(f'{indent}pos += {length * SIZEMAP[sub[1][0]]}')
-                    aligned = SIZEMAP[sub[1][0]]
-                else:
-                    before, after = align(sub, TYPESTORE), align_after(sub, TYPESTORE)
-                    for _ in range(length):
-                        if before > after:
-                            pad(before, indent)
-                        fields(TYPESTORE.get_msgdef(sub[1]).fields, indent)
-                    aligned = after
-            else:   # a sequence
-                count = f'n{next(names)}'
-                lines.extend([f'{indent}{count} = u32(raw, pos)[0]', f'{indent}pos += 4'])
-                aligned = 4
-                sub = desc[1][0]
-                least = 5 if sub[0] == Nodetype.BASE and sub[1][0] == 'string' else \
-                    SIZEMAP.get(sub[1][0], 16) if sub[0] == Nodetype.BASE else 1
-                most = TYPESTORE.max_sequence_length
-                lines.extend([f'{indent}if pos + {count} * {least} > size or {count} > {most}:',
-                              f'{indent} raise _NotPlain'])
-                if sub[0] == Nodetype.BASE and sub[1][0] == 'string':
-                    lines.append(f'{indent}for _ in range({count}):')
-                    pad(4, indent + ' ')
-                    string(indent + ' ')
-                    aligned = 1
-                elif sub[0] == Nodetype.BASE:
-                    if sub[1][0] not in SIZEMAP or sub[1][0] == 'float128':
-                        raise _NotPlain
-                    before = align(sub, TYPESTORE)
-                    if aligned < before:
-                        lines.append(f'{indent}if {count}:')
-                        pad(before, indent + ' ')
-                    lines.append(f'{indent}pos += {count} * {SIZEMAP[sub[1][0]]}')
-                    aligned = before
-                else:
-                    before = align(sub, TYPESTORE)
-                    lines.append(f'{indent}for _ in range({count}):')
-                    pad(before, indent + ' ')
-                    fields(TYPESTORE.get_msgdef(sub[1]).fields, indent + ' ')
-                    aligned = align_after(sub, TYPESTORE)
-                aligned = min(4, aligned)
-            if following is not None and aligned < (before := align(following[1], TYPESTORE)):
-                pad(before, indent)
-                aligned = before
-
+    source = _WalkerSource()
     try:
-        fields(TYPESTORE.get_msgdef(msgtype).fields, ' ')
+        source.fields(TYPESTORE.get_msgdef(msgtype).fields, ' ')
     except _NotPlain:   # a type the walk does not cover (float128): always the round trip
+        return _never_plain
+    return source.compile(msgtype, little_endian)
 
-        def never(raw):
+
+def _never_plain(raw):
+    raise _NotPlain
+
+
+class _WalkerSource:
+    """The Python source of a padding walker, generated field by field as rosbags generates its
+    CDR decoder (rosbags.serde.cdr: the same branches, in the same order, with the same
+    alignment decisions); `aligned` is the alignment known at the current position."""
+
+    def __init__(self) -> None:
+        from rosbags.interfaces import Nodetype
+        from rosbags.serde.utils import SIZEMAP, align, align_after
+
+        self._node, self._size = Nodetype, SIZEMAP
+        self._align = lambda desc: align(desc, TYPESTORE)
+        self._align_after = lambda desc: align_after(desc, TYPESTORE)
+        self.lines = ['def walk(raw):', ' size = len(raw)', ' pos = 0', ' gaps = []']
+        self._names = itertools.count()
+
+    def compile(self, msgtype: str, little_endian: bool) -> Callable:
+        """The walker function of the lines so far."""
+        order = '<' if little_endian else '>'
+        scope = {'_NotPlain': _NotPlain, 'u32': struct.Struct(order + 'I').unpack_from,
+                 'f32': struct.Struct(order + 'f').unpack_from}
+        source = '\n'.join([*self.lines, ' return pos, gaps'])
+        exec(compile(source, f'<canonical_cdr walker of {msgtype}>', 'exec'), scope)
+        return scope['walk']
+
+    def fields(self, desc_fields, indent: str) -> None:
+        """Lines reading a message's fields, each followed by the padding up to the next."""
+        for current, following in zip(desc_fields, [*desc_fields[1:], None]):
+            aligned = self._field(current[1], indent)
+            if following is not None and aligned < (before := self._align(following[1])):
+                self.pad(before, indent)
+
+    def _field(self, desc, indent: str) -> int:
+        """Lines reading one field; the alignment known after it."""
+        if desc[0] == self._node.NAME:
+            self.fields(TYPESTORE.get_msgdef(desc[1]).fields, indent)
+            return self._align_after(desc)
+        if desc[0] == self._node.BASE:
+            return self._base(desc[1][0], indent)
+        if desc[0] == self._node.ARRAY:
+            return self._array(*desc[1], indent)
+        return self._sequence(desc[1][0], indent)
+
+    def _base(self, kind: str, indent: str) -> int:
+        if kind == 'string':
+            self.string(indent)
+            return 1
+        self.scalar(kind, indent)
+        return self._size[kind]
+
+    def _array(self, sub, length: int, indent: str) -> int:
+        """A fixed-size array: strings, plain values, or messages."""
+        if sub[0] == self._node.BASE and sub[1][0] == 'string':
+            for index in range(length):
+                if index:
+                    self.pad(4, indent)
+                self.string(indent)
+            return 1
+        if sub[0] == self._node.BASE:
+            self._check_plain(sub[1][0])
+            # numpy arrays in the round trip: their bytes come back as they were
+            self.lines.append(f'{indent}pos += {length * self._size[sub[1][0]]}')
+            return self._size[sub[1][0]]
+        before, after = self._align(sub), self._align_after(sub)
+        for _ in range(length):
+            if before > after:
+                self.pad(before, indent)
+            self.fields(TYPESTORE.get_msgdef(sub[1]).fields, indent)
+        return after
+
+    def _sequence(self, sub, indent: str) -> int:
+        """A sequence: its count, checked against the bytes left, then its elements."""
+        count = f'n{next(self._names)}'
+        self.lines.extend([f'{indent}{count} = u32(raw, pos)[0]', f'{indent}pos += 4'])
+        string = sub[0] == self._node.BASE and sub[1][0] == 'string'
+        least = 5 if string else self._size.get(sub[1][0], 16) if sub[0] == self._node.BASE \
+            else 1
+        most = TYPESTORE.max_sequence_length
+        self.lines.extend([f'{indent}if pos + {count} * {least} > size or {count} > {most}:',
+                           f'{indent} raise _NotPlain'])
+        if string:
+            self.lines.append(f'{indent}for _ in range({count}):')
+            self.pad(4, indent + ' ')
+            self.string(indent + ' ')
+            return 1
+        if sub[0] == self._node.BASE:
+            self._check_plain(sub[1][0])
+            before = self._align(sub)
+            if 4 < before:     # the count leaves the position 4-aligned
+                self.lines.append(f'{indent}if {count}:')
+                self.pad(before, indent + ' ')
+            self.lines.append(f'{indent}pos += {count} * {self._size[sub[1][0]]}')
+            return min(4, before)
+        self.lines.append(f'{indent}for _ in range({count}):')
+        self.pad(self._align(sub), indent + ' ')
+        self.fields(TYPESTORE.get_msgdef(sub[1]).fields, indent + ' ')
+        return min(4, self._align_after(sub))
+
+    def _check_plain(self, kind: str) -> None:
+        if kind not in self._size or kind == 'float128':
             raise _NotPlain
-        return never
-    lines.append(' return pos, gaps')
-    scope = {'_NotPlain': _NotPlain, 'u32': struct.Struct(order + 'I').unpack_from,
-             'f32': struct.Struct(order + 'f').unpack_from}
-    exec(compile('\n'.join(lines), f'<canonical_cdr walker of {msgtype}>', 'exec'), scope)
-    return scope['walk']
+
+    def pad(self, to: int, indent: str) -> None:
+        """Lines moving pos to the next multiple of `to`, recording the gap."""
+        self.lines.extend([f'{indent}new = (pos + {to - 1}) & -{to}',
+                           f'{indent}if new != pos:',
+                           f'{indent} gaps.append(pos)', f'{indent} gaps.append(new)',
+                           f'{indent} pos = new'])
+
+    def string(self, indent: str) -> None:
+        """Lines reading a string: its length, its bytes (UTF-8), its terminator."""
+        self.lines.extend([f'{indent}n = u32(raw, pos)[0]',
+                           f'{indent}if n < 1 or pos + 4 + n > size or raw[pos + 3 + n]:',
+                           f'{indent} raise _NotPlain',
+                           f'{indent}str(raw[pos + 4:pos + 3 + n], "utf-8")',
+                           f'{indent}pos += 4 + n'])
+
+    def scalar(self, kind: str, indent: str) -> None:
+        """Lines reading a plain value: a bool 0 or 1, a float32 not NaN."""
+        if kind == 'bool':
+            self.lines.extend([f'{indent}if raw[pos] > 1:', f'{indent} raise _NotPlain'])
+        elif kind == 'float32':
+            self.lines.extend([f'{indent}v = f32(raw, pos)[0]',
+                               f'{indent}if v != v:', f'{indent} raise _NotPlain'])
+        else:
+            self._check_plain(kind)
+        self.lines.append(f'{indent}pos += {self._size[kind]}')
 
 
 def type_name(msg_or_class: Any) -> str:

@@ -111,40 +111,20 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
     bag = Path(bag)
     reader = _open(bag)
     if topics is None:
-        topics = sorted(t for t, i in reader.topics.items()
-                        if i.msgtype == ODOMETRY and t != reference)
-        if not topics:
-            held = ', '.join(f'{t} ({i.msgtype})' for t, i in sorted(reader.topics.items()))
-            raise EvalError(f'{bag}: no {ODOMETRY} topic to score besides the reference '
-                            f'{reference} (the bag holds: {held or "none"}); name one with '
-                            '--topic')
-    relations = None
+        topics = _estimate_topics(reader, reference)
+    from_file = None
     if relations_file is not None:  # read first: a bad file fails before the bag is loaded
-        try:
-            relations = read_relations(relations_file, int(round(time_offset_s * 1e9)))
-        except OSError as exc:
-            raise EvalError(f'{relations_file}: {exc.strerror}') from None
-        except ValueError as exc:
-            raise EvalError(str(exc)) from None
-        source = f'relations file {relations_file}'
+        from_file = _read_relations_file(relations_file, time_offset_s)
     has_reference = reference in reader.topics
     trajectories = _read_odometry(reader, list(topics) + ([reference] if has_reference else []))
-    notes = []
-    if relations is None:
-        if not has_reference:
-            raise EvalError(f'{bag}: topic {reference} is not in the bag and no --relations given')
-        ref = trajectories[reference]
-        relations = relations_from_trajectory(ref.t, ref.poses, delta_s)
-        source = (
-            f'{reference} (delta {delta_s:g} s)' if delta_s > 0 else f'{reference} (consecutive)'
-        )
-        asked = len(relations.t1) if delta_s > 0 else ref.messages - 1
-        if ref.t.size < ref.messages:
-            notes.append(f'the reference {reference} has {ref.messages} messages at only '
-                         f'{ref.t.size} distinct stamps (its time is broken?): '
-                         f'{len(relations.t1)} relations')
+    if from_file is not None:
+        relations, source, asked, notes = from_file, f'relations file {relations_file}', \
+            len(from_file.t1), []
+    elif has_reference:
+        relations, source, asked, notes = _reference_relations(trajectories[reference],
+                                                               reference, delta_s)
     else:
-        asked = len(relations.t1)
+        raise EvalError(f'{bag}: topic {reference} is not in the bag and no --relations given')
     report = {'bag': str(bag), 'reference': source, 'estimates': {}, 'notes': notes,
               **({'time_base': reader.custom_data[TIME_BASE_KEY]}
                  if TIME_BASE_KEY in reader.custom_data else {})}
@@ -168,6 +148,41 @@ def evaluate(bag: str | Path, topics: list[str] | None = None, relations_file: s
         report.setdefault('_errors', {})[topic] = errors
     report['_trajectories'] = {t: (r.t, r.poses) for t, r in trajectories.items()}
     return report
+
+
+def _estimate_topics(reader, reference: str) -> list[str]:
+    """Every Odometry topic of the bag but the reference; EvalError when there is none."""
+    topics = sorted(t for t, i in reader.topics.items()
+                    if i.msgtype == ODOMETRY and t != reference)
+    if not topics:
+        held = ', '.join(f'{t} ({i.msgtype})' for t, i in sorted(reader.topics.items()))
+        raise EvalError(f'{reader.path}: no {ODOMETRY} topic to score besides the reference '
+                        f'{reference} (the bag holds: {held or "none"}); name one with --topic')
+    return topics
+
+
+def _read_relations_file(path: str, time_offset_s: float):
+    try:
+        return read_relations(path, int(round(time_offset_s * 1e9)))
+    except OSError as exc:
+        raise EvalError(f'{path}: {exc.strerror}') from None
+    except ValueError as exc:
+        raise EvalError(str(exc)) from None
+
+
+def _reference_relations(ref: Trajectory, reference: str, delta_s: float):
+    """(relations, their source in words, how many are asked for, notes) from the reference:
+    consecutive messages are asked for, so a reference whose stamps repeat gives fewer."""
+    relations = relations_from_trajectory(ref.t, ref.poses, delta_s)
+    source = f'{reference} (delta {delta_s:g} s)' if delta_s > 0 else \
+        f'{reference} (consecutive)'
+    asked = len(relations.t1) if delta_s > 0 else ref.messages - 1
+    notes = []
+    if ref.t.size < ref.messages:
+        notes.append(f'the reference {reference} has {ref.messages} messages at only '
+                     f'{ref.t.size} distinct stamps (its time is broken?): '
+                     f'{len(relations.t1)} relations')
+    return relations, source, asked, notes
 
 
 def _shortfall(topic: str, estimate: Trajectory, relations, errors, asked: int,
