@@ -4,8 +4,9 @@ One stream of messages (the simulated robot's sensors, as `sensor_sim --record` 
 written by BagWriter with 1 s chunks (chunk_s=1.0, the default: a crash loses at most the open
 chunk) and with rosbags' own 1 MiB chunks written at close (chunk_s=None), plain and
 zstd-compressed: CPU time per simulated second and file size, side by side from one run (best of
-3 on a shared machine). Then the bag is read whole through BagReader, closed and cut in the
-middle of its file (the recovery path of bags/recovery.py).
+3 on a shared machine); the wall time of the live recorder's flush (the chunk closed, written
+and fsynced) per second of data. Then the bag is read whole through BagReader, closed and cut in
+the middle of its file (the recovery path of bags/recovery.py).
 """
 
 from __future__ import annotations
@@ -54,6 +55,25 @@ def _write(folder: Path, rows, types, chunk_s, compress) -> tuple[float, int]:
     return best, size
 
 
+def _flush_ms(folder: Path, rows, types, duration_s: float) -> float:
+    """Median wall ms of BagWriter.flush() with its fsync, after each simulated second of
+    `rows` (what the live recorder does every wall second)."""
+    from sensing_nodes.bags.storage import BagWriter
+
+    per_second = max(1, int(len(rows) / duration_s))
+    times = []
+    with BagWriter(folder / 'flushed', chunk_s=None) as bag:
+        for topic, kind in types.items():
+            bag.add_topic(topic, kind)
+        for start in range(0, len(rows), per_second):
+            bag.write_raw_many(rows[start:start + per_second])
+            bag._synced = float('-inf')          # the fsync due, as it is once a wall second
+            started = time.perf_counter()
+            bag.flush()
+            times.append(time.perf_counter() - started)
+    return 1e3 * sorted(times)[len(times) // 2]
+
+
 def _read_s(path: Path) -> float:
     """CPU seconds to read every message of a bag (best of 3)."""
     from sensing_nodes.bags.storage import BagReader
@@ -83,6 +103,7 @@ def run(quick: bool = False) -> dict:
             out[f'{name}_cpu_ratio_1s_to_1mib'] = chunked_cpu / whole_cpu
             out[f'{name}_chunk_1s_bytes_per_sim_s'] = chunked_size / duration_s
             out[f'{name}_size_ratio_1s_to_1mib'] = chunked_size / whole_size
+        out['flush_with_fsync_wall_ms_per_s'] = _flush_ms(folder, rows, types, duration_s)
         closed = folder / 'bag-1.0-False-0'
         cut = folder / 'cut'
         shutil.copytree(closed, cut)
