@@ -268,6 +268,17 @@ def _mcap_topics(records: _McapRecords, result: Recovered) -> None:
     result.messages = rows
 
 
+def sqlite_cut_short(path: Path) -> bool:
+    """Whether a file is an SQLite database shorter than the pages its header counts."""
+    with path.open('rb') as handle:
+        header = handle.read(100)
+    if len(header) < 100 or not header.startswith(_SQLITE_MAGIC):
+        return len(header) < 100        # cut inside its header: nothing to tell it by
+    page = struct.unpack_from('>H', header, 16)[0]
+    page = 65536 if page == 1 else page
+    return path.stat().st_size < struct.unpack_from('>I', header, 28)[0] * page
+
+
 def read_cut_sqlite(path: Path) -> Recovered:
     """The rows of a rosbag2 sqlite3 file SQLite refuses (cut short): read from a copy cut to
     whole pages whose header counts them, in id order up to the first missing page."""

@@ -36,6 +36,7 @@ from sensing_nodes.bags.recovery import (
     mcap_closed,
     read_cut_sqlite,
     read_unclosed_mcap,
+    sqlite_cut_short,
 )
 
 _DEFERRED_SIGNALS = {signal.SIGINT, signal.SIGTERM}
@@ -282,11 +283,11 @@ class BagWriter:
     What a crash (power loss, kill -9) can take: the file holds every closed chunk, and its
     footer, summary and metadata.yaml are written at close, so an unclosed bag is read up to
     its last chunk (BagReader). With `chunk_s` (default 1 s) a chunk is closed once its
-    messages span that much bag time, and whenever flush() is called (the live recorder: every
-    wall second), then handed to the operating system, with an fsync at most once per wall
-    second: a crash of the process loses at most the open chunk, a power cut at most the last
-    wall second more. None: rosbags' own chunks of 1 MiB, all written at close (bags written in
-    one go, where a crash leaves nothing to keep).
+    messages span that much bag time, then handed to the operating system (fsync at most once
+    per wall second), and whenever flush() is called (with an fsync; the live recorder: every
+    wall second): a crash of the process loses at most the open chunk, a power cut at most the
+    last wall second more. None: rosbags' own chunks of 1 MiB, all written at close (bags
+    written in one go, where a crash leaves nothing to keep).
     """
 
     def __init__(self, path: str | Path, compress: bool = False,
@@ -357,12 +358,12 @@ class BagWriter:
             self._close_chunk()
 
     def flush(self) -> None:
-        """Close the open chunk and hand the file to the operating system (fsync at most once
-        per wall second): a crash after this keeps every message written before it."""
+        """Close the open chunk and hand the file to the disk (fsync): a crash or a power cut
+        after this keeps every message written before it."""
         with _signals_held():
-            self._close_chunk()
+            self._close_chunk(sync=True)
 
-    def _close_chunk(self) -> None:
+    def _close_chunk(self, sync: bool = False) -> None:
         # rosbags' MCAP writer (pinned in requirements.txt) keeps the open chunk in memory
         # (storage.chunk) and closes it only at 1 MiB: its close_chunk() writes the chunk and its
         # message indexes to storage.bio, the file.
@@ -374,7 +375,7 @@ class BagWriter:
         storage.bio.flush()
         self._chunk_first_ns = None
         now = time.monotonic()
-        if now - self._synced >= FSYNC_INTERVAL_S:
+        if sync or now - self._synced >= FSYNC_INTERVAL_S:
             os.fsync(storage.bio.fileno())
             self._synced = now
 
@@ -543,7 +544,10 @@ class BagReader:
                 _RecoveredFile(read_unclosed_mcap(file))
         try:
             return _ClosedFile(file)
-        except Exception:   # sqlite3 refuses a file cut short: read its rows that are there
+        except Exception:
+            if not sqlite_cut_short(file):
+                raise
+            # SQLite refuses a file cut short: read the rows that are there
             return _RecoveredFile(read_cut_sqlite(file))
 
     def _damage(self, metadata: dict | None) -> str:
@@ -580,10 +584,12 @@ class BagReader:
                     + ', '.join(f'{t} {n} of {of}' for t, (n, of) in lost.items()))
         if all(r.data_whole for r in recovered):
             return f'{text}: every message (the files end after their data)'
+        text += ('; how much was recorded after that is unknown (nothing that counts the '
+                 'messages was written)')
         until = [r.lost_until_ns for r in recovered if r.lost_until_ns is not None]
-        return (f'{text}; how much was recorded after that is unknown (nothing that counts '
-                'the messages was written)' + (f'; the cut chunk held messages up to '
-                                  f'{(max(until) - start) * 1e-9:.3f} s' if until else ''))
+        if until:
+            text += f'; the cut chunk held messages up to {(max(until) - start) * 1e-9:.3f} s'
+        return text
 
     def raw(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
         """(topic, bag time ns, CDR bytes) of every message (of `topics`), in bag-time order."""
