@@ -1,5 +1,7 @@
-"""carmen_to_bag: both shared CARMEN logs convert (scan geometry, no-return values, odometry,
-reference poses); a bad line is reported with its number and the rest converts."""
+"""carmen_to_bag: the shared CARMEN logs convert (scan geometry, no-return values, odometry,
+reference poses); a bad line is reported with its number and the rest converts; a log whose
+time is broken (all 0, six significant digits, backwards, negative, wrapped) converts with a
+time base rebuilt from the line order, said so, or is refused naming the problem."""
 
 from __future__ import annotations
 
@@ -12,9 +14,9 @@ import pytest
 from harness import run_to_exit
 
 from sensing_nodes.bags.carmen import read_carmen
-from sensing_nodes.bags.storage import read_messages, topic_counts
+from sensing_nodes.bags.storage import BagReader, read_messages, topic_counts
 from sensing_nodes.ros.conversions import odometry_pose, scan_arrays
-from sensing_nodes.tools.carmen_to_bag import convert
+from sensing_nodes.tools.carmen_to_bag import TIME_BASE_KEY, convert
 
 CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'
 needs_logs = pytest.mark.skipif(not CARMEN.is_dir(), reason=f'CARMEN logs not found in {CARMEN}')
@@ -103,7 +105,7 @@ def test_odometry_reanchored_on_the_reference_is_chained_without_the_jump(tmp_pa
     ])
     out = tmp_path / 'bag'
     summary = convert(log, out)
-    assert summary['skipped_odom']['stamped_zero'] == 1
+    assert summary['skipped_odom']['reference_repeated'] == 1
     poses = [odometry_pose(m)[0] for _, _, m in read_messages(out, ['/odom'])]
     np.testing.assert_allclose(poses, [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (2.0, 0.0, 0.0),
                                        (3.0, 0.0, 0.0)], atol=1e-12)
@@ -144,7 +146,7 @@ def test_bad_lines_are_reported_with_their_number_and_the_rest_converts(tmp_path
     assert result.returncode == 0, result.stderr
     assert f'{log}:4: skipped: FLASER' in result.stderr
     assert f'{log}:8: skipped: BOGUS' in result.stderr
-    assert '2 bad lines' in result.stdout and '1 stamped 0' in result.stdout
+    assert '2 bad lines' in result.stdout and "1 repeating the scan's reference" in result.stdout
     counts = topic_counts(out)
     assert counts['/scan'][1] == 2 and counts['/ground_truth/odom'][1] == 2
     assert counts['/odom'][1] == 2
@@ -161,3 +163,126 @@ def test_unusable_input_is_refused_without_output(tmp_path):
     result = run_to_exit('carmen_to_bag', [str(empty), str(out)])
     assert result.returncode == 2 and 'no FLASER line parsed' in result.stderr
     assert not out.exists() and not list(tmp_path.glob('.bag*'))
+
+
+def test_an_anchor_with_a_garbage_stamp_is_chained_like_a_zero_one(tmp_path):
+    """acapulco and fhw stamp 8 and 3 of their re-anchoring lines with garbage (3.7, 9.98)
+    instead of 0: they repeat the scan's pose and are chained through all the same (they
+    were kept as odometry and skipped as 'not after the previous', which let the reference's
+    jump into /odom)."""
+    ranges = ' '.join(['2.0'] * 180)
+    log = _write_log(tmp_path / 'garbage.log.gz', [
+        'ODOM 0.0 0.0 0.0 0 0 0 11.0 host 11.0',
+        'ODOM 1.0 0.0 0.0 0 0 0 12.0 host 12.0',
+        f'FLASER 180 {ranges} 1.1 0.1 0 1.1 0.1 0 12.0 host 12.0',
+        'ODOM 1.1 0.1 0 0 0 0 3.7 host 3.7',
+        'ODOM 1.1 1.1 0 0 0 0 13.0 host 13.0',
+    ])
+    summary = convert(log, tmp_path / 'bag')
+    assert summary['skipped_odom'] == {'reference_repeated': 1, 'not_after_previous': 0}
+    poses = [odometry_pose(m)[0] for _, _, m in read_messages(tmp_path / 'bag', ['/odom'])]
+    np.testing.assert_allclose(poses, [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (1.0, 1.0, 0.0)],
+                               atol=1e-12)
+
+
+# -- logs whose time is broken ----------------------------------------------------------------
+SCANS, ODOM_PER_SCAN = 12, 4
+
+
+def _timed_log(path: Path, stamp) -> Path:
+    """A "corrected" log of SCANS scans, ODOM_PER_SCAN odometry lines 0.1 m apart before each
+    and the re-anchoring line after it; stamp(k) writes the stamp of the k-th odometry line (a
+    scan carries its preceding line's, the re-anchoring line 0)."""
+    ranges = ' '.join(['2.0'] * 180)
+    lines, k, x = [], 0, 0.0
+    for _ in range(SCANS):
+        for _ in range(ODOM_PER_SCAN):
+            x += 0.1
+            lines.append(f'ODOM {x:.4f} 0 0 0 0 0 {stamp(k)} host {stamp(k)}')
+            k += 1
+        lines.append(f'FLASER 180 {ranges} {x + 0.01:.4f} 0.02 0 {x + 0.01:.4f} 0.02 0 '
+                     f'{stamp(k - 1)} host {stamp(k - 1)}')
+        lines.append(f'ODOM {x + 0.01:.4f} 0.02 0 0 0 0 0 host 0')
+    return _write_log(path, lines)
+
+
+@pytest.mark.parametrize('kind, stamp, why', [
+    ('all zero', lambda k: '0', 'stamped 0'),
+    # six significant digits of a seconds-since-1970 stamp: 10^4 s resolution, so a few
+    # distinct values over a long log, most consecutive stamps equal
+    ('six significant digits', lambda k: f'{1.13486e9 + 500 * k:.6g}', 'too coarse'),
+])
+def test_a_log_without_time_converts_on_a_time_base_rebuilt_from_the_line_order(
+        tmp_path, kind, stamp, why):
+    log = _timed_log(tmp_path / 'log.gz', stamp)
+    out = tmp_path / 'bag'
+    result = run_to_exit('carmen_to_bag', [str(log), str(out), '--odom-rate', '5'])
+    assert result.returncode == 0, result.stderr
+    assert 'time base rebuilt from the order of the lines' in result.stdout, result.stdout
+    assert why in result.stdout and 'assumed 5 Hz' in result.stdout
+    # Every odometry line kept (not 2), 0.2 s apart; each scan at its preceding line's time.
+    odom = [s for _, s, _ in read_messages(out, ['/odom'])]
+    assert len(odom) == SCANS * ODOM_PER_SCAN
+    np.testing.assert_array_equal(np.diff(odom), 200_000_000)
+    scans = [s for _, s, _ in read_messages(out, ['/scan'])]
+    assert scans == odom[ODOM_PER_SCAN - 1::ODOM_PER_SCAN]
+    metadata = BagReader(out).custom_data[TIME_BASE_KEY]
+    assert metadata.startswith('rebuilt from the order of the lines') and '5 Hz' in metadata
+    # sensing_eval scores every relation between the scans, and says which time base it used.
+    scored = run_to_exit('sensing_eval', [str(out), '--topic', '/odom'])
+    assert scored.returncode == 0, scored.stderr
+    assert f'{SCANS - 1}/{SCANS - 1}' in scored.stdout
+    assert 'time base: rebuilt from the order of the lines' in scored.stdout
+
+
+@pytest.mark.parametrize('kind, stamp, words', [
+    ('going backwards', lambda k: f'{100 + 0.1 * k - (5 if k >= 20 else 0):.3f}',
+     ['go backwards', 'line 31: 97 after 101.9']),
+    ('negative', lambda k: f'{-3 + 0.1 * k:.3f}', ['negative', 'line 1: -3']),
+    # a 32-bit seconds clock that wrapped: 4294967290 s, then 0.x s
+    ('wrapped', lambda k: f'{(4294967290 + 0.5 * k) % 2 ** 32:.3f}', ['wrapped', '4.295e+09']),
+])
+def test_a_log_whose_time_goes_wrong_is_refused_naming_the_problem(tmp_path, kind, stamp, words):
+    log = _timed_log(tmp_path / 'log.gz', stamp)
+    out = tmp_path / 'bag'
+    result = run_to_exit('carmen_to_bag', [str(log), str(out)])
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "the log's time is broken" in result.stderr and '--time-base lines' in result.stderr
+    for word in words:
+        assert word in result.stderr, result.stderr
+    assert 'Traceback' not in result.stderr and not out.exists()
+    assert not list(tmp_path.glob('.bag*'))
+    # Asked for, the line order gives a time base, said so.
+    result = run_to_exit('carmen_to_bag', [str(log), str(out), '--time-base', 'lines'])
+    assert result.returncode == 0, result.stderr
+    assert 'time base rebuilt' in result.stdout
+    assert topic_counts(out)['/odom'][1] == SCANS * ODOM_PER_SCAN
+
+
+def test_a_time_offset_that_makes_stamps_negative_is_refused(tmp_path):
+    log = _timed_log(tmp_path / 'log.gz', lambda k: f'{1 + 0.1 * k:.3f}')
+    out = tmp_path / 'bag'
+    result = run_to_exit('carmen_to_bag', [str(log), str(out), '--time-offset', '-5'])
+    assert result.returncode == 2 and 'must not be negative' in result.stderr, result.stderr
+    assert 'Traceback' not in result.stderr and not out.exists()
+
+
+@needs_logs
+def test_freiburg_campus_converts_on_a_rebuilt_time_base_and_scores(tmp_path):
+    """Every stamp of freiburg-campus is 0: 2008 scans and 15683 odometry lines on a time base
+    from the line order (it gave 2 odometry messages before), stated, and sensing_eval scores
+    the odometry on all 2007 relations between consecutive scans."""
+    out = tmp_path / 'campus'
+    result = run_to_exit('carmen_to_bag', [str(CARMEN / 'freiburg-campus-corrected.log.gz'),
+                                           str(out)], timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert '15683 of the 15683 odometry lines are stamped 0' in result.stdout
+    assert 'robot_max_t_vel 0.7' in result.stdout and '--odom-rate' in result.stderr
+    counts = topic_counts(out)
+    assert counts['/scan'][1] == counts['/ground_truth/odom'][1] == 2008
+    assert counts['/odom'][1] == 15683
+    stamps = [s for _, s, _ in read_messages(out, ['/ground_truth/odom'])]
+    assert np.all(np.diff(stamps) > 0)
+    scored = run_to_exit('sensing_eval', [str(out), '--topic', '/odom'], timeout=120)
+    assert scored.returncode == 0, scored.stderr
+    assert '2007/2007' in scored.stdout and 'shortfall' not in scored.stderr

@@ -53,6 +53,30 @@ def test_bag_holds_every_topic(demo_run):
         assert counts.get(topic, ('', 0))[1] > 0, topic
 
 
+def test_bag_holds_the_sensor_mounts(demo_run):
+    """sensor_sim latches its mounts on /tf_static before the recorder subscribes: the
+    recorder matches their transient-local QoS, as rosbag2 does, so the bag has both (it had
+    the topic with 0 messages), stamped at the simulation's start and offered as latched."""
+    from rosbags.interfaces import QosDurability
+
+    from sensing_nodes.bags.storage import BagReader
+
+    out, _, _ = demo_run
+    reader = BagReader(out / 'bag')
+    info = reader.topics['/tf_static']
+    assert info.count >= 1 and info.qos
+    assert all(q.durability == QosDurability.TRANSIENT_LOCAL for q in info.qos)
+    mounts = {}
+    first_stamp = None
+    for topic, stamp, msg in reader.messages(['/tf_static', '/clock']):
+        first_stamp = stamp if first_stamp is None else first_stamp
+        if topic == '/tf_static':
+            assert stamp == first_stamp      # bag time: the mounts' stamp, the start
+            mounts.update({(t.header.frame_id, t.child_frame_id): t for t in msg.transforms})
+    assert set(mounts) == {('base_link', 'laser'), ('base_link', 'imu_link')}
+    assert mounts['base_link', 'laser'].transform.translation.x > 0.0   # config: laser ahead
+
+
 def test_no_scan_was_dropped(demo_run):
     _, _, report = demo_run
     scans = report['scans']

@@ -182,3 +182,45 @@ def test_a_valid_bag_without_odometry_is_named_as_such(tmp_path):
         assert word in result.stderr, result.stderr
     assert 'KeyError' not in result.stderr and 'truncated' not in result.stderr
     assert not out.exists()
+
+
+def _odometry_bag(path, topics: dict[str, list[int]]):
+    """A bag of Odometry topics: topic -> header stamps (ns); the pose moves 1 m per second."""
+    from sensing_nodes.bags.storage import BagWriter
+    from sensing_nodes.ros.conversions import make_odometry
+
+    with BagWriter(path) as bag:
+        rows = sorted((stamp, topic) for topic, stamps in topics.items() for stamp in stamps)
+        for stamp, topic in rows:
+            x = (stamp - S) / S
+            bag.write(topic, make_odometry(stamp, 'odom', 'base_link', (x, 0.0, 0.0),
+                                           np.eye(3) * 1e-3), stamp)
+    return path
+
+
+def test_fewer_relations_than_asked_are_said_and_too_few_refused(tmp_path):
+    """An estimate that spans 10 of the reference's 100 messages scores 9 of its 99 consecutive
+    relations: refused (exit 2, naming the shortfall and --min-share) rather than figures from
+    9; with --min-share 0 the figures come with '9/99' and a warning saying why."""
+    stamps = [S + k * S // 10 for k in range(100)]
+    bag = _odometry_bag(tmp_path / 'bag', {'/ground_truth/odom': stamps, '/est': stamps[:10]})
+    refused = run_to_exit('sensing_eval', [str(bag)])
+    assert refused.returncode == 2, refused.stdout
+    assert '/est scores 9 of the 99 relations asked for' in refused.stderr
+    assert '90 outside its stamps' in refused.stderr and '--min-share' in refused.stderr
+    assert 'RPE' not in refused.stdout
+    allowed = run_to_exit('sensing_eval', [str(bag), '--min-share', '0'])
+    assert allowed.returncode == 0, allowed.stderr
+    assert '9/99' in allowed.stdout and 'warning: /est scores 9 of the 99' in allowed.stderr
+
+
+def test_a_reference_whose_stamps_repeat_is_not_silently_shrunk(tmp_path):
+    """60 reference messages at 6 distinct stamps (a log whose time was lost): 5 relations of
+    the 59 asked for, and the refusal says the reference's stamps repeat."""
+    stamps = [S + (k // 10) * S for k in range(60)]
+    bag = _odometry_bag(tmp_path / 'bag', {'/ground_truth/odom': stamps,
+                                           '/est': sorted(set(stamps))})
+    result = run_to_exit('sensing_eval', [str(bag)])
+    assert result.returncode == 2, result.stdout
+    assert '60 messages at only 6 distinct stamps' in result.stderr
+    assert 'scores 5 of the 59 relations' in result.stderr

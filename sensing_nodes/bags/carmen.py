@@ -1,7 +1,13 @@
-"""Reading CARMEN laser logs (FLASER / ODOM / PARAM lines, optionally gzipped) into arrays.
+"""Reading CARMEN laser logs (FLASER / ODOM / PARAM lines, optionally gzipped) into arrays, and
+judging their time.
 
 Beams span 180 degrees counter-clockwise from -90 degrees; the FLASER pose of the shared
 "corrected" logs is the laser's pose (see ../shared/datasets/carmen/README.md).
+
+Real logs' stamps can be broken: all written as 0 (freiburg-campus), lost to six significant
+digits (1.13486e+09: most consecutive stamps equal), going backwards, negative, or wrapped
+(a span of 2^32 s). `check_time` names the problem; `line_order_time` rebuilds a time base from
+the order of the lines, every ODOM line one tick of an assumed odometry rate.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ class CarmenScan:
 class CarmenLog:
     scans: list[CarmenScan] = field(default_factory=list)
     odom_time_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    odom_line: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     odom_pose: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
     odom_velocity: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     params: dict[str, str] = field(default_factory=dict)
@@ -82,8 +89,8 @@ def read_carmen(path: str | Path) -> CarmenLog:
                         line=number,
                     ))
                 elif kind == 'ODOM':
-                    odom_rows.append([float(w) for w in words[1:8]])
-                    if len(odom_rows[-1]) != 7:
+                    odom_rows.append([float(w) for w in words[1:8]] + [number])
+                    if len(odom_rows[-1]) != 8:
                         odom_rows.pop()
                         raise ValueError('expected x y theta tv rv accel time')
                 elif kind == 'PARAM':
@@ -95,4 +102,88 @@ def read_carmen(path: str | Path) -> CarmenLog:
     if odom_rows:
         rows = np.array(odom_rows)
         log.odom_pose, log.odom_velocity, log.odom_time_s = rows[:, 0:3], rows[:, 3:5], rows[:, 6]
+        log.odom_line = rows[:, 7].astype(np.int64)
     return log
+
+
+# An ODOM line stamped below this is "stamped 0": Freiburg 101 writes 18 of its 292 zeros as
+# garbage such as 2.5e-91 (each repeats its scan's reference pose, as the real zeros do).
+ZERO_STAMP_S = 1e-6
+WRAP_S = 2.0 ** 31     # a step or span of 68 years: a clock that wrapped, not a robot's run
+COARSE_TIES = 0.5      # more consecutive odometry stamps equal than this share: too coarse
+
+
+def reference_repeats(log: CarmenLog) -> NDArray[np.bool_]:
+    """ODOM rows that repeat the reference pose of the FLASER line just before them (the
+    "corrected" logs' re-anchoring line, whatever its stamp: freiburg-campus stamps some 3.46
+    or 81.91, acapulco 3.7)."""
+    repeats = np.zeros(len(log.odom_time_s), dtype=bool)
+    after = np.searchsorted(log.odom_line, [scan.line for scan in log.scans], side='right')
+    for scan, i in zip(log.scans, after.tolist()):
+        if i < len(repeats) and tuple(log.odom_pose[i].tolist()) == tuple(scan.pose):
+            repeats[i] = True
+    return repeats
+
+
+@dataclass(frozen=True)
+class TimeCheck:
+    """What is wrong with a log's stamps: kind '' (nothing), 'all_equal' or 'coarse' (no time
+    to use: rebuild it), 'backwards', 'negative' or 'wrapped' (refuse, or rebuild when asked),
+    and a sentence naming it with line numbers."""
+
+    kind: str
+    text: str = ''
+
+
+def check_time(log: CarmenLog, anchors: NDArray[np.bool_]) -> TimeCheck:
+    """Judge the stamps of the odometry rows that are not `anchors` and of the scans."""
+    odom = ~anchors
+    t, lines = log.odom_time_s[odom], log.odom_line[odom]
+    scans = np.array([s.time_s for s in log.scans])
+    merged = np.concatenate([t, scans])
+    merged_lines = np.concatenate([lines, [s.line for s in log.scans]]).astype(np.int64)
+    order = np.argsort(merged_lines, kind='stable')
+    merged, merged_lines = merged[order], merged_lines[order]
+    if merged.size and np.all(merged == merged[0]):
+        return TimeCheck('all_equal', f'every stamp is {merged[0]:g}: the log has no time')
+    negative = np.flatnonzero(merged <= -ZERO_STAMP_S)
+    if negative.size:
+        return TimeCheck('negative', f'stamps are negative at {negative.size} lines (the first: '
+                                     f'line {merged_lines[negative[0]]}: '
+                                     f'{merged[negative[0]]:g})')
+    steps = np.diff(merged)
+    wraps = np.flatnonzero(np.abs(steps) >= WRAP_S)
+    if wraps.size or (merged.size and np.ptp(merged) >= WRAP_S):
+        at = wraps[0] + 1 if wraps.size else int(np.argmax(merged))
+        return TimeCheck('wrapped', f'the stamps span {np.ptp(merged):.4g} s (at line '
+                                    f'{merged_lines[at]}: {merged[at]:.10g}): a clock that '
+                                    'wrapped around')
+    odom_steps = np.diff(t)
+    ties = int(np.sum(odom_steps == 0))
+    if odom_steps.size and ties > COARSE_TIES * odom_steps.size:
+        positive = odom_steps[odom_steps > 0]
+        resolution = f'; the smallest step between them is {positive.min():g} s' \
+            if positive.size else ''
+        return TimeCheck('coarse', f'{ties} of {odom_steps.size} consecutive odometry stamps '
+                                   f'are equal: too coarse to order them (written to too few '
+                                   f'significant digits, e.g. {t[0]:g}?){resolution}')
+    back = np.flatnonzero(steps < 0)
+    if back.size:
+        return TimeCheck('backwards', f'stamps go backwards at {back.size} lines (the first: '
+                                      f'line {merged_lines[back[0] + 1]}: '
+                                      f'{merged[back[0] + 1]:g} after {merged[back[0]]:g})')
+    return TimeCheck('')
+
+
+def line_order_time(log: CarmenLog, anchors: NDArray[np.bool_],
+                    rate_hz: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A time base from the order of the lines: the k-th ODOM line that is not an anchor at
+    k / rate_hz s, an anchor and a scan at the time of the ODOM line before them (a logged
+    FLASER carries its preceding odometry's stamp); (odometry times, scan times), s."""
+    tick = np.cumsum(~anchors) - 1                   # ticks of the non-anchor rows so far
+    odom_s = np.maximum(tick, 0) / rate_hz
+    scan_lines = np.array([s.line for s in log.scans], dtype=np.int64)
+    before = np.searchsorted(log.odom_line, scan_lines, side='left') - 1
+    scan_s = np.where(before >= 0, odom_s[np.maximum(before, 0)], 0.0) if len(odom_s) else \
+        np.zeros(len(scan_lines))
+    return odom_s, scan_s

@@ -25,6 +25,8 @@ class InputBag:
     types: dict[str, str]
     messages: list[tuple[str, int, bytes]]  # (topic, bag time ns, CDR bytes), in bag order
     qos: dict[str, list] = field(default_factory=dict)  # topic -> offered QoS (rosbags records)
+    custom_data: dict[str, str] = field(default_factory=dict)   # metadata.yaml's, carried on
+    damage: str = ''   # what an unclosed recording lost (BagReader.damage; '' when closed)
 
 
 @dataclass
@@ -40,7 +42,8 @@ class PassResult:
 
 
 def load_bag(path: str | Path) -> InputBag:
-    """Read a whole rosbag2 bag; ReplayError (naming the file) when it is missing or unreadable."""
+    """Read a whole bag; InputBagError (naming the file) when it is missing or unreadable. A
+    bag a recording did not close is read up to its last complete record (the reader warns)."""
     from sensing_nodes.bags.storage import BagError, BagReader
 
     path = Path(path)
@@ -63,7 +66,7 @@ def load_bag(path: str | Path) -> InputBag:
         detail = ', '.join(f'{t}: {g} of {n}' for t, (g, n) in sorted(short.items()))
         raise InputBagError(f'{path}: bag holds fewer messages than its metadata says ({detail}); '
                           'truncated?')
-    return InputBag(path, types, messages, qos)
+    return InputBag(path, types, messages, qos, dict(reader.custom_data), reader.damage)
 
 
 def check_inputs(bag: InputBag, inputs: list[str], remaps: dict[str, str]) -> None:
@@ -114,7 +117,10 @@ def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types
     from sensing_nodes.bags.storage import BagWriter
 
     offered = offered or {}
-    with BagWriter(path, compress=compress) as out:
+    # Written in one go from memory: rosbags' own chunks (a crash leaves no output anyway).
+    with BagWriter(path, compress=compress, chunk_s=None) as out:
+        for key, value in bag.custom_data.items():
+            out.set_custom_data(key, value)
         for topic, msg_type in bag.types.items():
             if topic not in outputs:
                 out.add_topic(topic, msg_type, offered.get(topic, bag.qos.get(topic)) or None)

@@ -124,105 +124,131 @@ def read_sensor_bag(path: str | Path, *, joint_topic: str | None = None,
         raise SensorBagError(f'{path}: no such bag')
     with _open(path) as (topics, messages):
         data = SensorData(str(path), topics)
-        chosen: dict[str, str] = {}
-        if 'joints' in want:
-            t = _choose(topics, JOINT_STATE, joint_topic, ('/joint_states',))
-            if t:
-                chosen[t] = 'joints'
-        if 'scan' in want:
-            t = _choose(topics, LASER_SCAN, scan_topic, (SCAN,))
-            if t:
-                chosen[t] = 'scan'
-        if 'imu' in want:
-            t = _choose(topics, IMU, imu_topic, ('/imu/data_raw', '/imu', '/imu/data'))
-            if t:
-                chosen[t] = 'imu'
-        if 'truth' in want and topics.get(GROUND_TRUTH, ('', 0))[0] in ODOMETRY:
-            chosen[GROUND_TRUTH] = 'truth'
+        chosen = _choose_streams(topics, want, joint_topic, scan_topic, imu_topic)
         missing = [_DESCRIPTIONS[kind] for kind in required if kind not in chosen.values()]
         if missing:
             raise SensorBagError(f'{path} has no {" and no ".join(missing)}: {purpose} '
                                  f'(topics: {_topic_list(topics)})')
+        rows = _StreamRows(data.notes)
         total = sum(topics[t][1] for t in chosen)
-        rows: dict[str, list] = {'joints': [], 'scan': [], 'imu': [], 'truth': []}
-        scan_meta = None
-        names: tuple[str, ...] = ()
         done, last_report = 0, time.monotonic()
         for topic, timestamp, msg in (messages(list(chosen)) if chosen else ()):
-            kind = chosen[topic]
-            t = _stamp(msg, int(timestamp))
-            if kind == 'joints':
-                if not names:
-                    names = tuple(msg.name)
-                if tuple(msg.name) != names:
-                    order = [list(msg.name).index(n) if n in msg.name else -1 for n in names]
-                    if min(order) < 0:
-                        continue
-                    position = [msg.position[i] for i in order]
-                else:
-                    position = list(msg.position)
-                if len(position) != len(names):
-                    continue                       # velocity-only or malformed sample
-                rows['joints'].append((t, position))
-            elif kind == 'scan':
-                meta = (float(msg.angle_min), float(msg.angle_increment), len(msg.ranges),
-                        float(msg.range_min), float(msg.range_max), msg.header.frame_id)
-                if scan_meta is None:
-                    scan_meta = meta
-                if meta[:3] != scan_meta[:3]:
-                    data.notes.append(f'a scan at {t} ns has another beam layout: skipped')
-                    continue
-                rows['scan'].append((t, np.asarray(msg.ranges, dtype=float)))
-            elif kind == 'imu':
-                g, a = msg.angular_velocity, msg.linear_acceleration
-                rows['imu'].append((t, (g.x, g.y, g.z), (a.x, a.y, a.z)))
-            else:
-                p, q = msg.pose.pose.position, msg.pose.pose.orientation
-                yaw = np.arctan2(
-                    2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z)
-                )
-                rows['truth'].append((t, (p.x, p.y, float(yaw))))
+            if not rows.add(chosen[topic], _stamp(msg, int(timestamp)), msg):
+                continue
             done += 1
             if progress is not None and time.monotonic() - last_report > 2.0:
                 progress(f'read {done}/{total} messages ({100.0 * done / max(total, 1):.0f} %)')
                 last_report = time.monotonic()
-
-    by_kind = {kind: topic for topic, kind in chosen.items()}
-    if rows['joints']:
-        t = np.array([r[0] for r in rows['joints']], dtype=np.int64)
-        pos = np.array([r[1] for r in rows['joints']], dtype=float)
-        order = np.argsort(t, kind='stable')
-        t, pos = t[order], pos[order]
-        bad = ~np.isfinite(pos).all(axis=1)
-        if bad.any():
-            raise SensorBagError(f'{by_kind["joints"]}: non-finite wheel position at stamp '
-                                 f'{int(t[bad][0])} ns ({int(bad.sum())} samples)')
-        data.joint_topic, data.joint_names, data.joint_t, data.joint_position = \
-            by_kind['joints'], names, t, pos
-    if rows['scan']:
-        t = np.array([r[0] for r in rows['scan']], dtype=np.int64)
-        ranges = np.array([r[1] for r in rows['scan']], dtype=float)
-        order = np.argsort(t, kind='stable')
-        amin, inc, n, rmin, rmax, frame = scan_meta
-        data.scans = ScanStream(by_kind['scan'], t[order], ranges[order],
-                                amin + inc * np.arange(n), rmin, rmax, frame)
-    if rows['imu']:
-        t = np.array([r[0] for r in rows['imu']], dtype=np.int64)
-        gyro = np.array([r[1] for r in rows['imu']], dtype=float)
-        accel = np.array([r[2] for r in rows['imu']], dtype=float)
-        order = np.argsort(t, kind='stable')
-        t, gyro, accel = t[order], gyro[order], accel[order]
-        bad = ~(np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1))
-        if bad.any():
-            raise SensorBagError(f'{by_kind["imu"]}: non-finite IMU values at stamp '
-                                 f'{int(t[bad][0])} ns ({int(bad.sum())} samples)')
-        data.imu_topic, data.imu_t, data.imu_gyro, data.imu_accel = by_kind['imu'], t, gyro, accel
-    if rows['truth']:
-        t = np.array([r[0] for r in rows['truth']], dtype=np.int64)
-        pose = np.array([r[1] for r in rows['truth']], dtype=float)
-        order = np.argsort(t, kind='stable')
-        data.truth_t, data.truth_pose = t[order], pose[order]
+    rows.fill(data, {kind: topic for topic, kind in chosen.items()})
     return data
+
+
+def _choose_streams(topics: dict[str, tuple[str, int]], want: tuple[str, ...],
+                    joint_topic: str | None, scan_topic: str | None,
+                    imu_topic: str | None) -> dict[str, str]:
+    """topic -> kind ('joints', 'scan', 'imu', 'truth') of the streams to read."""
+    chosen: dict[str, str] = {}
+    for kind, types, asked, preferred in (
+            ('joints', JOINT_STATE, joint_topic, ('/joint_states',)),
+            ('scan', LASER_SCAN, scan_topic, (SCAN,)),
+            ('imu', IMU, imu_topic, ('/imu/data_raw', '/imu', '/imu/data'))):
+        if kind in want:
+            topic = _choose(topics, types, asked, preferred)
+            if topic:
+                chosen[topic] = kind
+    if 'truth' in want and topics.get(GROUND_TRUTH, ('', 0))[0] in ODOMETRY:
+        chosen[GROUND_TRUTH] = 'truth'
+    return chosen
+
+
+class _StreamRows:
+    """Rows of each stream as the bag is read (stamp ns, values), then its arrays."""
+
+    def __init__(self, notes: list[str]) -> None:
+        self.rows: dict[str, list] = {'joints': [], 'scan': [], 'imu': [], 'truth': []}
+        self.notes = notes
+        self.scan_meta: tuple | None = None
+        self.names: tuple[str, ...] = ()
+
+    def add(self, kind: str, t: int, msg) -> bool:
+        """Take one message of a stream; False when it is skipped."""
+        if kind == 'joints':
+            return self._joints(t, msg)
+        if kind == 'scan':
+            return self._scan(t, msg)
+        if kind == 'imu':
+            g, a = msg.angular_velocity, msg.linear_acceleration
+            self.rows['imu'].append((t, (g.x, g.y, g.z), (a.x, a.y, a.z)))
+        else:
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            yaw = np.arctan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+            self.rows['truth'].append((t, (p.x, p.y, float(yaw))))
+        return True
+
+    def _joints(self, t: int, msg) -> bool:
+        """Positions in the first message's joint order; skipped: a sample without them all."""
+        if not self.names:
+            self.names = tuple(msg.name)
+        if tuple(msg.name) != self.names:
+            order = [list(msg.name).index(n) if n in msg.name else -1 for n in self.names]
+            if min(order) < 0:
+                return False
+            position = [msg.position[i] for i in order]
+        else:
+            position = list(msg.position)
+        if len(position) != len(self.names):
+            return False                       # velocity-only or malformed sample
+        self.rows['joints'].append((t, position))
+        return True
+
+    def _scan(self, t: int, msg) -> bool:
+        """Ranges of scans with the first one's beam layout; another layout is skipped."""
+        meta = (float(msg.angle_min), float(msg.angle_increment), len(msg.ranges),
+                float(msg.range_min), float(msg.range_max), msg.header.frame_id)
+        if self.scan_meta is None:
+            self.scan_meta = meta
+        if meta[:3] != self.scan_meta[:3]:
+            self.notes.append(f'a scan at {t} ns has another beam layout: skipped')
+            return False
+        self.rows['scan'].append((t, np.asarray(msg.ranges, dtype=float)))
+        return True
+
+    def fill(self, data: SensorData, by_kind: dict[str, str]) -> None:
+        """The streams' arrays (sorted by stamp) into data; SensorBagError for non-finite
+        encoder or IMU values."""
+        rows = self.rows
+        if rows['joints']:
+            t, pos = _sorted(rows['joints'], 1)
+            bad = ~np.isfinite(pos).all(axis=1)
+            if bad.any():
+                raise SensorBagError(f'{by_kind["joints"]}: non-finite wheel position at stamp '
+                                     f'{int(t[bad][0])} ns ({int(bad.sum())} samples)')
+            data.joint_topic, data.joint_names, data.joint_t, data.joint_position = \
+                by_kind['joints'], self.names, t, pos
+        if rows['scan']:
+            t, ranges = _sorted(rows['scan'], 1)
+            amin, inc, n, rmin, rmax, frame = self.scan_meta
+            data.scans = ScanStream(by_kind['scan'], t, ranges, amin + inc * np.arange(n),
+                                    rmin, rmax, frame)
+        if rows['imu']:
+            t, gyro, accel = _sorted(rows['imu'], 2)
+            bad = ~(np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1))
+            if bad.any():
+                raise SensorBagError(f'{by_kind["imu"]}: non-finite IMU values at stamp '
+                                     f'{int(t[bad][0])} ns ({int(bad.sum())} samples)')
+            data.imu_topic, data.imu_t, data.imu_gyro, data.imu_accel = \
+                by_kind['imu'], t, gyro, accel
+        if rows['truth']:
+            data.truth_t, data.truth_pose = _sorted(rows['truth'], 1)
+
+
+def _sorted(rows: list[tuple], columns: int) -> tuple[NDArray, ...]:
+    """(stamps int64, then each value column as a float array) of rows (stamp, values...),
+    in stamp order (stable: equal stamps keep the bag's order)."""
+    t = np.array([r[0] for r in rows], dtype=np.int64)
+    order = np.argsort(t, kind='stable')
+    values = [np.array([r[1 + c] for r in rows], dtype=float)[order] for c in range(columns)]
+    return (t[order], *values)
 
 
 def read_yaw_track(path: str | Path, topic: str) -> tuple[NDArray[np.int64], NDArray[np.float64]]:

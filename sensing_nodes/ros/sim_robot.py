@@ -187,7 +187,7 @@ class SimMessages:
 def record(out_dir: str | Path, duration_s: float, params: core.SimParams, settings: NodeSettings,
            world: World, progress: bool = False) -> dict[str, int]:
     """Write a rosbag2 MCAP bag of every topic for duration_s simulated seconds; topic -> count."""
-    from sensing_nodes.bags.storage import BagWriter
+    from sensing_nodes.bags.storage import CHUNK_S, BagWriter
 
     sim = core.SensorSim(params, world, settings.seed)
     convert = SimMessages(params, settings)
@@ -201,7 +201,9 @@ def record(out_dir: str | Path, duration_s: float, params: core.SimParams, setti
         signal.SIGINT, lambda signum, frame: interrupted.append(signum)
     )
     try:
-        with BagWriter(out_dir) as bag:
+        # A chunk per simulated second (CHUNK_S), on disk as it closes: killed or powered off,
+        # the bag keeps all but its last simulated second (BagReader reads it unclosed).
+        with BagWriter(out_dir, chunk_s=CHUNK_S) as bag:
             for kind, (topic, msg_type) in TOPICS.items():
                 if kind not in skip:
                     bag.add_topic(topic, msg_type)
