@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from sensing_nodes.bench.lines import POSES as BENCH_POSES
 from sensing_nodes.core.geometry.se2 import inverse, transform_points, wrap_angle
 from sensing_nodes.core.lines import Line, extract_lines, fit_line
 from sensing_nodes.core.sim.world import load_world, raycast
@@ -243,17 +244,9 @@ def test_covariance_matches_monte_carlo_spread():
 # ---------------------------------------------------------------- accuracy on the default world
 
 SIGMA = 0.01
+# The benchmark's poses, and more.
 POSES = [
-    (-3.0, -2.0, 0.3),
-    (3.0, -2.0, 2.0),
-    (-3.0, 2.5, -1.0),
-    (2.5, 1.5, 0.7),
-    (0.0, 2.0, 3.0),
-    (0.0, -2.0, -2.5),
-    (-2.0, 0.0, 1.2),
-    (3.5, 0.0, -0.4),
-    (-4.0, -3.0, 0.1),
-    (2.0, -3.0, 1.5),
+    *BENCH_POSES,
     (-4.2, 0.5, -2.0),
     (4.2, -3.2, 2.6),
     (-1.5, 3.0, 0.0),
