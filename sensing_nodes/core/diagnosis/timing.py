@@ -1,0 +1,146 @@
+"""Timing of each input: rate, jitter, gaps, header stamps going backwards or repeated, header
+stamp against record time (delay), and time offsets between sensors from their yaw motion.
+
+Stamps int64 ns in bag (record) order; rates Hz; times s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check, graded
+from sensing_nodes.core.evaluation.calibration import CalibrationError, odometry_delay
+
+# Gap beyond which the nodes restart an integration (wheel_odometry, gyro_integrator,
+# the fusion's IMU: max_gap_s 0.5; icp_matcher: 1.0) and the lowest useful rate, per kind.
+GAP_LIMIT_S = {'imu': 0.5, 'joints': 0.5, 'odom': 0.5, 'scan': 1.0}
+MIN_RATE_HZ = {'imu': 20.0, 'joints': 10.0, 'odom': 10.0, 'scan': 2.0}
+DELAY_WARN_S, DELAY_PROBLEM_S = 0.1, 1.0
+OFFSET_WARN_S, OFFSET_PROBLEM_S = 0.01, 0.025
+
+
+def stream_checks(topic: str, kind: str, header_ns: NDArray[np.int64],
+                  record_ns: NDArray[np.int64], has_header: bool = True) -> list[Check]:
+    """Rate, jitter, gaps, backwards and repeated stamps, and delay of one topic."""
+    t = np.asarray(header_ns, dtype=np.int64)
+    if t.size < 3:
+        return [Check('rate', topic, WARNING, float(t.size), 'messages',
+                      'too few messages to judge the timing')]
+    step = np.diff(t) * 1e-9
+    forward = step[step > 0]
+    period = float(np.median(forward)) if forward.size else float('nan')
+    checks = [_rate(topic, kind, t, period)]
+    if forward.size > 2 and math.isfinite(period):
+        checks.append(_jitter(topic, forward, period))
+        checks.append(_gaps(topic, kind, forward, period))
+    checks += _order(topic, step, has_header)
+    if has_header:
+        checks.append(_delay(topic, t, np.asarray(record_ns, dtype=np.int64)))
+    return checks
+
+
+def _rate(topic: str, kind: str, t: NDArray[np.int64], period: float) -> Check:
+    rate = 1.0 / period if period > 0 else float('nan')
+    span = (t.max() - t.min()) * 1e-9
+    minimum = MIN_RATE_HZ.get(kind)
+    verdict = OK if minimum is None or rate >= minimum else WARNING
+    advice = (f'{t.size} messages over {span:.1f} s' if verdict == OK else
+              f'{rate:.1f} Hz is slow for a {kind} input (>= {minimum:g} Hz expected): check '
+              'the driver\'s rate or the recorder dropping messages')
+    return Check('rate', topic, verdict, rate, 'Hz', advice,
+                 f'>= {minimum:g} Hz' if minimum else '',
+                 {'messages': int(t.size), 'span_s': span, 'median_period_s': period})
+
+
+def _jitter(topic: str, forward: NDArray[np.float64], period: float) -> Check:
+    regular = forward[forward < 5.0 * period]
+    jitter = float(np.std(regular) / period) if regular.size else float('nan')
+    verdict = graded(jitter, 0.25, float('inf'))
+    advice = ('header stamps are regular' if verdict == OK else
+              f'periods scatter by {100 * jitter:.0f} % of the median: a driver stamping at '
+              'receipt (not at measurement) or a loaded machine; the nodes use the stamps as '
+              'measurement times')
+    return Check('jitter', topic, verdict, 100.0 * jitter, '% of period', advice, '< 25 %',
+                 {'period_std_s': float(np.std(regular)) if regular.size else None})
+
+
+def _gaps(topic: str, kind: str, forward: NDArray[np.float64], period: float) -> Check:
+    limit = GAP_LIMIT_S.get(kind, max(10.0 * period, 0.5))
+    gaps = forward[forward > limit]
+    longest = float(forward.max())
+    verdict = WARNING if gaps.size else OK
+    advice = ('no gap' if verdict == OK else
+              f'{gaps.size} gap(s) longer than {limit:g} s (longest {longest:.2f} s): the nodes '
+              'restart their integration after one (max_gap_s); check the driver and the '
+              'recorder (dropped messages, a paused recording)')
+    return Check('gaps', topic, verdict, longest, 's', advice, f'<= {limit:g} s',
+                 {'gaps': int(gaps.size)})
+
+
+def _order(topic: str, step: NDArray[np.float64], has_header: bool) -> list[Check]:
+    stamps = 'header stamps' if has_header else 'record times'
+    back = int((step < 0).sum())
+    same = int((step == 0).sum())
+    back_check = Check(
+        'stamps_backwards', topic, PROBLEM if back else OK, float(back), 'messages',
+        f'{stamps} go backwards {back} time(s) (largest step back '
+        f'{-float(step.min()):.3f} s): nodes restart their estimates at each; fix the driver\'s '
+        'clock or the bag (a looping or merged recording)' if back else f'{stamps} never go back',
+        '0')
+    share = same / max(step.size, 1)
+    same_check = Check(
+        'stamps_repeated', topic, OK if not same else (PROBLEM if share > 0.01 else WARNING),
+        float(same), 'messages',
+        f'{same} message(s) repeat the previous stamp ({100 * share:.2f} %): the nodes skip a '
+        'repeated stamp (no time passed); the driver should stamp each measurement'
+        if same else 'no repeated stamp', '0 (problem above 1 %)')
+    return [back_check, same_check]
+
+
+def _delay(topic: str, header_ns: NDArray[np.int64], record_ns: NDArray[np.int64]) -> Check:
+    """How long after its header stamp each message was recorded."""
+    delay = (record_ns - header_ns) * 1e-9
+    median = float(np.median(delay))
+    p5, p95 = (float(v) for v in np.percentile(delay, [5, 95]))
+    details = {'median_s': median, 'p5_s': p5, 'p95_s': p95}
+    if median < -0.005:
+        return Check('delay', topic, WARNING if median > -DELAY_PROBLEM_S else PROBLEM, median,
+                     's', 'header stamps lie after the time of recording: the driver\'s and the '
+                     'recorder\'s clocks differ (or the stamps are not wall or sim time)',
+                     f'|median| < {DELAY_WARN_S:g} s', details)
+    verdict = graded(median, DELAY_WARN_S, DELAY_PROBLEM_S)
+    advice = ('recorded within the tolerance of its stamp' if verdict == OK else
+              f'messages reach the recorder {median:.3f} s after their stamps (p95 {p95:.3f} s): '
+              'a slow link or a driver stamping late; nodes waiting on it (the fusion\'s '
+              'reorder window) must hold inputs that long')
+    return Check('delay', topic, verdict, median, 's', advice, f'< {DELAY_WARN_S:g} s', details)
+
+
+def yaw_offset(name_a: str, t_a: NDArray[np.int64], yaw_a: NDArray[np.float64], name_b: str,
+               t_b: NDArray[np.int64], yaw_b: NDArray[np.float64],
+               max_offset_s: float = 0.3) -> Check:
+    """Time offset of stream a against stream b from their yaw increments (the integral of a
+    cross-correlation of yaw rates): a stamped t shows the motion b shows at t - offset (s)."""
+    subject = f'{name_a} vs {name_b}'
+    order_a, order_b = np.argsort(t_a, kind='stable'), np.argsort(t_b, kind='stable')
+    ta, ya = np.asarray(t_a)[order_a], np.asarray(yaw_a)[order_a]
+    keep = np.concatenate(([True], np.diff(ta) > 0))
+    try:
+        result = odometry_delay(ta[keep], ya[keep], np.asarray(t_b)[order_b],
+                                np.asarray(yaw_b)[order_b], max_delay_s=max_offset_s,
+                                step_s=0.002, bootstrap=50)
+    except CalibrationError as exc:
+        return Check('time_offset', subject, SKIPPED, None, 's', f'not measured: {exc}')
+    offset = result.delay_s
+    verdict = graded(abs(offset), OFFSET_WARN_S, OFFSET_PROBLEM_S)
+    advice = (f'{name_a} and {name_b} agree in time' if verdict == OK else
+              f'{name_a} shows the motion {1000 * offset:+.0f} ms after {name_b} does: '
+              'correct the late driver\'s stamps, or set the fusion\'s <input>.delay_s '
+              '(params.yaml carries it)')
+    return Check('time_offset', subject, verdict, offset, 's', advice,
+                 f'|offset| < {1000 * OFFSET_WARN_S:g} ms',
+                 {'std_s': result.std_s, 'intervals': result.intervals,
+                  'turned_deg': math.degrees(result.turned_rad)})
