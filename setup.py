@@ -26,6 +26,7 @@ EXECUTABLES = {
     'sensing_soak': 'sensing_nodes.tools.soak:main',
     'sensing_calibrate': 'sensing_nodes.tools.calibrate:main',
     'sensing_characterize': 'sensing_nodes.tools.characterize:main',
+    'sensing_doctor': 'sensing_nodes.tools.doctor:main',
 }
 
 def bag_files():

@@ -25,7 +25,8 @@ def range_checks(topic: str, ranges: NDArray[np.float64], range_min: float,
         verdict = PROBLEM if whole or share > 0.1 else WARNING
         nan_check = Check(
             'laser_nan', topic, verdict, float(nan), 'beams',
-            f'{nan} NaN ranges ({100 * share:.2f} % of beams, in {scans_with_nan} scans; {whole} scans all NaN): REP 117 reads NaN as an invalid measurement and '
+            f'{nan} NaN ranges ({100 * share:.2f} % of beams, in {scans_with_nan} scans; '
+            f'{whole} scans all NaN): REP 117 reads NaN as an invalid measurement and '
             'the nodes skip those beams; many point at a driver fault or a dirty window',
             '0 (problem above 10 % or a scan all NaN)',
             {'share': share, 'scans_with_nan': scans_with_nan,
