@@ -108,6 +108,7 @@ class Diagnosis:
     timings: dict[str, float] = field(default_factory=dict)
     imu_still: Any = None
     offset_reference: str = ''
+    scan_variance: Any = None                 # (S, 3) each match's variance (x, y, yaw)
     preset_text: str = ''
     imu_tilt_deg: float | None = None         # largest base tilt the IMU's orientation shows
 
@@ -148,6 +149,10 @@ def find_inputs(d: Diagnosis) -> None:
     else:
         d.odoms = [o for t, o in sorted(odoms.items()) if t not in PACKAGE_OUTPUTS] or \
             list(odoms.values())
+    if not (d.joints or d.scan or d.imu or d.odoms):
+        raise SensorBagError(f'{s.path} holds no input the doctor can check (JointState, '
+                             'LaserScan, Imu or Odometry); topics: ' + '; '.join(
+                                 f'{t} ({ty}, {n})' for t, (ty, n) in sorted(s.topics.items())))
     children = [o.child_frame_id for o in d.odoms if o.child_frame_id]
     parents = [tr.parent for tr in s.transforms if tr.static]
     d.base_frame = (children[0] if children else parents[0] if parents else 'base_link')
@@ -360,7 +365,7 @@ def scan_section(d: Diagnosis) -> None:
     guide = d.pose_tracks.get('wheels') or next(
         (d.pose_tracks[o.topic] for o in d.odoms if o.topic in d.pose_tracks), None)
     guess = _pose_at(*guide, scan_t) if guide is not None else None
-    poses, status = [], {}
+    poses, variances, status = [], [], {}
     for i, (stamp, pts) in enumerate(zip(scan_t, points)):
         motion = None
         if guess is not None and i and np.isfinite(guess[i]).all() and \
@@ -369,7 +374,11 @@ def scan_section(d: Diagnosis) -> None:
         step = matcher.process(int(stamp), pts, motion)
         status[step.status] = status.get(step.status, 0) + 1
         poses.append(step.pose)
+        # The match's own variance against its keyframe (NaN where nothing was matched).
+        variances.append(np.diag(step.relative_covariance) if step.relative_covariance
+                         is not None else np.full(3, np.nan))
     d.scan_track = (scan_t, np.array(poses, dtype=float))
+    d.scan_variance = np.array(variances)
     d.pose_tracks['scan matching'] = d.scan_track
     d.scan_track_status = status
     d.tracks['scan matching'] = (scan_t, np.unwrap(np.array(poses)[:, 2]))
@@ -518,7 +527,11 @@ def _reference_intervals(d: Diagnosis, span_s: float = 0.5) -> tuple[np.ndarray,
     if i0.size < 5:
         return None
     t0, t1 = t[i0], t[i0 + step]
-    return t0, t1, _increments(t, poses, t0, t1)
+    # The reference's own variance: each end's match against its keyframe (a floor: 1 mm,
+    # 0.05 deg, as ICP's covariance is optimistic).
+    var = d.scan_variance[i0] + d.scan_variance[i0 + step] + \
+        np.array([1e-6, 1e-6, math.radians(0.05) ** 2])
+    return t0, t1, _increments(t, poses, t0, t1), var
 
 
 def noise_section(d: Diagnosis) -> None:
@@ -531,7 +544,7 @@ def noise_section(d: Diagnosis) -> None:
         d.add(cov_checks.odometry_covariance_check(odom.topic, odom.pose_var, odom.twist_var))
         if ref is None:
             continue
-        t0, t1, motion = ref
+        t0, t1, motion, ref_var = ref
         err = _increments(t, pose, t0, t1) - motion
         err[:, 2] = np.angle(np.exp(1j * err[:, 2]))
         kind = cov_checks.covariance_kind(odom.pose_var)
@@ -544,13 +557,13 @@ def noise_section(d: Diagnosis) -> None:
             dt = (t1 - t0) * 1e-9
             grown = np.column_stack([np.interp(t0, t, tv[:, i]) for i in range(3)]) * \
                 (dt ** 2)[:, None]
-        d.add(cov_checks.nees_check(odom.topic, err, grown))
+        d.add(cov_checks.nees_check(odom.topic, err, grown + ref_var))
     if d.imu is not None:
         d.add(cov_checks.imu_covariance_check(d.imu.topic, d.imu.orientation_cov,
                                               d.imu.gyro_cov))
     if ref is None:
         return
-    t0, t1, motion = ref
+    t0, t1, motion, _ = ref
     moving = np.isfinite(motion).all(axis=1)
     path = np.abs(motion[moving, 0]).sum()
     turned = np.abs(motion[moving, 2]).sum()
@@ -565,9 +578,14 @@ def noise_section(d: Diagnosis) -> None:
         d.noise['wheel_yaw_error_sum_sq'] = float((err[ok, 2] ** 2).sum())
         # How far the wheels' increments stray from scan matching in units of that model:
         # the tail sets how far a scan match may lie from a wheel-driven prediction.
-        dist = np.maximum(np.abs(motion[moving, 0]), 1e-3)[ok]
-        normalised = (err[ok, 0] ** 2 + err[ok, 1] ** 2) / (d.noise['wheel_variance_per_m'] * dist)
-        d.noise['wheel_error_chi2_p99'] = float(np.percentile(normalised, 99))
+        # (over intervals that drive at least 0.1 m/s: in place, the matcher's own noise,
+        # which does not shrink with the distance, would dominate)
+        dist = np.abs(motion[moving, 0])[ok]
+        driving = dist >= 0.1 * (t1 - t0)[moving][ok] * 1e-9
+        if driving.sum() >= 20:
+            normalised = (err[ok, 0] ** 2 + err[ok, 1] ** 2)[driving] / (
+                d.noise['wheel_variance_per_m'] * dist[driving])
+            d.noise['wheel_error_chi2_p99'] = float(np.percentile(normalised, 99))
     if d.imu is not None and d.imu.topic in d.tracks:
         t, yaw = d.tracks[d.imu.topic]
         base = t[0]

@@ -97,38 +97,40 @@ def encoders_vs_odometry(subject: str, joint_t: NDArray[np.int64], joints: NDArr
                          odom_t: NDArray[np.int64], odom_yaw: NDArray[np.float64],
                          window_s: float = 0.5) -> Check:
     """Whether an Odometry topic's heading comes from these encoders: its yaw increments over
-    window_s windows regressed on the wheels' differential angle (gain r/b fitted, so any
-    geometry fits); the heading the fit leaves unexplained, accumulated over the bag (deg)."""
+    window_s windows regressed on the two wheels' angle increments (r_R/b and -r_L/b fitted, so
+    any geometry fits); the heading the fit leaves unexplained, accumulated over the bag (deg)."""
     lo, hi = max(joint_t[0], odom_t[0]), min(joint_t[-1], odom_t[-1])
     edges = np.arange(lo, hi, int(window_s * 1e9))
     if edges.size < 10:
         return Check('encoders_vs_odometry', subject, SKIPPED, None, 'deg',
                      'the encoders and the odometry overlap too little')
     base = joint_t[0]
-    diff = joints[:, 1] - joints[:, 0]
-    w = np.diff(np.interp((edges - base) * 1e-9, (joint_t - base) * 1e-9, diff))
+    w = np.diff(np.column_stack([np.interp((edges - base) * 1e-9, (joint_t - base) * 1e-9,
+                                           joints[:, i]) for i in range(2)]), axis=0)
     yaw = np.unwrap(odom_yaw)
     o = np.diff(np.interp((edges - base) * 1e-9, (odom_t - base) * 1e-9, yaw))
     turned = float(np.abs(o).sum())
-    if turned < math.radians(90.0) or float(w @ w) == 0.0:
+    if turned < math.radians(90.0):
         return Check('encoders_vs_odometry', subject, SKIPPED, None, 'deg',
                      f'{subject} turns {math.degrees(turned):.0f} deg: too little to compare')
-    gain = float(w @ o) / float(w @ w)
-    residual = o - gain * w
+    # yaw increment = (r_R dphi_R - r_L dphi_L) / b: one gain per wheel, any geometry fits
+    gains, *_ = np.linalg.lstsq(w, o, rcond=None)
+    residual = o - w @ gains
     drift = np.cumsum(residual)
     divergence = math.degrees(float(np.abs(drift).max()))
     unexplained = float(np.sqrt(residual @ residual / (o @ o)))
+    gain = float(gains[1])
     verdict = max(graded(divergence, 5.0, 20.0), graded(100 * unexplained, 5.0, 20.0),
                   key=SEVERITY.__getitem__)
-    advice = (f'{subject} turns as the encoders do (fitted r/b {gain:.5f})' if verdict == OK else
+    advice = (f'{subject} turns as the encoders do (fitted r_R/b {gain:.5f})' if verdict == OK else
               f'the encoders do not explain {subject}: dead reckoning with the best-fitting '
               f'geometry ends up to {divergence:.0f} deg off it ({100 * unexplained:.0f} % of '
               'its turning unexplained): wheel slip, another source (a simulator\'s world pose, '
               'a fused estimate), or the wrong joints')
     return Check('encoders_vs_odometry', subject, verdict, divergence, 'deg', advice,
                  '< 5 deg, < 5 % unexplained',
-                 {'unexplained_pct': 100 * unexplained, 'gain_r_over_b': gain,
-                  'turned_deg': math.degrees(turned)})
+                 {'unexplained_pct': 100 * unexplained, 'turned_deg': math.degrees(turned),
+                  'gains_rad_per_rad': [float(g) for g in gains]})
 
 
 def wheel_rates(joint_t: NDArray[np.int64], joints: NDArray[np.float64], geometry: Geometry
