@@ -353,6 +353,13 @@ def _pose_at(t: np.ndarray, poses: np.ndarray, query: np.ndarray) -> np.ndarray:
     return interpolate_poses(t, poses, query)
 
 
+def scan_gap_s(d: Diagnosis) -> float:
+    """The gap between scans the matcher bridges: icp_matcher's 1 s, or for a sparse log (a
+    keyframe log: a scan a metre) 1.5 times its longest gap."""
+    longest = float(np.diff(np.sort(d.scan.t)).max()) * 1e-9 if d.scan.t.size > 1 else 0.0
+    return 1.0 if longest <= 1.0 else round(min(1.5 * longest, 300.0), 1)
+
+
 def scan_section(d: Diagnosis) -> None:
     """Scan matching over every scan (icp_matcher's keyframe matcher, the motion predicted
     from the wheels or the odometry): the external reference of the other checks."""
@@ -360,8 +367,8 @@ def scan_section(d: Diagnosis) -> None:
         return
     scan_t, points = _scan_points(d)
     g = d.geometry
-    matcher = KeyframeScanMatcher(ScanMatcherSettings(laser_pose=(g.laser_x_m, g.laser_y_m,
-                                                                  g.laser_yaw_rad)))
+    matcher = KeyframeScanMatcher(ScanMatcherSettings(
+        laser_pose=(g.laser_x_m, g.laser_y_m, g.laser_yaw_rad), max_gap_s=scan_gap_s(d)))
     guide = d.pose_tracks.get('wheels') or next(
         (d.pose_tracks[o.topic] for o in d.odoms if o.topic in d.pose_tracks), None)
     guess = _pose_at(*guide, scan_t) if guide is not None else None
@@ -724,6 +731,12 @@ def build_preset(d: Diagnosis) -> None:
             else d.odoms[0].topic,
             'odom_delay_s': _delay(d, 'wheels' if d.joints is not None else
                                    (d.odoms[0].topic if d.odoms else ''))}
+        if scan_gap_s(d) > 1.0:
+            guide = d.odoms[0].t if d.joints is None and d.odoms else None
+            doc['icp_matcher']['max_gap_s'] = scan_gap_s(d)
+            if guide is not None and guide.size > 1:
+                period = float(np.median(np.diff(np.sort(guide)))) * 1e-9
+                doc['icp_matcher']['odom_max_extrapolation_s'] = round(min(1.0, max(0.1, 5 * period)), 2)
         if d.scan.topic != SCAN:
             remaps[d.scan.topic] = SCAN
     fusion: dict[str, Any] = {
@@ -819,7 +832,11 @@ def fused_section(d: Diagnosis, out: Path) -> None:
         d.add(Check('fused', 'preset', PROBLEM, float(len(t)), 'outputs',
                     f'the fusion published {len(t)} estimates over the bag ({counts})'))
         return
-    for name, (rt, rp) in d.pose_tracks.items():
+    references = dict(d.pose_tracks)
+    truth = d.survey.odoms.get(GROUND_TRUTH)
+    if truth is not None:      # a simulator's or a log's reference: compared, never an input
+        references[f'ground truth ({GROUND_TRUTH})'] = _sorted_unique(truth.t, truth.pose)
+    for name, (rt, rp) in references.items():
         if name == 'fused':
             continue
         errors = trajectory_errors(rt, rp, t, poses)
