@@ -19,7 +19,8 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'allan', 'graph_cpu', 'pipeline', 'fusion']
+AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'allan', 'graph_cpu', 'pipeline', 'fusion',
+         'doctor']
 
 
 def demo_figures(quick: bool, extra: tuple[str, ...] = ()) -> dict:
