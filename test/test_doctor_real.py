@@ -96,6 +96,20 @@ def test_jackal_preset_ends_within_robot_localizations_tolerance(tmp_path):
     assert fusion['imu']['source'] == 'orientation' and fusion['level_with_imu_tilt'] is True
     x, y, _ = report['fused']['final_pose']
     assert math.hypot(x - 1.0206, y - 3.4292) <= 0.1383
+    # The same preset over DDS: sensing_replay as params.yaml's comment gives it.
+    from harness import run_to_exit
+
+    from sensing_nodes.tools.doctor import load_odometry
+
+    command = report['preset']['commands']['sensing_replay'].split()
+    assert command[:3] == ['sensing_replay', str(JACKAL), 'OUT']
+    args = [str(JACKAL), str(tmp_path / 'replayed')] + [
+        str(tmp_path / 'out' / 'params.yaml') if a == 'params.yaml' else a for a in command[3:]]
+    result = run_to_exit('sensing_replay', args + ['--no-progress'], timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    _, poses = load_odometry(tmp_path / 'replayed', '/odometry/filtered')
+    assert len(poses) == 3060
+    assert math.hypot(poses[-1][0] - 1.0206, poses[-1][1] - 3.4292) <= 0.1383
 
 
 @_needs(FREIBURG)

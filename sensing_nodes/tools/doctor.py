@@ -736,7 +736,8 @@ def build_preset(d: Diagnosis) -> None:
             doc['icp_matcher']['max_gap_s'] = scan_gap_s(d)
             if guide is not None and guide.size > 1:
                 period = float(np.median(np.diff(np.sort(guide)))) * 1e-9
-                doc['icp_matcher']['odom_max_extrapolation_s'] = round(min(1.0, max(0.1, 5 * period)), 2)
+                doc['icp_matcher']['odom_max_extrapolation_s'] = round(
+                    min(1.0, max(0.1, 5 * period)), 2)
         if d.scan.topic != SCAN:
             remaps[d.scan.topic] = SCAN
     fusion: dict[str, Any] = {
@@ -778,14 +779,38 @@ _PresetDumper.add_representer(str, lambda dumper, value: dumper.represent_scalar
     style="'" if value.lower() in ('y', 'n', 'yes', 'no', 'on', 'off', 'true', 'false') else None))
 
 
+def commands(d: Diagnosis, params: Path) -> dict[str, str]:
+    """The sensing_pipeline and sensing_replay command lines that run the preset: remaps,
+    and for the replay the expectation table of the nodes started (each bag input and the
+    outputs that answer it; none for what the fusion takes straight from the bag)."""
+    from sensing_nodes.topics import NODES
+
+    remap = ''.join(f' --remap {a}:={b}' for a, b in sorted(d.remaps.items()))
+    fed = {s.topic for s in (d.joints, d.scan, d.imu) if s is not None}
+    fusion = d.preset.get('complementary_fusion', {}).get('ros__parameters', {})
+    fed |= {fusion[i]['topic'] for i in ('wheel_odom', 'imu') if i in fusion
+            and fusion[i].get('topic') not in ('/wheel/odom', IMU)}
+    wheel_topic = fusion.get('wheel_odom', {}).get('topic')
+    expect = ''
+    for topic in sorted(fed):
+        name = d.remaps.get(topic, topic)
+        answers = [o for n in d.nodes if NODES[n].answers == name for o in NODES[n].answered_with]
+        if topic == wheel_topic:     # the fusion answers each wheel input (once all spoke)
+            answers.append(FUSED)
+        expect += f' --expect {topic}={",".join(answers)}'
+    nodes = ','.join(d.nodes)
+    return {'sensing_pipeline': f'sensing_pipeline {d.survey.path} OUT --nodes {nodes} '
+                                f'--params-file {params}{remap}',
+            'sensing_replay': f'sensing_replay {d.survey.path} OUT --launch --nodes {nodes} '
+                              f'--params-file {params}{remap}{expect}'}
+
+
 def preset_text(d: Diagnosis, out: Path) -> str:
     """params.yaml: the command that loads it, then the node sections."""
-    remap = ''.join(f' --remap {a}:={b}' for a, b in sorted(d.remaps.items()))
+    run = commands(d, out / 'params.yaml')
     head = [f'# {PROG} {d.survey.path}: a preset for this package\'s nodes, measured on the bag',
-            f'# (report: {out / "report.html"}). Load it with:',
-            f'#   sensing_pipeline BAG OUT --nodes {",".join(d.nodes)} --params-file '
-            f'{out / "params.yaml"}{remap}',
-            f'#   sensing_replay BAG OUT --launch --params-file {out / "params.yaml"}{remap}',
+            f'# (report: {out / "report.html"}). Run it with:',
+            f'#   {run["sensing_pipeline"]}', f'#   {run["sensing_replay"]}',
             f'# remap (bag topic -> node topic): {json.dumps(d.remaps)}']
     return '\n'.join(head) + '\n' + yaml.dump(d.preset, Dumper=_PresetDumper, sort_keys=False)
 
@@ -937,7 +962,8 @@ def report_json(d: Diagnosis, status: int) -> dict[str, Any]:
             'exit_status': status, 'verdict': worst(d.checks), 'counts': counts,
             'topics': {t: {'type': ty, 'count': n} for t, (ty, n) in d.survey.topics.items()},
             'base_frame': d.base_frame, 'checks': [c.as_dict() for c in d.checks],
-            'preset': {'nodes': list(d.nodes), 'remaps': d.remaps, 'parameters': d.preset},
+            'preset': {'nodes': list(d.nodes), 'remaps': d.remaps, 'parameters': d.preset,
+                       'commands': commands(d, Path('params.yaml'))},
             'time_offsets_s': d.offsets, 'offset_reference': d.offset_reference,
             'noise': d.noise, 'fused': d.fused, 'timings_s': d.timings}
 
