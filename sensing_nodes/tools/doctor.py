@@ -830,7 +830,7 @@ def load_odometry(bag: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
 
 def fused_section(d: Diagnosis, out: Path) -> None:
     """The preset through the nodes offline (sensing_pipeline's code) over the bag, and the
-    fused output against each input, anchored at the fused output's first stamp (REP 105)."""
+    fused output against each input, anchored at the fused output's second stamp."""
     from sensing_nodes.core.evaluation.metrics import trajectory_errors
     from sensing_nodes.graph.pipeline import PipelineError, run
 
@@ -857,6 +857,9 @@ def fused_section(d: Diagnosis, out: Path) -> None:
         d.add(Check('fused', 'preset', PROBLEM, float(len(t)), 'outputs',
                     f'the fusion published {len(t)} estimates over the bag ({counts})'))
         return
+    # The first output is the filter's initial state (with an absolute IMU yaw: before the
+    # first orientation reached it): the comparisons anchor at the second.
+    t, poses = t[1:], poses[1:]
     references = dict(d.pose_tracks)
     truth = d.survey.odoms.get(GROUND_TRUTH)
     if truth is not None:      # a simulator's or a log's reference: compared, never an input
@@ -872,7 +875,16 @@ def fused_section(d: Diagnosis, out: Path) -> None:
         errors = trajectory_errors(it, np.column_stack((np.zeros((len(it), 2)), iyaw)), t,
                                    np.column_stack((np.zeros((len(t), 2)), poses[:, 2])))
         if errors.t.size:
-            d.fused['compared'][d.imu.topic + ' (heading)'] = errors.summary(False)
+            d.fused['compared'][d.imu.topic + ' (gyro heading)'] = errors.summary(False)
+    if _imu_has_orientation(d.imu):
+        rotation = d.mount.rotation() if d.mount is not None else d.declared.imu_mount
+        it, q = _sorted_unique(d.imu.t, d.imu.orientation)
+        yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in
+                         (quaternion_matrix(row) @ rotation.T for row in q)])
+        errors = trajectory_errors(it, np.column_stack((np.zeros((len(it), 2)), yaw)), t,
+                                   np.column_stack((np.zeros((len(t), 2)), poses[:, 2])))
+        if errors.t.size:
+            d.fused['compared'][d.imu.topic + ' (its orientation)'] = errors.summary(False)
     shown = '; '.join(f'{n}: {v.get("rms_position_error_m", float("nan")):.3f} m / '
                       f'{v["rms_heading_error_deg"]:.2f} deg RMS'
                       for n, v in d.fused['compared'].items())
@@ -994,6 +1006,11 @@ def report_html(d: Diagnosis, report: dict[str, Any]) -> str:
         f'<td>{v.get("final_position_error_m", float("nan")):.4f}</td>'
         f'<td>{v["rms_heading_error_deg"]:.3f}</td><td>{v["final_heading_error_deg"]:.3f}</td>'
         '</tr>' for n, v in d.fused.get('compared', {}).items())
+    findings = ''.join(
+        f'<li style="background:{COLOURS[c.verdict]}"><b>{e(c.verdict)}</b> {e(c.subject)} '
+        f'({e(c.name)}, {_number(c)}): {e(c.advice)}</li>'
+        for verdict in (PROBLEM, WARNING) for c in d.checks if c.verdict == verdict) or \
+        '<li>nothing to change</li>'
     plots = ''.join(f'<h3>{e(title)}</h3><img alt="{e(title)}" src="data:image/png;base64,'
                     f'{data}">' for title, data in d.plots.items())
     counts = report['counts']
@@ -1008,7 +1025,8 @@ overflow-x:auto}}img{{max-width:100%}}</style></head><body>
 <b>Verdict: {e(report['verdict'])}</b> (exit status {report['exit_status']}):
 {counts[PROBLEM]} problems, {counts[WARNING]} warnings, {counts[OK]} ok, {counts[SKIPPED]} not
 judged.</p>
-<h2>Checks</h2><table><tr><th>input</th><th>check</th><th>verdict</th><th>value</th>
+<h2>What to change</h2><ul>{findings}</ul>
+<h2>Every check</h2><table><tr><th>input</th><th>check</th><th>verdict</th><th>value</th>
 <th>limit</th><th>what it means, what to change</th></tr>{rows}</table>
 <h2>Plots</h2>{plots}
 <h2>Topics</h2><table><tr><th>topic</th><th>type</th><th>messages</th></tr>{topics}</table>
@@ -1016,7 +1034,8 @@ judged.</p>
 <h2>The preset over the bag: fused output against each input</h2>
 <p>The nodes {e(', '.join(d.nodes))} run offline over the bag with the preset
 (sensing_pipeline's code); the fused output against each input, anchored at the fused output's
-first stamp. Without ground truth this is self-consistency: where inputs disagree, the fused
+second stamp (the first is the filter's initial state). Without ground truth this is
+self-consistency: where inputs disagree, the fused
 output sits between them, nearer to the one with less noise.</p>
 <table><tr><th>input</th><th>RMS position (m)</th><th>final position (m)</th>
 <th>RMS heading (deg)</th><th>final heading (deg)</th></tr>{compared}</table>
