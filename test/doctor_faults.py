@@ -198,3 +198,30 @@ def nan_ranges(scans: int = 10, beams: int = 30, every: int = 20) -> Rewrite:
                 msg.ranges = ranges
         return [(topic, msg, t)]
     return change
+
+
+CATALOGUE = {
+    'upside_down': lambda: upside_down(),
+    'imu_yaw_90': lambda: rotated_imu(mount_rotation(0.0, 0.0, math.pi / 2)),
+    'imu_roll_minus_90': lambda: rotated_imu(mount_rotation(-math.pi / 2, 0.0, 0.0)),
+    'wheel_radius_5pct': lambda: wheel_radius_off(1.05),
+    'separation_10pct': lambda: scaled_wheels(difference_scale=1.1),
+    'imu_50ms_late': lambda: shifted_stamps('/imu/data_raw', 50_000_000),
+    'zero_covariance': lambda: zero_covariance('/wheel/odom'),
+    'second_tf_publisher': lambda: second_tf_publisher(),
+    'stamps_backwards': lambda: reversed_stamps('/joint_states'),
+    'nan_ranges': lambda: nan_ranges(),
+}
+
+
+if __name__ == '__main__':
+    # python test/doctor_faults.py DIR: the clean bag and every fault of the catalogue in DIR,
+    # for `sensing_doctor DIR/<name>` (docs/doctor.md's table).
+    import sys
+
+    root = Path(sys.argv[1])
+    root.mkdir(parents=True, exist_ok=False)
+    clean = record_clean(root)
+    for name, make in CATALOGUE.items():
+        rewrite(clean, root / name, make())
+        print(root / name)
