@@ -427,6 +427,35 @@ def _reference_motion(d: Diagnosis) -> tuple[str, np.ndarray, np.ndarray, np.nda
     return None
 
 
+def _mount_section(d: Diagnosis, t: np.ndarray, accel: np.ndarray, up, axis, ref
+                   ) -> np.ndarray:
+    """The mount from the up axis (gravity's, else the rate axis) and the accelerations'
+    yaw, checked against the declared one; the rotation the gyro is read through (the
+    declared yaw kept where none was found)."""
+    imu = d.imu
+    direction = up if up is not None else axis
+    if direction is None:
+        d.add(Check('imu_mount', imu.topic, SKIPPED, None, 'deg',
+                    'neither gravity nor a reference yaw rate shows the IMU\'s axes'))
+        return d.declared.imu_mount
+    roll, pitch = imu_checks.roll_pitch_of(direction)
+    yaw, note = None, 'no reference motion'
+    if up is not None and ref is not None:
+        found = imu_checks.horizontal_yaw(t, accel, roll, pitch, ref[1], ref[2], ref[3])
+        yaw, note = (found[0], f'from accelerations, {found[1]:.2f} m/s^2 RMS') \
+            if found else (None, 'the robot hardly accelerates')
+    elif up is None:
+        note = 'no gravity in the accelerometer'
+    d.mount = imu_checks.MountEstimate(roll, pitch, yaw,
+                                       'gravity' if up is not None else 'rotation', note)
+    d.add(imu_checks.mount_check(imu.topic, d.mount, d.declared.imu_mount,
+                                 d.declared.imu_mount_from))
+    if yaw is None:     # keep the declared yaw about the vertical
+        declared_yaw = math.atan2(d.declared.imu_mount[1, 0], d.declared.imu_mount[0, 0])
+        d.mount = imu_checks.MountEstimate(roll, pitch, declared_yaw, d.mount.up_from, note)
+    return d.mount.rotation()
+
+
 def imu_section(d: Diagnosis) -> None:
     """Gravity (REP 103/145), the rate axis, the mount found against the declared one, gyro
     bias and noise; the gyro's yaw track about base_link's z."""
@@ -450,29 +479,7 @@ def imu_section(d: Diagnosis) -> None:
         if fit is not None:
             axis = fit[0]
             d.add(imu_checks.rate_axis_check(imu.topic, ref[0], fit[0], fit[1], up))
-    direction = up if up is not None else axis
-    if direction is None:
-        d.add(Check('imu_mount', imu.topic, SKIPPED, None, 'deg',
-                    'neither gravity nor a reference yaw rate shows the IMU\'s axes'))
-        rotation = d.declared.imu_mount
-    else:
-        roll, pitch = imu_checks.roll_pitch_of(direction)
-        yaw, note = None, 'no reference motion'
-        if up is not None and ref is not None:
-            found = imu_checks.horizontal_yaw(t, accel, roll, pitch, ref[1], ref[2], ref[3])
-            yaw, note = (found[0], f'from accelerations, {found[1]:.2f} m/s^2 RMS') \
-                if found else (None, 'the robot hardly accelerates')
-        elif up is None:
-            note = 'no gravity in the accelerometer'
-        d.mount = imu_checks.MountEstimate(roll, pitch, yaw,
-                                           'gravity' if up is not None else 'rotation', note)
-        d.add(imu_checks.mount_check(imu.topic, d.mount, d.declared.imu_mount,
-                                     d.declared.imu_mount_from))
-        rotation = d.mount.rotation()
-        if yaw is None:     # keep the declared yaw about the vertical
-            declared_yaw = math.atan2(d.declared.imu_mount[1, 0], d.declared.imu_mount[0, 0])
-            d.mount = imu_checks.MountEstimate(roll, pitch, declared_yaw, d.mount.up_from, note)
-            rotation = d.mount.rotation()
+    rotation = _mount_section(d, t, accel, up, axis, ref)
     rate_z = gyro @ rotation[2]
     noise = imu_checks.gyro_noise_checks(imu.topic, t, rate_z, still)
     d.add(noise)
@@ -541,11 +548,9 @@ def _reference_intervals(d: Diagnosis, span_s: float = 0.5) -> tuple[np.ndarray,
     return t0, t1, _increments(t, poses, t0, t1), var
 
 
-def noise_section(d: Diagnosis) -> None:
-    """Each input's errors against scan matching over short intervals: the wheels' variance
-    per metre (along the path) and per radian turned, the gyro's heading variance per second,
-    and each Odometry's covariance against its actual errors (NEES)."""
-    ref = _reference_intervals(d)
+def _odometry_noise(d: Diagnosis, ref) -> None:
+    """Each Odometry's covariance, and its increments' errors against scan matching in units
+    of the variance it claims (NEES)."""
     for odom in d.odoms:
         t, pose = d.pose_tracks[odom.topic]
         d.add(cov_checks.odometry_covariance_check(odom.topic, odom.pose_var, odom.twist_var))
@@ -554,8 +559,7 @@ def noise_section(d: Diagnosis) -> None:
         t0, t1, motion, ref_var = ref
         err = _increments(t, pose, t0, t1) - motion
         err[:, 2] = np.angle(np.exp(1j * err[:, 2]))
-        kind = cov_checks.covariance_kind(odom.pose_var)
-        if kind == 'growing':
+        if cov_checks.covariance_kind(odom.pose_var) == 'growing':
             _, var = _sorted_unique(odom.t, odom.pose_var)
             grown = np.column_stack([np.interp(t1, t, var[:, i]) - np.interp(t0, t, var[:, i])
                                      for i in range(3)])
@@ -565,6 +569,40 @@ def noise_section(d: Diagnosis) -> None:
             grown = np.column_stack([np.interp(t0, t, tv[:, i]) for i in range(3)]) * \
                 (dt ** 2)[:, None]
         d.add(cov_checks.nees_check(odom.topic, err, grown + ref_var))
+
+
+def _wheel_noise(d: Diagnosis, t0, t1, motion, moving) -> None:
+    """The wheels' variance per metre along the path and across, per radian turned, and the
+    tail of their normalised errors (the scan-match gate)."""
+    path = np.abs(motion[moving, 0]).sum()
+    turned = np.abs(motion[moving, 2]).sum()
+    if 'wheels' not in d.pose_tracks or path <= 1.0:
+        return
+    err = _increments(*d.pose_tracks['wheels'], t0, t1)[moving] - motion[moving]
+    err[:, 2] = np.angle(np.exp(1j * err[:, 2]))
+    ok = np.isfinite(err).all(axis=1)
+    d.noise['wheel_variance_per_m'] = float((err[ok, 0] ** 2).sum() / path)
+    d.noise['wheel_lateral_variance_per_m'] = float((err[ok, 1] ** 2).sum() / path)
+    if turned > 1.0:
+        d.noise['wheel_yaw_variance_per_rad'] = float((err[ok, 2] ** 2).sum() / turned)
+    d.noise['wheel_yaw_error_sum_sq'] = float((err[ok, 2] ** 2).sum())
+    # How far the wheels' increments stray from scan matching in units of that model, over
+    # intervals that drive at least 0.1 m/s (in place, the matcher's own noise, which does
+    # not shrink with the distance, would dominate).
+    dist = np.abs(motion[moving, 0])[ok]
+    driving = dist >= 0.1 * (t1 - t0)[moving][ok] * 1e-9
+    if driving.sum() >= 20:
+        normalised = (err[ok, 0] ** 2 + err[ok, 1] ** 2)[driving] / (
+            d.noise['wheel_variance_per_m'] * dist[driving])
+        d.noise['wheel_error_chi2_p99'] = float(np.percentile(normalised, 99))
+
+
+def noise_section(d: Diagnosis) -> None:
+    """Each input's errors against scan matching over short intervals: the Odometry's
+    covariances, the wheels' variance per metre and per radian turned, the gyro's heading
+    variance per second."""
+    ref = _reference_intervals(d)
+    _odometry_noise(d, ref)
     if d.imu is not None:
         d.add(cov_checks.imu_covariance_check(d.imu.topic, d.imu.orientation_cov,
                                               d.imu.gyro_cov))
@@ -572,27 +610,7 @@ def noise_section(d: Diagnosis) -> None:
         return
     t0, t1, motion, _ = ref
     moving = np.isfinite(motion).all(axis=1)
-    path = np.abs(motion[moving, 0]).sum()
-    turned = np.abs(motion[moving, 2]).sum()
-    if 'wheels' in d.pose_tracks and path > 1.0:
-        err = _increments(*d.pose_tracks['wheels'], t0, t1)[moving] - motion[moving]
-        err[:, 2] = np.angle(np.exp(1j * err[:, 2]))
-        ok = np.isfinite(err).all(axis=1)
-        d.noise['wheel_variance_per_m'] = float((err[ok, 0] ** 2).sum() / path)
-        d.noise['wheel_lateral_variance_per_m'] = float((err[ok, 1] ** 2).sum() / path)
-        if turned > 1.0:
-            d.noise['wheel_yaw_variance_per_rad'] = float((err[ok, 2] ** 2).sum() / turned)
-        d.noise['wheel_yaw_error_sum_sq'] = float((err[ok, 2] ** 2).sum())
-        # How far the wheels' increments stray from scan matching in units of that model:
-        # the tail sets how far a scan match may lie from a wheel-driven prediction.
-        # (over intervals that drive at least 0.1 m/s: in place, the matcher's own noise,
-        # which does not shrink with the distance, would dominate)
-        dist = np.abs(motion[moving, 0])[ok]
-        driving = dist >= 0.1 * (t1 - t0)[moving][ok] * 1e-9
-        if driving.sum() >= 20:
-            normalised = (err[ok, 0] ** 2 + err[ok, 1] ** 2)[driving] / (
-                d.noise['wheel_variance_per_m'] * dist[driving])
-            d.noise['wheel_error_chi2_p99'] = float(np.percentile(normalised, 99))
+    _wheel_noise(d, t0, t1, motion, moving)
     if d.imu is not None and d.imu.topic in d.tracks:
         t, yaw = d.tracks[d.imu.topic]
         base = t[0]
@@ -697,49 +715,34 @@ def _odom_fusion_preset(d: Diagnosis) -> dict[str, Any]:
             'mask': ['x', 'y', 'yaw'], 'delay_s': _delay(d, odom.topic)}
 
 
-def build_preset(d: Diagnosis) -> None:
-    """params.yaml's node sections, the nodes to run and the bag topics to remap."""
-    doc: dict[str, Any] = {}
-    nodes: list[str] = []
-    remaps: dict[str, str] = {}
-    orientation_only = d.joints is None and d.scan is None and _imu_has_orientation(d.imu)
-    if d.joints is not None:
-        nodes.append('wheel_odometry')
-        doc['wheel_odometry'] = _wheel_preset(d)
-        if d.joints.topic != JOINT_STATES:
-            remaps[d.joints.topic] = JOINT_STATES
-    if d.imu is not None and not orientation_only:
-        nodes.append('gyro_integrator')
-        mount = d.mount or imu_checks.MountEstimate(0.0, 0.0, 0.0, '', '')
-        doc['gyro_integrator'] = {
-            'mount_roll_rad': round(mount.roll, 6), 'mount_pitch_rad': round(mount.pitch, 6),
-            'mount_yaw_rad': round(mount.yaw or 0.0, 6), 'base_frame': d.base_frame,
-            'initial_bias_z_rad_s': round(d.gyro_bias, 6),
-            'use_wheel_odom': d.joints is not None}
-        if d.gyro_noise_density:
-            doc['gyro_integrator']['gyro_noise_density'] = float(f'{d.gyro_noise_density:.3g}')
-        if d.imu.topic != IMU_RAW:
-            remaps[d.imu.topic] = IMU_RAW
+def _gyro_preset(d: Diagnosis) -> dict[str, Any]:
+    mount = d.mount or imu_checks.MountEstimate(0.0, 0.0, 0.0, '', '')
+    params = {'mount_roll_rad': round(mount.roll, 6), 'mount_pitch_rad': round(mount.pitch, 6),
+              'mount_yaw_rad': round(mount.yaw or 0.0, 6), 'base_frame': d.base_frame,
+              'initial_bias_z_rad_s': round(d.gyro_bias, 6),
+              'use_wheel_odom': d.joints is not None}
+    if d.gyro_noise_density:
+        params['gyro_noise_density'] = float(f'{d.gyro_noise_density:.3g}')
+    return params
+
+
+def _icp_preset(d: Diagnosis) -> dict[str, Any]:
+    g = d.geometry
+    guide = 'wheels' if d.joints is not None else (d.odoms[0].topic if d.odoms else '')
+    params = {'laser_x_m': round(g.laser_x_m, 4), 'laser_y_m': round(g.laser_y_m, 4),
+              'laser_yaw_rad': round(g.laser_yaw_rad, 5), 'base_frame': d.base_frame,
+              'odom_topic': '/wheel/odom' if guide in ('wheels', '') else guide,
+              'odom_delay_s': _delay(d, guide)}
+    if scan_gap_s(d) > 1.0:        # a keyframe log: bridge its gaps, extrapolate its odometry
+        params['max_gap_s'] = scan_gap_s(d)
+        if guide not in ('wheels', '') and d.odoms[0].t.size > 1:
+            period = float(np.median(np.diff(np.sort(d.odoms[0].t)))) * 1e-9
+            params['odom_max_extrapolation_s'] = round(min(1.0, max(0.1, 5 * period)), 2)
+    return params
+
+
+def _fusion_preset(d: Diagnosis, orientation_only: bool) -> dict[str, Any]:
     odom_source = d.joints is not None or bool(d.odoms)
-    if d.scan is not None:
-        nodes.append('icp_matcher')
-        g = d.geometry
-        doc['icp_matcher'] = {
-            'laser_x_m': round(g.laser_x_m, 4), 'laser_y_m': round(g.laser_y_m, 4),
-            'laser_yaw_rad': round(g.laser_yaw_rad, 5), 'base_frame': d.base_frame,
-            'odom_topic': '/wheel/odom' if d.joints is not None or not d.odoms
-            else d.odoms[0].topic,
-            'odom_delay_s': _delay(d, 'wheels' if d.joints is not None else
-                                   (d.odoms[0].topic if d.odoms else ''))}
-        if scan_gap_s(d) > 1.0:
-            guide = d.odoms[0].t if d.joints is None and d.odoms else None
-            doc['icp_matcher']['max_gap_s'] = scan_gap_s(d)
-            if guide is not None and guide.size > 1:
-                period = float(np.median(np.diff(np.sort(guide)))) * 1e-9
-                doc['icp_matcher']['odom_max_extrapolation_s'] = round(
-                    min(1.0, max(0.1, 5 * period)), 2)
-        if d.scan.topic != SCAN:
-            remaps[d.scan.topic] = SCAN
     fusion: dict[str, Any] = {
         'method': 'ekf', 'base_frame': d.base_frame, 'use_wheel_odom': odom_source,
         'use_imu': d.imu is not None, 'use_scan_match_position': d.scan is not None,
@@ -762,11 +765,29 @@ def build_preset(d: Diagnosis) -> None:
         # widen it by as much, or it refuses the right matches after each slip.
         tail = d.noise['wheel_error_chi2_p99'] / 9.21
         fusion['scan_match'] = {'gate_chi2': float(round(min(400.0, 25.0 * max(1.0, tail))))}
-    if odom_source or d.imu is not None or d.scan is not None:
-        nodes.append('complementary_fusion')
-        doc['complementary_fusion'] = fusion
+    return fusion
+
+
+def build_preset(d: Diagnosis) -> None:
+    """params.yaml's node sections, the nodes to run and the bag topics to remap."""
+    doc: dict[str, Any] = {}
+    remaps: dict[str, str] = {}
+    orientation_only = d.joints is None and d.scan is None and _imu_has_orientation(d.imu)
+    if d.joints is not None:
+        doc['wheel_odometry'] = _wheel_preset(d)
+        if d.joints.topic != JOINT_STATES:
+            remaps[d.joints.topic] = JOINT_STATES
+    if d.imu is not None and not orientation_only:
+        doc['gyro_integrator'] = _gyro_preset(d)
+        if d.imu.topic != IMU_RAW:
+            remaps[d.imu.topic] = IMU_RAW
+    if d.scan is not None:
+        doc['icp_matcher'] = _icp_preset(d)
+        if d.scan.topic != SCAN:
+            remaps[d.scan.topic] = SCAN
+    doc['complementary_fusion'] = _fusion_preset(d, orientation_only)
     d.preset = {node: {'ros__parameters': params} for node, params in doc.items()}
-    d.nodes, d.remaps = tuple(nodes), remaps
+    d.nodes, d.remaps = tuple(doc), remaps
 
 
 class _PresetDumper(yaml.SafeDumper):
@@ -828,10 +849,39 @@ def load_odometry(bag: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
     return t, np.array([rows[k] for k in t.tolist()], dtype=float).reshape(-1, 3)
 
 
+def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray) -> None:
+    """The fused output against each pose track, the bag's ground truth where it has one,
+    and the IMU's headings (its gyro's integral, its own orientation)."""
+    from sensing_nodes.core.evaluation.metrics import trajectory_errors
+
+    def heading_only(stamps: np.ndarray, yaw: np.ndarray) -> dict[str, float] | None:
+        errors = trajectory_errors(stamps, np.column_stack((np.zeros((len(stamps), 2)), yaw)),
+                                   t, np.column_stack((np.zeros((len(t), 2)), poses[:, 2])))
+        return errors.summary(False) if errors.t.size else None
+
+    references = {n: track for n, track in d.pose_tracks.items() if n != 'fused'}
+    truth = d.survey.odoms.get(GROUND_TRUTH)
+    if truth is not None:      # a simulator's or a log's reference: compared, never an input
+        references[f'ground truth ({GROUND_TRUTH})'] = _sorted_unique(truth.t, truth.pose)
+    compared = d.fused['compared']
+    for name, (rt, rp) in references.items():
+        errors = trajectory_errors(rt, rp, t, poses)
+        if errors.t.size:
+            compared[name] = errors.summary()
+    if d.imu is not None and d.imu.topic in d.tracks:
+        compared[d.imu.topic + ' (gyro heading)'] = heading_only(*d.tracks[d.imu.topic])
+    if _imu_has_orientation(d.imu):
+        rotation = d.mount.rotation() if d.mount is not None else d.declared.imu_mount
+        it, q = _sorted_unique(d.imu.t, d.imu.orientation)
+        yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in
+                         (quaternion_matrix(row) @ rotation.T for row in q)])
+        compared[d.imu.topic + ' (its orientation)'] = heading_only(it, yaw)
+    d.fused['compared'] = {n: v for n, v in compared.items() if v is not None}
+
+
 def fused_section(d: Diagnosis, out: Path) -> None:
     """The preset through the nodes offline (sensing_pipeline's code) over the bag, and the
     fused output against each input, anchored at the fused output's second stamp."""
-    from sensing_nodes.core.evaluation.metrics import trajectory_errors
     from sensing_nodes.graph.pipeline import PipelineError, run
 
     if 'complementary_fusion' not in d.nodes:
@@ -859,32 +909,7 @@ def fused_section(d: Diagnosis, out: Path) -> None:
         return
     # The first output is the filter's initial state (with an absolute IMU yaw: before the
     # first orientation reached it): the comparisons anchor at the second.
-    t, poses = t[1:], poses[1:]
-    references = dict(d.pose_tracks)
-    truth = d.survey.odoms.get(GROUND_TRUTH)
-    if truth is not None:      # a simulator's or a log's reference: compared, never an input
-        references[f'ground truth ({GROUND_TRUTH})'] = _sorted_unique(truth.t, truth.pose)
-    for name, (rt, rp) in references.items():
-        if name == 'fused':
-            continue
-        errors = trajectory_errors(rt, rp, t, poses)
-        if errors.t.size:
-            d.fused['compared'][name] = errors.summary()
-    if d.imu is not None and d.imu.topic in d.tracks:
-        it, iyaw = d.tracks[d.imu.topic]
-        errors = trajectory_errors(it, np.column_stack((np.zeros((len(it), 2)), iyaw)), t,
-                                   np.column_stack((np.zeros((len(t), 2)), poses[:, 2])))
-        if errors.t.size:
-            d.fused['compared'][d.imu.topic + ' (gyro heading)'] = errors.summary(False)
-    if _imu_has_orientation(d.imu):
-        rotation = d.mount.rotation() if d.mount is not None else d.declared.imu_mount
-        it, q = _sorted_unique(d.imu.t, d.imu.orientation)
-        yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in
-                         (quaternion_matrix(row) @ rotation.T for row in q)])
-        errors = trajectory_errors(it, np.column_stack((np.zeros((len(it), 2)), yaw)), t,
-                                   np.column_stack((np.zeros((len(t), 2)), poses[:, 2])))
-        if errors.t.size:
-            d.fused['compared'][d.imu.topic + ' (its orientation)'] = errors.summary(False)
+    compare_fused(d, t[1:], poses[1:])
     shown = '; '.join(f'{n}: {v.get("rms_position_error_m", float("nan")):.3f} m / '
                       f'{v["rms_heading_error_deg"]:.2f} deg RMS'
                       for n, v in d.fused['compared'].items())
