@@ -167,7 +167,7 @@ def find_inputs(d: Diagnosis) -> None:
               + (f'; absent: {", ".join(missing)} (their checks are skipped)' if missing else ''))
     d.add(Check('inputs', 'bag', WARNING if several else OK, None, '', advice, '',
                 {'found': found, 'candidates': d.candidates, 'base_frame': d.base_frame,
-                 'duration_s': s.duration_s, 'notes': s.notes}))
+                 'duration_s': s.duration_s, 'notes': s.notes[:100]}))
 
 
 def _section(data: Any, node: str) -> dict[str, Any]:
@@ -285,6 +285,11 @@ def refusal_section(d: Diagnosis) -> None:
                 d.imu = ImuStream(s.topic, s.frame_id, s.t[keep], s.gyro[keep], s.accel[keep],
                                   s.orientation[keep], s.orientation_cov[keep],
                                   s.gyro_cov[keep], s.accel_cov[keep])
+    if d.survey.notes:      # messages the survey left out: a node or tool would skip them too
+        d.add(Check('left_out', 'bag', WARNING, float(len(d.survey.notes)), 'messages',
+                    f'{len(d.survey.notes)} messages left out: '
+                    + '; '.join(d.survey.notes[:3]) + ('; ...' if len(d.survey.notes) > 3 else ''),
+                    '0', {'notes': d.survey.notes[:100]}))
     if d.scan is not None:
         d.add(laser_checks.range_checks(d.scan.topic, d.scan.ranges, d.scan.range_min,
                                         d.scan.range_max))
