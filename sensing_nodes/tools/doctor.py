@@ -422,6 +422,10 @@ def _reference_motion(d: Diagnosis) -> tuple[str, np.ndarray, np.ndarray, np.nda
         t, joints = _joint_arrays(d)
         mid, v, w, _ = wheels.wheel_rates(t, joints, d.geometry)
         return 'the wheels', mid, v, w
+    for odom in d.odoms:         # an Odometry's own twist, where it publishes one
+        t, twist = _sorted_unique(odom.t, odom.twist)
+        if t.size > 10 and np.abs(twist[:, [0, 2]]).max() > 0.0:
+            return odom.topic, t, twist[:, 0], twist[:, 2]
     for name in [o.topic for o in d.odoms] + ['scan matching']:
         if name in d.pose_tracks:
             t, p = d.pose_tracks[name]
@@ -454,7 +458,8 @@ def _mount_section(d: Diagnosis, t: np.ndarray, accel: np.ndarray, up, axis, ref
     d.mount = imu_checks.MountEstimate(roll, pitch, yaw,
                                        'gravity' if up is not None else 'rotation', note)
     d.add(imu_checks.mount_check(imu.topic, d.mount, d.declared.imu_mount,
-                                 d.declared.imu_mount_from))
+                                 d.declared.imu_mount_from,
+                                 imu.frame_id.lstrip('/') == d.base_frame))
     if yaw is None:     # keep the declared yaw about the vertical
         declared_yaw = math.atan2(d.declared.imu_mount[1, 0], d.declared.imu_mount[0, 0])
         d.mount = imu_checks.MountEstimate(roll, pitch, declared_yaw, d.mount.up_from, note)
@@ -838,6 +843,12 @@ def preset_text(d: Diagnosis, out: Path) -> str:
             f'# (report: {out / "report.html"}). Run it with:',
             f'#   {run["sensing_pipeline"]}', f'#   {run["sensing_replay"]}',
             f'# remap (bag topic -> node topic): {json.dumps(d.remaps)}']
+    if d.imu is not None and d.imu.frame_id.lstrip('/') == d.base_frame:
+        head.append(f'# The Imu\'s frame_id is {d.base_frame}: the nodes take it as aligned '
+                    'and ignore the mount_*_rad below (they record what was found).')
+    elif d.imu is not None and d.declared.imu_mount_from == '/tf_static':
+        head.append('# /tf_static declares the IMU mount: the nodes take it over the '
+                    'mount_*_rad below (what was found); correct /tf_static where they differ.')
     return '\n'.join(head) + '\n' + yaml.dump(d.preset, Dumper=_PresetDumper, sort_keys=False)
 
 

@@ -209,9 +209,10 @@ def rate_axis_check(subject: str, reference: str, axis: NDArray[np.float64], gai
 
 
 def mount_check(subject: str, found: MountEstimate, declared: NDArray[np.float64],
-                declared_from: str) -> Check:
+                declared_from: str, frame_is_base: bool = False) -> Check:
     """The mount found against the declared one: the full rotation when the yaw was found,
-    else the tilt (up axis) alone."""
+    else the tilt (up axis) alone. frame_is_base: the Imu's frame_id is the base frame, which
+    declares it aligned (the nodes then ignore their mount parameters)."""
     details = {'roll_deg': math.degrees(found.roll), 'pitch_deg': math.degrees(found.pitch),
                'yaw_deg': None if found.yaw is None else math.degrees(found.yaw),
                'up_from': found.up_from, 'yaw_note': found.yaw_note,
@@ -226,11 +227,16 @@ def mount_check(subject: str, found: MountEstimate, declared: NDArray[np.float64
     shown = (f'roll {details["roll_deg"]:.1f}, pitch {details["pitch_deg"]:.1f}, yaw '
              + (f'{details["yaw_deg"]:.1f} deg' if found.yaw is not None else
                 f'unknown ({found.yaw_note})'))
+    fix = ('the Imu\'s frame_id is the base frame, which declares it aligned (the nodes '
+           'ignore mount_*_rad then): publish the IMU in a frame of its own with its mount on '
+           '/tf_static' if frame_is_base else
+           'correct /tf_static (the nodes take it over their mount_*_rad)'
+           if declared_from == '/tf_static' else
+           'declare it on /tf_static or in the nodes\' mount_*_rad (params.yaml has it)')
     advice = (f'the mount found ({shown}) is the one declared ({declared_from})'
               if verdict == OK else
               f'the IMU sits at {shown} in base_link, {angle:.1f} deg from the mount declared '
-              f'({declared_from}): declare it on /tf_static or in the nodes\' mount_*_rad '
-              '(params.yaml has it)')
+              f'({declared_from}): {fix}')
     return Check('imu_mount', subject, verdict, angle, 'deg', advice, '< 3 deg', details)
 
 
