@@ -148,6 +148,12 @@ class _Collector:
         self.rows: dict[str, list] = {}
         self.meta: dict[str, tuple] = {}
 
+    def add_stamp(self, topic: str, record_ns: int, stamp: int | None) -> None:
+        """A message the doctor only times (its header stamp read from the CDR bytes)."""
+        self.stamps.setdefault(topic, []).append(record_ns if stamp is None else stamp)
+        self.records.setdefault(topic, []).append(record_ns)
+        self.meta.setdefault(topic, ('', stamp is not None))
+
     def add(self, topic: str, kind: str, record_ns: int, msg) -> None:
         stamp = _header_ns(msg)
         self.stamps.setdefault(topic, []).append(record_ns if stamp is None else stamp)
@@ -236,6 +242,28 @@ def _diag3_imu(cov) -> tuple[float, float, float]:
     return (float(cov[0]), float(cov[4]), float(cov[8]))
 
 
+def _messages(reader, path: Path, topics: dict[str, tuple[str, int]], kinds: dict[str, str]):
+    """(topic, record ns, message or None, header stamp ns or None) in bag order. A rosbag2
+    bag's messages are decoded by rosbags (several times faster than rclpy's Python message
+    classes; the same field names, arrays as numpy arrays), those of kinds the doctor does not
+    read are only timed (their header stamp read from the CDR bytes); a ROS 1 bag's come as
+    rclpy messages."""
+    from sensing_nodes.bags.stamps import first_field_type, leading_stamp_ns
+    from sensing_nodes.bags.storage import TYPESTORE
+
+    if path.is_file():
+        for topic, record_ns, msg in reader.messages():
+            yield topic, record_ns, msg, None
+        return
+    headed = {t: first_field_type(ty) == 'std_msgs/Header' for t, (ty, _) in topics.items()
+              if not kinds[t]}
+    for topic, record_ns, raw in reader.raw():
+        if not kinds[topic]:
+            yield topic, record_ns, None, leading_stamp_ns(raw) if headed[topic] else None
+        else:
+            yield topic, record_ns, TYPESTORE.deserialize_cdr(raw, topics[topic][0]), None
+
+
 def survey_bag(path: str | Path, progress: Callable[[str], None] | None = None) -> Survey:
     """Read the bag once (see the module doc); SensorBagError when it cannot be read."""
     from sensing_nodes.bags.storage import BagError, BagReader
@@ -252,8 +280,11 @@ def survey_bag(path: str | Path, progress: Callable[[str], None] | None = None) 
     total = sum(n for _, n in topics.values())
     done, last_report = 0, time.monotonic()
     try:
-        for topic, record_ns, msg in reader.messages():
-            collect.add(topic, kinds[topic], int(record_ns), msg)
+        for topic, record_ns, msg, stamp in _messages(reader, path, topics, kinds):
+            if msg is None:
+                collect.add_stamp(topic, int(record_ns), stamp)
+            else:
+                collect.add(topic, kinds[topic], int(record_ns), msg)
             done += 1
             if progress is not None and time.monotonic() - last_report > 2.0:
                 progress(f'read {done}/{total} messages ({100.0 * done / max(total, 1):.0f} %)')
