@@ -140,3 +140,14 @@ def test_carmen_log_without_imu(tmp_path):
     assert preset['complementary_fusion']['ros__parameters']['use_imu'] is False
     truth = report['fused']['compared']['ground truth (/ground_truth/odom)']
     assert truth['rms_position_error_m'] < 1.5
+
+
+@pytest.mark.skipif(not (ROS / 'rosbag2-resources').is_dir(), reason='rosbag2-resources absent')
+@pytest.mark.parametrize('bag', ['rosbag2_py/test/resources/sqlite3/talker',
+                                 'rosbag2_tests/resources/mcap/cdr_test'])
+def test_bag_without_sensor_inputs_exits_2_naming_why(bag, tmp_path, capsys):
+    """rosbag2's own test bags (std_msgs String; test_msgs, whose classes are not installed):
+    read, and refused with the topics listed."""
+    assert doctor.main([str(ROS / 'rosbag2-resources' / bag), '--out', str(tmp_path / 'o'),
+                        '--quiet']) == 2
+    assert 'holds no input the doctor can check' in capsys.readouterr().err

@@ -255,8 +255,13 @@ def _messages(reader, path: Path, topics: dict[str, tuple[str, int]], kinds: dic
         for topic, record_ns, msg in reader.messages():
             yield topic, record_ns, msg, None
         return
-    headed = {t: first_field_type(ty) == 'std_msgs/Header' for t, (ty, _) in topics.items()
-              if not kinds[t]}
+    def has_header(msgtype: str) -> bool:
+        try:
+            return first_field_type(msgtype) == 'std_msgs/Header'
+        except (ImportError, AttributeError, ValueError):   # a type without rclpy classes here
+            return False
+
+    headed = {t: has_header(ty) for t, (ty, _) in topics.items() if not kinds[t]}
     for topic, record_ns, raw in reader.raw():
         if not kinds[topic]:
             yield topic, record_ns, None, leading_stamp_ns(raw) if headed[topic] else None
