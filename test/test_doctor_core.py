@@ -121,3 +121,12 @@ def test_two_publishers_of_one_transform():
     check = tf.publishers_check('odom -> base_link', np.repeat(t, 2), mixed)
     assert check.verdict == 'problem' and check.value > 90.0
     assert check.details['stamps_repeated'] == 400
+
+
+def test_a_static_transform_declared_twice_differently():
+    once = tf.static_check('base_link -> laser', np.array([[0.1, 0.0, 0.2]]),
+                           np.array([[0.0, 0.0, 0.0, 1.0]]))
+    assert once.verdict == 'ok'
+    half_turn = np.array([[0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0]])   # level, upside down
+    twice = tf.static_check('base_link -> imu_link', np.zeros((2, 3)), half_turn)
+    assert twice.verdict == 'problem' and twice.details['spread_deg'] == pytest.approx(180.0)

@@ -635,11 +635,15 @@ def noise_section(d: Diagnosis) -> None:
 
 
 def tf_section(d: Diagnosis) -> None:
-    """Two publishers of one transform on /tf."""
+    """Two publishers of one transform on /tf; one /tf_static transform declared twice,
+    differently."""
     pairs: dict[str, list] = {}
+    statics: dict[str, list] = {}
     for tr in d.survey.transforms:
-        if not tr.static:
-            pairs.setdefault(f'{tr.parent} -> {tr.child}', []).append(tr)
+        (statics if tr.static else pairs).setdefault(f'{tr.parent} -> {tr.child}', []).append(tr)
+    for pair, samples in sorted(statics.items()):
+        d.add(tf_checks.static_check(pair, np.array([s.translation for s in samples]),
+                                     np.array([s.rotation for s in samples])))
     for pair, samples in sorted(pairs.items()):
         stamps = np.array([s.stamp_ns for s in samples], dtype=np.int64)
         xyyaw = np.array([(s.translation[0], s.translation[1],

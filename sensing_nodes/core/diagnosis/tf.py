@@ -40,3 +40,22 @@ def publishers_check(pair: str, stamps_ns: NDArray[np.int64], xyyaw: NDArray[np.
               if two else f'{pair}: one consistent publisher')
     return Check('tf_publishers', pair, verdict, 100.0 * share, '% switching samples', advice,
                  '< 5 %', {'samples': int(len(p)), 'stamps_back': back, 'stamps_repeated': same})
+
+
+def static_check(pair: str, translations: NDArray[np.float64],
+                 rotations: NDArray[np.float64]) -> Check:
+    """One /tf_static transform declared more than once (translations m, rotations x y z w):
+    the declarations must agree (1 mm, 0.1 deg); two different mounts of one sensor mean two
+    launch files disagree."""
+    spread_m = float(np.ptp(translations, axis=0).max()) if len(translations) > 1 else 0.0
+    q = np.asarray(rotations, dtype=float)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    dots = np.clip(np.abs(q @ q[0]), 0.0, 1.0)
+    spread_deg = math.degrees(float(2.0 * np.arccos(dots).max()))
+    differ = spread_m > 1e-3 or spread_deg > 0.1
+    return Check('tf_static', pair, PROBLEM if differ else OK, spread_m, 'm',
+                 f'{pair} is declared {len(translations)} times, {spread_m:.3f} m and '
+                 f'{spread_deg:.2f} deg apart: two publishers disagree on the mount; keep one'
+                 if differ else f'{pair} declared {len(translations)} time(s), consistently',
+                 '< 1 mm, < 0.1 deg', {'declarations': len(translations),
+                                       'spread_deg': spread_deg})

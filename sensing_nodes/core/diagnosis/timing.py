@@ -47,8 +47,8 @@ def _rate(topic: str, kind: str, t: NDArray[np.int64], period: float) -> Check:
     minimum = MIN_RATE_HZ.get(kind)
     verdict = OK if minimum is None or rate >= minimum else WARNING
     advice = (f'{t.size} messages over {span:.1f} s' if verdict == OK else
-              f'{rate:.1f} Hz is slow for a {kind} input (>= {minimum:g} Hz expected): check '
-              'the driver\'s rate or the recorder dropping messages')
+              f'{rate:.1f} Hz is slow for this input (>= {minimum:g} Hz expected of {kind}): '
+              'check the driver\'s rate or the recorder dropping messages')
     return Check('rate', topic, verdict, rate, 'Hz', advice,
                  f'>= {minimum:g} Hz' if minimum else '',
                  {'messages': int(t.size), 'span_s': span, 'median_period_s': period})
