@@ -33,8 +33,20 @@ def test_time_offset_of_a_late_stream_with_a_scale_error(offset_s):
 
 def test_time_offset_needs_turning():
     t = (np.arange(0.0, 30.0, 0.01) * S).astype(np.int64)
-    check = timing.yaw_offset('a', t, np.zeros(t.size), 'b', t[::10], np.zeros(t.size // 10))
-    assert check.verdict == 'skipped' and 'turning' in check.advice
+    with pytest.raises(ValueError, match='turning'):
+        timing.pairwise_offset(t, np.zeros(t.size), t[::10], np.zeros(t.size // 10))
+
+
+def test_offsets_solved_from_pairs():
+    """Three sources and a reference: the pairs' offsets, weighted, give each source's
+    offset; a source no pair reaches is left out."""
+    pairs = {('gyro', 'scan'): (0.0533, 500.0), ('wheels', 'scan'): (0.0052, 500.0),
+             ('gyro', 'wheels'): (0.0500, 3000.0), ('odom', 'wheels'): (-0.0001, 3000.0)}
+    solved = timing.solve_offsets(['gyro', 'wheels', 'odom', 'scan', 'alone'], 'scan', pairs)
+    assert set(solved) == {'gyro', 'wheels', 'odom', 'scan'} and solved['scan'] == 0.0
+    assert solved['gyro'] - solved['wheels'] == pytest.approx(0.050, abs=0.0005)
+    assert solved['odom'] == pytest.approx(solved['wheels'] - 0.0001, abs=1e-6)
+    assert 0.0 < solved['wheels'] < 0.0052
 
 
 def test_stream_checks_count_backwards_repeated_and_gaps():

@@ -134,7 +134,7 @@ def test_carmen_log_without_imu(tmp_path):
     assert _checks(report, 'laser_rep117')['/scan']['verdict'] == 'ok'
     offset = _checks(report, 'time_offset')['/odom vs scan matching']
     assert offset['value'] == pytest.approx(-0.155, abs=0.02)
-    assert code == 1          # the offset is a problem (beyond 25 ms)
+    assert code == 1 and offset['verdict'] == 'problem'     # beyond 50 ms
     preset = report['preset']['parameters']
     assert preset['icp_matcher']['ros__parameters']['max_gap_s'] > 19.7   # the longest gap
     assert preset['complementary_fusion']['ros__parameters']['use_imu'] is False

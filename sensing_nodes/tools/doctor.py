@@ -508,24 +508,34 @@ def imu_section(d: Diagnosis) -> None:
 
 def offset_section(d: Diagnosis) -> None:
     """Time offsets of every yaw track against the reference (scan matching, else the wheels,
-    else the first Odometry): the fusion's <input>.delay_s."""
+    else the first Odometry), solved from every pair of tracks weighted by the increments
+    each pair compares (the high-rate pairs, wheels and gyro, pin the relative offsets; the
+    laser's few increments the common one): the fusion's <input>.delay_s."""
     names = list(d.tracks)
     reference = next((n for n in ('scan matching', 'wheels') if n in d.tracks),
-                     names[0] if names else None)
-    if reference is None or len(names) < 2:
+                     names[0] if names else '')
+    if len(names) < 2:
         d.add(Check('time_offset', 'bag', SKIPPED, None, 's',
                     'fewer than two motion sources: no time offset to measure'))
         return
-    rt, ryaw = d.tracks[reference]
+    pairs: dict[tuple[str, str], tuple[float, float]] = {}
+    refused: dict[str, str] = {}
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            try:
+                pairs[a, b] = timing.pairwise_offset(*d.tracks[a], *d.tracks[b])
+            except ValueError as exc:
+                refused[f'{a} vs {b}'] = str(exc)
+    solved = timing.solve_offsets(names, reference, pairs)
     for name in names:
         if name == reference:
             continue
-        t, yaw = d.tracks[name]
-        check = timing.yaw_offset(name, t, yaw, reference, rt, ryaw)
-        d.add(check)
-        if check.verdict in (OK, WARNING, PROBLEM):
-            d.offsets[name] = float(check.value)
-    d.offsets[reference] = 0.0
+        if name not in solved:
+            d.add(Check('time_offset', f'{name} vs {reference}', SKIPPED, None, 's',
+                        f'not measured: {refused}'))
+            continue
+        d.add(timing.offset_check(name, reference, solved[name], pairs))
+    d.offsets = solved
     d.offset_reference = reference
 
 

@@ -11,14 +11,16 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check, graded
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, WARNING, Check, graded
 
 # Gap beyond which the nodes restart an integration (wheel_odometry, gyro_integrator,
 # the fusion's IMU: max_gap_s 0.5; icp_matcher: 1.0) and the lowest useful rate, per kind.
 GAP_LIMIT_S = {'imu': 0.5, 'joints': 0.5, 'odom': 0.5, 'scan': 1.0}
 MIN_RATE_HZ = {'imu': 20.0, 'joints': 10.0, 'odom': 10.0, 'scan': 2.0}
 DELAY_WARN_S, DELAY_PROBLEM_S = 0.1, 1.0
-OFFSET_WARN_S, OFFSET_PROBLEM_S = 0.01, 0.025
+# A time offset errs the heading by (yaw rate) x offset while turning, without accumulating:
+# 10 ms is 0.6 deg at 1 rad/s (a warning: the preset's delay_s corrects it), 50 ms 2.9 deg.
+OFFSET_WARN_S, OFFSET_PROBLEM_S = 0.01, 0.05
 
 
 def stream_checks(topic: str, kind: str, header_ns: NDArray[np.int64],
@@ -172,23 +174,55 @@ def estimate_offset(t_a: NDArray[np.int64], yaw_a: NDArray[np.float64], t_b: NDA
     return offset, turned, int(tb.size - 1)
 
 
-def yaw_offset(name_a: str, t_a: NDArray[np.int64], yaw_a: NDArray[np.float64], name_b: str,
-               t_b: NDArray[np.int64], yaw_b: NDArray[np.float64],
-               max_offset_s: float = 0.3) -> Check:
-    """Time offset of stream a against stream b from their yaw increments (the integral of a
-    cross-correlation of yaw rates): a stamped t shows the motion b shows at t - offset (s)."""
-    subject = f'{name_a} vs {name_b}'
-    try:
-        offset, turned, count = estimate_offset(np.asarray(t_a), np.asarray(yaw_a, dtype=float),
-                                                np.asarray(t_b), np.asarray(yaw_b, dtype=float),
-                                                max_offset_s)
-    except ValueError as exc:
-        return Check('time_offset', subject, SKIPPED, None, 's', f'not measured: {exc}')
+def pairwise_offset(t_a: NDArray[np.int64], yaw_a: NDArray[np.float64],
+                    t_b: NDArray[np.int64], yaw_b: NDArray[np.float64],
+                    max_rate_hz: float = 25.0) -> tuple[float, int]:
+    """(offset of a against b in s, increments used): estimate_offset with the sparser stream
+    as the increments' clock, thinned to max_rate_hz (memory: grid x increments)."""
+    swap = t_a.size < t_b.size
+    ta, ya, tb, yb = (t_b, yaw_b, t_a, yaw_a) if swap else (t_a, yaw_a, t_b, yaw_b)
+    period = float(np.median(np.diff(tb))) * 1e-9 if tb.size > 1 else 1.0
+    step = max(1, int(math.ceil(1.0 / (max_rate_hz * max(period, 1e-9)))))
+    offset, _, count = estimate_offset(ta, ya, tb[::step], yb[::step])
+    return (-offset if swap else offset), count
+
+
+def solve_offsets(names: list[str], reference: str,
+                  pairs: dict[tuple[str, str], tuple[float, float]]) -> dict[str, float]:
+    """Each source's offset against the reference (s) from pairwise offsets
+    {(a, b): (offset of a against b, weight)}: weighted least squares on o_a - o_b = d_ab with
+    o_reference = 0; a source no pair connects to the reference is left out."""
+    unknown = [n for n in names if n != reference]
+    rows, rhs, weights = [], [], []
+    for (a, b), (offset, weight) in pairs.items():
+        row = np.zeros(len(unknown))
+        for name, sign in ((a, 1.0), (b, -1.0)):
+            if name != reference:
+                row[unknown.index(name)] = sign
+        rows.append(row)
+        rhs.append(offset)
+        weights.append(math.sqrt(weight))
+    if not rows:
+        return {reference: 0.0}
+    design = np.array(rows) * np.array(weights)[:, None]
+    solution, *_ = np.linalg.lstsq(design, np.array(rhs) * np.array(weights), rcond=None)
+    linked = {reference}
+    for _ in names:       # sources joined to the reference through measured pairs
+        linked |= {x for a, b in pairs for x in (a, b) if a in linked or b in linked}
+    out = {name: float(v) for name, v in zip(unknown, solution) if name in linked}
+    out[reference] = 0.0
+    return out
+
+
+def offset_check(name: str, reference: str, offset: float,
+                 pairs: dict[tuple[str, str], tuple[float, float]]) -> Check:
+    """The verdict on one source's offset against the reference, with the pairs behind it."""
     verdict = graded(abs(offset), OFFSET_WARN_S, OFFSET_PROBLEM_S)
-    advice = (f'{name_a} and {name_b} agree in time' if verdict == OK else
-              f'{name_a} shows the motion {1000 * offset:+.0f} ms after {name_b} does: '
+    advice = (f'{name} and {reference} agree in time' if verdict == OK else
+              f'{name} shows the motion {1000 * offset:+.0f} ms after {reference} does: '
               'correct the late driver\'s stamps, or set the fusion\'s <input>.delay_s '
               '(params.yaml carries it)')
-    return Check('time_offset', subject, verdict, offset, 's', advice,
-                 f'|offset| < {1000 * OFFSET_WARN_S:g} ms',
-                 {'increments': count, 'turned_deg': math.degrees(turned)})
+    used = {f'{a} vs {b}': {'offset_s': o, 'increments': int(w)}
+            for (a, b), (o, w) in pairs.items() if name in (a, b)}
+    return Check('time_offset', f'{name} vs {reference}', verdict, offset, 's', advice,
+                 f'|offset| < {1000 * OFFSET_WARN_S:g} ms', {'pairs': used})
