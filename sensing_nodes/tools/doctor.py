@@ -672,7 +672,11 @@ def _imu_has_orientation(imu: ImuStream | None) -> bool:
 
 
 def _delay(d: Diagnosis, name: str) -> float:
-    """A track's time offset for the fusion's delay_s: 0 within the check's tolerance."""
+    """A track's time offset for the fusion's delay_s: 0 within the check's tolerance, and 0
+    without a laser: between proprioceptive sources alone (wheels, odometry, gyro) the offset
+    says which is late only relative to the other, not which stamps to correct."""
+    if d.offset_reference != 'scan matching':
+        return 0.0
     offset = d.offsets.get(name, 0.0)
     return round(offset, 4) if abs(offset) >= timing.OFFSET_WARN_S else 0.0
 
@@ -857,6 +861,11 @@ def preset_text(d: Diagnosis, out: Path) -> str:
             f'# (report: {out / "report.html"}). Run it with:',
             f'#   {run["sensing_pipeline"]}', f'#   {run["sensing_replay"]}',
             f'# remap (bag topic -> node topic): {json.dumps(d.remaps)}']
+    if d.offset_reference and d.offset_reference != 'scan matching' and any(
+            abs(v) >= timing.OFFSET_WARN_S for v in d.offsets.values()):
+        head.append(f'# Time offsets against {d.offset_reference} are in report.json; without '
+                    'a laser they say which source is late relative to the other, not which '
+                    'to correct: no delay_s is set.')
     if d.imu is not None and d.imu.frame_id.lstrip('/') == d.base_frame:
         head.append(f'# The Imu\'s frame_id is {d.base_frame}: the nodes take it as aligned '
                     'and ignore the mount_*_rad below (they record what was found).')

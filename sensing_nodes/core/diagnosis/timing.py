@@ -219,9 +219,10 @@ def offset_check(name: str, reference: str, offset: float,
     """The verdict on one source's offset against the reference, with the pairs behind it."""
     verdict = graded(abs(offset), OFFSET_WARN_S, OFFSET_PROBLEM_S)
     advice = (f'{name} and {reference} agree in time' if verdict == OK else
-              f'{name} shows the motion {1000 * offset:+.0f} ms after {reference} does: '
-              'correct the late driver\'s stamps, or set the fusion\'s <input>.delay_s '
-              '(params.yaml carries it)')
+              f'{name} shows the motion {1000 * abs(offset):.0f} ms '
+              f'{"after" if offset > 0 else "before"} {reference} does: correct the driver '
+              'stamping late (or early), or set the fusion\'s <input>.delay_s (params.yaml '
+              'carries it)')
     used = {f'{a} vs {b}': {'offset_s': o, 'increments': int(w)}
             for (a, b), (o, w) in pairs.items() if name in (a, b)}
     return Check('time_offset', f'{name} vs {reference}', verdict, offset, 's', advice,
