@@ -28,6 +28,7 @@ EXECUTABLES = {
     'sensing_characterize': 'sensing_nodes.tools.characterize:main',
     'sensing_fuse_bag': 'sensing_nodes.tools.fuse_bag:main',
     'sensing_fusion_eval': 'sensing_nodes.tools.fusion_eval:main',
+    'sensing_doctor': 'sensing_nodes.tools.doctor:main',
 }
 
 def bag_files():

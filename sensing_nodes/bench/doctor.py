@@ -1,0 +1,56 @@
+"""sensing_doctor's speed over a 10-minute bag (issue 25: under a minute on this 2-core
+machine).
+
+A bag is recorded with `sensor_sim --record` (600 s of the default route, seed 5; 60 s with
+--quick), then `sensing_doctor BAG --out DIR --quiet` runs as a child process: the whole tool,
+process start, the checks, the preset through the nodes offline and the report included. Its
+wall and CPU time (user + system of the child) are reported with each section's wall time from
+report.json and the load average: compare figures from one run only.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from sensing_nodes.bench.pipeline import executable, record_sim_bag
+
+
+def _child_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run(quick: bool = False) -> dict:
+    """Record the bag, run the doctor over it, return its time figures."""
+    duration_s = 60.0 if quick else 600.0
+    with tempfile.TemporaryDirectory() as tmp:
+        bag, out = Path(tmp) / 'bag', Path(tmp) / 'out'
+        record_sim_bag(bag, duration_s)
+        load_start = os.getloadavg()[0]
+        cpu0, wall0 = _child_cpu_s(), time.monotonic()
+        result = subprocess.run([executable('sensing_doctor'), str(bag), '--out', str(out),
+                                 '--quiet'], capture_output=True, text=True)
+        cpu, wall = _child_cpu_s() - cpu0, time.monotonic() - wall0
+        if result.returncode not in (0, 1):
+            return {'error': (result.stderr.strip().splitlines() or ['failed'])[-1]}
+        report = json.loads((out / 'report.json').read_text())
+    return {
+        'doctor_bag_seconds': duration_s,
+        'doctor_wall_seconds': round(wall, 2),
+        'doctor_cpu_seconds': round(cpu, 2),
+        'doctor_exit_status': result.returncode,
+        'doctor_section_wall_seconds': {k: round(v, 2) for k, v in report['timings_s'].items()},
+        'doctor_load_average_1min_start': round(load_start, 2),
+        'doctor_load_average_1min_end': round(os.getloadavg()[0], 2),
+    }
+
+
+if __name__ == '__main__':
+    print(json.dumps(run(quick='--quick' in sys.argv), indent=1))
