@@ -105,7 +105,7 @@ def test_jackal_preset_ends_within_robot_localizations_tolerance(tmp_path):
     # The same preset over DDS: sensing_replay as params.yaml's comment gives it.
     from harness import run_to_exit
 
-    from sensing_nodes.tools.doctor import load_odometry
+    from sensing_nodes.doctor.fused import load_odometry
 
     command = report['preset']['commands']['sensing_replay'].split()
     assert command[:3] == ['sensing_replay', str(JACKAL), 'OUT']

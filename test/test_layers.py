@@ -11,7 +11,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / 'sensing_nodes'
 # Lower number = lower layer; a module may import its own layer or any lower one.
 LAYERS = {'topics': 0, 'paths': 0, 'core': 1, 'bags': 2, 'ros': 3, 'nodes': 4, 'graph': 5,
-          'tools': 6, 'bench': 6}
+          'doctor': 6, 'tools': 7, 'bench': 7}
 ROS_PACKAGES = ('rclpy', 'rosbags', 'mcap', 'sensor_msgs', 'nav_msgs', 'geometry_msgs',
                 'std_msgs', 'tf2_msgs', 'diagnostic_msgs', 'visualization_msgs', 'rosgraph_msgs',
                 'rcl_interfaces', 'builtin_interfaces')

@@ -1,0 +1,96 @@
+"""The preset run over the bag through the nodes offline (sensing_pipeline's code), and the
+fused output against each input."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, Check
+from sensing_nodes.core.geometry.imu_mount import quaternion_matrix
+from sensing_nodes.doctor.diagnosis import Diagnosis, sorted_unique
+from sensing_nodes.doctor.preset import imu_has_orientation
+from sensing_nodes.topics import FUSED, GROUND_TRUTH
+
+# --- the preset over the bag ----------------------------------------------------------------
+
+def load_odometry(bag: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps ns, poses (N, 3)) of an Odometry topic, sorted, one per stamp."""
+    from sensing_nodes.bags.storage import read_messages
+    from sensing_nodes.ros.conversions import odometry_pose, stamp_to_ns
+
+    rows = {stamp_to_ns(m.header.stamp): odometry_pose(m)[0]
+            for _, _, m in read_messages(bag, [topic])}
+    t = np.array(sorted(rows), dtype=np.int64)
+    return t, np.array([rows[k] for k in t.tolist()], dtype=float).reshape(-1, 3)
+
+
+def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray) -> None:
+    """The fused output against each pose track, the bag's ground truth where it has one,
+    and the IMU's headings (its gyro's integral, its own orientation)."""
+    from sensing_nodes.core.evaluation.metrics import trajectory_errors
+
+    def heading_only(stamps: np.ndarray, yaw: np.ndarray) -> dict[str, float] | None:
+        errors = trajectory_errors(stamps, np.column_stack((np.zeros((len(stamps), 2)), yaw)),
+                                   t, np.column_stack((np.zeros((len(t), 2)), poses[:, 2])))
+        return errors.summary(False) if errors.t.size else None
+
+    references = {n: track for n, track in d.pose_tracks.items() if n != 'fused'}
+    truth = d.survey.odoms.get(GROUND_TRUTH)
+    if truth is not None:      # a simulator's or a log's reference: compared, never an input
+        references[f'ground truth ({GROUND_TRUTH})'] = sorted_unique(truth.t, truth.pose)
+    compared = d.fused['compared']
+    for name, (rt, rp) in references.items():
+        errors = trajectory_errors(rt, rp, t, poses)
+        if errors.t.size:
+            compared[name] = errors.summary()
+    if d.imu is not None and d.imu.topic in d.tracks:
+        compared[d.imu.topic + ' (gyro heading)'] = heading_only(*d.tracks[d.imu.topic])
+    if imu_has_orientation(d.imu):
+        rotation = d.mount.rotation() if d.mount is not None else d.declared.imu_mount
+        it, q = sorted_unique(d.imu.t, d.imu.orientation)
+        yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in
+                         (quaternion_matrix(row) @ rotation.T for row in q)])
+        compared[d.imu.topic + ' (its orientation)'] = heading_only(it, yaw)
+    d.fused['compared'] = {n: v for n, v in compared.items() if v is not None}
+
+
+def fused_section(d: Diagnosis, out: Path) -> None:
+    """The preset through the nodes offline (sensing_pipeline's code) over the bag, and the
+    fused output against each input, anchored at the fused output's second stamp."""
+    from sensing_nodes.graph.pipeline import PipelineError, run
+
+    if 'complementary_fusion' not in d.nodes:
+        d.add(Check('fused', 'preset', SKIPPED, None, 'm', 'nothing to fuse'))
+        return
+    fused_bag = out / 'fused_bag'
+    try:
+        counts = run(d.survey.path, fused_bag, d.nodes, params_files=[out / 'params.yaml'],
+                     remaps=d.remaps, progress=False)
+    except PipelineError as exc:
+        d.add(Check('fused', 'preset', PROBLEM, None, 'm',
+                    f'the preset does not run through the nodes: {exc}'))
+        return
+    except Exception as exc:  # rcl refuses a parameter file with its own exception types
+        d.add(Check('fused', 'preset', PROBLEM, None, 'm',
+                    f'the preset does not load ({type(exc).__name__}: {exc})'))
+        return
+    t, poses = load_odometry(fused_bag, FUSED)
+    d.fused = {'outputs': counts, 'final_pose': poses[-1].tolist() if len(poses) else None,
+               'compared': {}, 'bag': str(fused_bag)}
+    d.pose_tracks['fused'] = (t, poses)
+    if len(t) < 2:
+        d.add(Check('fused', 'preset', PROBLEM, float(len(t)), 'outputs',
+                    f'the fusion published {len(t)} estimates over the bag ({counts})'))
+        return
+    # The first output is the filter's initial state (with an absolute IMU yaw: before the
+    # first orientation reached it): the comparisons anchor at the second.
+    compare_fused(d, t[1:], poses[1:])
+    shown = '; '.join(f'{n}: {v.get("rms_position_error_m", float("nan")):.3f} m / '
+                      f'{v["rms_heading_error_deg"]:.2f} deg RMS'
+                      for n, v in d.fused['compared'].items())
+    d.add(Check('fused', 'preset', OK, float(len(t)), 'outputs',
+                f'the preset\'s fused output ({len(t)} estimates) against each input: {shown}',
+                '', d.fused))

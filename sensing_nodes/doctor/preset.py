@@ -1,0 +1,227 @@
+"""params.yaml: a preset for this package's nodes from what the diagnosis found."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from sensing_nodes.bags.survey import ImuStream
+from sensing_nodes.core.diagnosis import covariance as cov_checks
+from sensing_nodes.core.diagnosis import imu as imu_checks
+from sensing_nodes.core.diagnosis import timing
+from sensing_nodes.doctor.diagnosis import PROG, Diagnosis, scan_gap_s
+from sensing_nodes.topics import FUSED, IMU, IMU_RAW, JOINT_STATES, SCAN
+
+# --- the preset -----------------------------------------------------------------------------
+
+def imu_has_orientation(imu: ImuStream | None) -> bool:
+    return imu is not None and not np.all(imu.orientation_cov[:, 0] == -1.0) and \
+        bool(np.all(np.linalg.norm(imu.orientation, axis=1) > 0.5))
+
+
+def _delay(d: Diagnosis, name: str) -> float:
+    """A track's time offset for the fusion's delay_s: 0 within the check's tolerance, and 0
+    without a laser: between proprioceptive sources alone (wheels, odometry, gyro) the offset
+    says which is late only relative to the other, not which stamps to correct."""
+    if d.offset_reference != 'scan matching':
+        return 0.0
+    offset = d.offsets.get(name, 0.0)
+    return round(offset, 4) if abs(offset) >= timing.OFFSET_WARN_S else 0.0
+
+
+def _wheel_preset(d: Diagnosis) -> dict[str, Any]:
+    g = d.geometry
+    names = d.joints.names
+    params = {'left_wheel_joint': names[d.wheel_columns[0]],
+              'right_wheel_joint': names[d.wheel_columns[1]],
+              'wheel_radius_m': round(g.left_radius_m, 6), 'left_radius_multiplier': 1.0,
+              'right_radius_multiplier': round(g.right_radius_m / g.left_radius_m, 6),
+              'wheel_separation_m': round(g.wheel_separation_m, 6), 'base_frame': d.base_frame}
+    if 'wheel_variance_per_m' in d.noise:
+        # wheel_odometry's k is per metre of each wheel's travel: along the path, both wheels
+        # travel the distance, and the path's variance is k / 2 per metre.
+        params['wheel_variance_per_m'] = float(f'{2.0 * d.noise["wheel_variance_per_m"]:.3g}')
+    return params
+
+
+def _imu_fusion_preset(d: Diagnosis, integrated: bool) -> dict[str, Any]:
+    mount = d.mount or imu_checks.MountEstimate(0.0, 0.0, 0.0, '', '')
+    angles = {f'mount_{a}_rad': round(float(v), 6) for a, v in
+              zip(('roll', 'pitch', 'yaw'), (mount.roll, mount.pitch, mount.yaw or 0.0))}
+    if integrated:
+        out = {'topic': IMU, 'source': 'integrated', 'mask': ['yaw'], 'covariance': 'model',
+               'heading_delay_s': 0.0, 'delay_s': _delay(d, d.imu.topic)}
+        if 'gyro_yaw_variance_per_s' in d.noise:
+            out['yaw_variance_per_s'] = float(f'{d.noise["gyro_yaw_variance_per_s"]:.3g}')
+        return out
+    has_cov = bool(np.any(d.imu.orientation_cov[:, 2] > 0))
+    return {'topic': d.imu.topic, 'source': 'orientation', 'pose_mode': 'absolute',
+            'mask': ['yaw', 'vyaw'], 'covariance': 'message' if has_cov else 'model',
+            'gate_chi2': 0.0, 'heading_delay_s': 0.0, 'delay_s': _delay(d, d.imu.topic),
+            **angles}
+
+
+def _odom_fusion_preset(d: Diagnosis) -> dict[str, Any]:
+    """The wheels' input to the fusion: /wheel/odom with the measured noise model, or the bag's
+    Odometry as its covariance allows."""
+    if d.joints is not None:
+        out = {'topic': '/wheel/odom', 'pose_mode': 'differential', 'covariance': 'model',
+               'covariance_scale': 1.0, 'mask': ['x', 'y', 'yaw'],
+               'delay_s': _delay(d, 'wheels')}
+        n = d.noise
+        if 'wheel_variance_per_m' in n:
+            out['variance_per_m'] = float(f'{max(n["wheel_variance_per_m"], 1e-6):.3g}')
+        if 'wheel_yaw_variance_per_rad' in n:
+            out['variance_per_rad'] = float(f'{max(n["wheel_yaw_variance_per_rad"], 1e-6):.3g}')
+        # The wheels' heading is left out where its errors against scan matching are ten
+        # times the gyro's over the same intervals (slip in turns).
+        if n.get('wheel_yaw_error_sum_sq', 0.0) > 10.0 * n.get('gyro_yaw_error_sum_sq', np.inf):
+            out['mask'] = ['x', 'y']
+        return out
+    odom = d.odoms[0]
+    pose, twist = (cov_checks.covariance_kind(odom.pose_var),
+                   cov_checks.covariance_kind(odom.twist_var))
+    if pose == 'growing':
+        return {'topic': odom.topic, 'pose_mode': 'differential', 'covariance': 'auto',
+                'mask': ['x', 'y', 'yaw'], 'delay_s': _delay(d, odom.topic)}
+    if twist not in ('zero', 'none'):
+        return {'topic': odom.topic, 'mask': ['vx', 'vy', 'vyaw'], 'covariance': 'message',
+                'delay_s': _delay(d, odom.topic)}
+    return {'topic': odom.topic, 'pose_mode': 'differential', 'covariance': 'model',
+            'mask': ['x', 'y', 'yaw'], 'delay_s': _delay(d, odom.topic)}
+
+
+def _gyro_preset(d: Diagnosis) -> dict[str, Any]:
+    mount = d.mount or imu_checks.MountEstimate(0.0, 0.0, 0.0, '', '')
+    params = {'mount_roll_rad': round(mount.roll, 6), 'mount_pitch_rad': round(mount.pitch, 6),
+              'mount_yaw_rad': round(mount.yaw or 0.0, 6), 'base_frame': d.base_frame,
+              'initial_bias_z_rad_s': round(d.gyro_bias, 6),
+              'use_wheel_odom': d.joints is not None}
+    if d.gyro_noise_density:
+        params['gyro_noise_density'] = float(f'{d.gyro_noise_density:.3g}')
+    return params
+
+
+def _icp_preset(d: Diagnosis) -> dict[str, Any]:
+    g = d.geometry
+    guide = 'wheels' if d.joints is not None else (d.odoms[0].topic if d.odoms else '')
+    params = {'laser_x_m': round(g.laser_x_m, 4), 'laser_y_m': round(g.laser_y_m, 4),
+              'laser_yaw_rad': round(g.laser_yaw_rad, 5), 'base_frame': d.base_frame,
+              'odom_topic': '/wheel/odom' if guide in ('wheels', '') else guide,
+              'odom_delay_s': _delay(d, guide)}
+    if scan_gap_s(d) > 1.0:        # a keyframe log: bridge its gaps, extrapolate its odometry
+        params['max_gap_s'] = scan_gap_s(d)
+        if guide not in ('wheels', '') and d.odoms[0].t.size > 1:
+            period = float(np.median(np.diff(np.sort(d.odoms[0].t)))) * 1e-9
+            params['odom_max_extrapolation_s'] = round(min(1.0, max(0.1, 5 * period)), 2)
+    return params
+
+
+def _fusion_preset(d: Diagnosis, orientation_only: bool) -> dict[str, Any]:
+    odom_source = d.joints is not None or bool(d.odoms)
+    fusion: dict[str, Any] = {
+        'method': 'ekf', 'base_frame': d.base_frame, 'use_wheel_odom': odom_source,
+        'use_imu': d.imu is not None, 'use_scan_match_position': d.scan is not None,
+        'use_scan_match_heading': d.scan is not None}
+    if odom_source:
+        fusion['wheel_odom'] = _odom_fusion_preset(d)
+    if d.imu is not None:
+        fusion['imu'] = _imu_fusion_preset(d, not orientation_only)
+        if orientation_only and (d.imu_tilt_deg or 0.0) > 2.0:
+            fusion['level_with_imu_tilt'] = True
+    slowest = max([float(np.median(np.diff(d.survey.times[t].header_ns))) * 1e-9 for t in
+                   {s.topic for s in (d.joints, d.scan, d.imu) if s is not None} |
+                   {o.topic for o in d.odoms}] or [0.0])
+    if slowest > 0.5:       # sparse logs (a scan a metre): wait for inputs that long
+        fusion.update({'max_gap_s': round(10 * slowest, 1),
+                       'input_timeout_s': round(10 * slowest, 1)})
+    if d.scan is not None and 'wheel_error_chi2_p99' in d.noise:
+        # The default gate (25) holds for Gaussian wheel errors, whose normalised squared
+        # error over two axes stays below 9.21 in 99 % of intervals; heavier tails (slip)
+        # widen it by as much, or it refuses the right matches after each slip.
+        tail = d.noise['wheel_error_chi2_p99'] / 9.21
+        fusion['scan_match'] = {'gate_chi2': float(round(min(400.0, 25.0 * max(1.0, tail))))}
+    return fusion
+
+
+def build_preset(d: Diagnosis) -> None:
+    """params.yaml's node sections, the nodes to run and the bag topics to remap."""
+    doc: dict[str, Any] = {}
+    remaps: dict[str, str] = {}
+    orientation_only = d.joints is None and d.scan is None and imu_has_orientation(d.imu)
+    if d.joints is not None:
+        doc['wheel_odometry'] = _wheel_preset(d)
+        if d.joints.topic != JOINT_STATES:
+            remaps[d.joints.topic] = JOINT_STATES
+    if d.imu is not None and not orientation_only:
+        doc['gyro_integrator'] = _gyro_preset(d)
+        if d.imu.topic != IMU_RAW:
+            remaps[d.imu.topic] = IMU_RAW
+    if d.scan is not None:
+        doc['icp_matcher'] = _icp_preset(d)
+        if d.scan.topic != SCAN:
+            remaps[d.scan.topic] = SCAN
+    doc['complementary_fusion'] = _fusion_preset(d, orientation_only)
+    d.preset = {node: {'ros__parameters': params} for node, params in doc.items()}
+    d.nodes, d.remaps = tuple(doc), remaps
+
+
+class _PresetDumper(yaml.SafeDumper):
+    """YAML for rcl's parser: strings it would read as booleans (YAML 1.1: y, n, on, ...)
+    quoted."""
+
+
+_PresetDumper.add_representer(str, lambda dumper, value: dumper.represent_scalar(
+    'tag:yaml.org,2002:str', value,
+    style="'" if value.lower() in ('y', 'n', 'yes', 'no', 'on', 'off', 'true', 'false') else None))
+
+
+def commands(d: Diagnosis, params: Path) -> dict[str, str]:
+    """The sensing_pipeline and sensing_replay command lines that run the preset: remaps,
+    and for the replay the expectation table of the nodes started (each bag input and the
+    outputs that answer it; none for what the fusion takes straight from the bag)."""
+    from sensing_nodes.topics import NODES
+
+    remap = ''.join(f' --remap {a}:={b}' for a, b in sorted(d.remaps.items()))
+    fed = {s.topic for s in (d.joints, d.scan, d.imu) if s is not None}
+    fusion = d.preset.get('complementary_fusion', {}).get('ros__parameters', {})
+    fed |= {fusion[i]['topic'] for i in ('wheel_odom', 'imu') if i in fusion
+            and fusion[i].get('topic') not in ('/wheel/odom', IMU)}
+    wheel_topic = fusion.get('wheel_odom', {}).get('topic')
+    expect = ''
+    for topic in sorted(fed):
+        name = d.remaps.get(topic, topic)
+        answers = [o for n in d.nodes if NODES[n].answers == name for o in NODES[n].answered_with]
+        if topic == wheel_topic:     # the fusion answers each wheel input (once all spoke)
+            answers.append(FUSED)
+        expect += f' --expect {topic}={",".join(answers)}'
+    nodes = ','.join(d.nodes)
+    return {'sensing_pipeline': f'sensing_pipeline {d.survey.path} OUT --nodes {nodes} '
+                                f'--params-file {params}{remap}',
+            'sensing_replay': f'sensing_replay {d.survey.path} OUT --launch --nodes {nodes} '
+                              f'--params-file {params}{remap}{expect}'}
+
+
+def preset_text(d: Diagnosis, out: Path) -> str:
+    """params.yaml: the command that loads it, then the node sections."""
+    run = commands(d, out / 'params.yaml')
+    head = [f'# {PROG} {d.survey.path}: a preset for this package\'s nodes, measured on the bag',
+            f'# (report: {out / "report.html"}). Run it with:',
+            f'#   {run["sensing_pipeline"]}', f'#   {run["sensing_replay"]}',
+            f'# remap (bag topic -> node topic): {json.dumps(d.remaps)}']
+    if d.offset_reference and d.offset_reference != 'scan matching' and any(
+            abs(v) >= timing.OFFSET_WARN_S for v in d.offsets.values()):
+        head.append(f'# Time offsets against {d.offset_reference} are in report.json; without '
+                    'a laser they say which source is late relative to the other, not which '
+                    'to correct: no delay_s is set.')
+    if d.imu is not None and d.imu.frame_id.lstrip('/') == d.base_frame:
+        head.append(f'# The Imu\'s frame_id is {d.base_frame}: the nodes take it as aligned '
+                    'and ignore the mount_*_rad below (they record what was found).')
+    elif d.imu is not None and d.declared.imu_mount_from == '/tf_static':
+        head.append('# /tf_static declares the IMU mount: the nodes take it over the '
+                    'mount_*_rad below (what was found); correct /tf_static where they differ.')
+    return '\n'.join(head) + '\n' + yaml.dump(d.preset, Dumper=_PresetDumper, sort_keys=False)
