@@ -12,19 +12,13 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from sensing_nodes.bench.pipeline import executable, record_sim_bag
-
-
-def _child_cpu_s() -> float:
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+from sensing_nodes.bench.pipeline import child_cpu_s, executable, record_sim_bag
 
 
 def run(quick: bool = False) -> dict:
@@ -34,10 +28,10 @@ def run(quick: bool = False) -> dict:
         bag, out = Path(tmp) / 'bag', Path(tmp) / 'out'
         record_sim_bag(bag, duration_s)
         load_start = os.getloadavg()[0]
-        cpu0, wall0 = _child_cpu_s(), time.monotonic()
+        cpu0, wall0 = child_cpu_s(), time.monotonic()
         result = subprocess.run([executable('sensing_doctor'), str(bag), '--out', str(out),
                                  '--quiet'], capture_output=True, text=True)
-        cpu, wall = _child_cpu_s() - cpu0, time.monotonic() - wall0
+        cpu, wall = child_cpu_s() - cpu0, time.monotonic() - wall0
         if result.returncode not in (0, 1):
             return {'error': (result.stderr.strip().splitlines() or ['failed'])[-1]}
         report = json.loads((out / 'report.json').read_text())

@@ -30,7 +30,7 @@ def record_sim_bag(bag: Path, duration_s: float) -> None:
                     f'{duration_s:g}', '--seed', '5'], check=True, capture_output=True)
 
 
-def _child_cpu_s() -> float:
+def child_cpu_s() -> float:
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     return usage.ru_utime + usage.ru_stime
 
@@ -42,10 +42,10 @@ def run(quick: bool = False) -> dict:
         bag, out = Path(tmp) / 'bag', Path(tmp) / 'out'
         record_sim_bag(bag, duration_s)
         load_start = os.getloadavg()[0]
-        cpu0, wall0 = _child_cpu_s(), time.monotonic()
+        cpu0, wall0 = child_cpu_s(), time.monotonic()
         result = subprocess.run([executable('sensing_pipeline'), str(bag), str(out),
                                  '--no-progress'], capture_output=True, text=True)
-        cpu, wall = _child_cpu_s() - cpu0, time.monotonic() - wall0
+        cpu, wall = child_cpu_s() - cpu0, time.monotonic() - wall0
         if result.returncode != 0:
             return {'error': (result.stderr.strip().splitlines() or ['failed'])[-1]}
     return {

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core.diagnosis.check import OK, PROBLEM, WARNING, Check, graded
+from sensing_nodes.core.evaluation.calibration import grid_minimum
 
 # Gap beyond which the nodes restart an integration (wheel_odometry, gyro_integrator,
 # the fusion's IMU: max_gap_s 0.5; icp_matcher: 1.0) and the lowest useful rate, per kind.
@@ -141,17 +142,6 @@ def offset_cost(t_a: NDArray[np.int64], yaw_a: NDArray[np.float64], t_b: NDArray
     return np.sqrt(part.mean(axis=1))
 
 
-def _parabola_minimum(grid: NDArray[np.float64], cost: NDArray[np.float64]) -> float:
-    """Minimum of a sampled cost, refined by the parabola through it and its neighbours."""
-    i = int(np.argmin(cost))
-    if i == 0 or i == len(grid) - 1:
-        return float(grid[i])
-    c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
-    curvature = c0 - 2.0 * c1 + c2
-    shift = 0.5 * (c0 - c2) / curvature if curvature > 0.0 else 0.0
-    return float(grid[i] + shift * (grid[1] - grid[0]))
-
-
 def estimate_offset(t_a: NDArray[np.int64], yaw_a: NDArray[np.float64], t_b: NDArray[np.int64],
                     yaw_b: NDArray[np.float64], max_offset_s: float = 0.3,
                     step_s: float = 0.002) -> tuple[float, float, int]:
@@ -168,7 +158,7 @@ def estimate_offset(t_a: NDArray[np.int64], yaw_a: NDArray[np.float64], t_b: NDA
                          'turning (>= 90 deg)')
     n = int(round(max_offset_s / step_s))
     grid = np.arange(-n, n + 1) * step_s
-    offset = _parabola_minimum(grid, offset_cost(t_a, yaw_a, tb, yb, grid))
+    offset = grid_minimum(grid, offset_cost(t_a, yaw_a, tb, yb, grid))
     if abs(offset) >= max_offset_s - step_s:
         raise ValueError(f'the best agreement lies at the edge of +-{max_offset_s:g} s')
     return offset, turned, int(tb.size - 1)

@@ -749,7 +749,7 @@ def _trimmed_rms(residual: NDArray[np.float64], keep: int) -> NDArray[np.float64
     return np.sqrt(part.mean(axis=-1))
 
 
-def _grid_minimum(grid: NDArray[np.float64], cost: NDArray[np.float64]) -> float:
+def grid_minimum(grid: NDArray[np.float64], cost: NDArray[np.float64]) -> float:
     """Minimum of a sampled cost, refined by the parabola through it and its neighbours (s)."""
     i = int(np.argmin(cost))
     if i == 0 or i == len(grid) - 1:
@@ -801,7 +801,7 @@ def odometry_delay(odom_t: NDArray[np.int64], odom_yaw: NDArray[np.float64],
     residual = (odom_at[:, pairs + 1] - odom_at[:, pairs]) - matched[None, :]
     keep = max(1, int(math.floor((1.0 - trim) * len(pairs))))
     cost = _trimmed_rms(residual, keep)
-    delay = _grid_minimum(grid, cost)
+    delay = grid_minimum(grid, cost)
     if abs(delay) >= max_delay_s:
         raise CalibrationError(f'the best agreement lies at the edge of the searched offsets '
                                f'(+-{max_delay_s:g} s): widen the search')
@@ -809,6 +809,6 @@ def odometry_delay(odom_t: NDArray[np.int64], odom_yaw: NDArray[np.float64],
     draws = []
     for _ in range(bootstrap):
         sample = residual[:, rng.integers(0, len(pairs), len(pairs))]
-        draws.append(_grid_minimum(grid, _trimmed_rms(sample, keep)))
+        draws.append(grid_minimum(grid, _trimmed_rms(sample, keep)))
     std = float(np.std(draws)) if draws else float('nan')
     return TimeOffset(delay, std, grid, cost, len(pairs), turned)
