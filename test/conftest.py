@@ -5,9 +5,13 @@ import os
 from sensing_nodes.graph.processes import pid_domain_id
 
 # Before rclpy creates a context: stay on this machine, and use a domain of this run's own so
-# parallel runs (and other developers' runs) on one machine never see each other.
+# parallel runs (and other developers' runs) on one machine never see each other. A pytest-xdist
+# worker inherits its controller's environment: each worker takes a domain of its own pid.
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-os.environ.setdefault('ROS_DOMAIN_ID', str(pid_domain_id('tests')))
+if os.environ.get('PYTEST_XDIST_WORKER'):
+    os.environ['ROS_DOMAIN_ID'] = str(pid_domain_id('tests'))
+else:
+    os.environ.setdefault('ROS_DOMAIN_ID', str(pid_domain_id('tests')))
 
 import subprocess  # noqa: E402
 import sys  # noqa: E402
