@@ -206,7 +206,8 @@ def stream(probe):
     out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
     # The seed's complementary method: this suite checks its worked behaviour; the EKF's bad
     # input is test_fusion_ekf_node.py's.
-    with NodeProcess('complementary_fusion', params={'method': 'complementary'},
+    with NodeProcess('complementary_fusion', params={'method': 'complementary',
+                                                     'publish_rate_hz': 0.0},   # every output
                      params_file=config_file('complementary_fusion.yaml')) as node:
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0
                           and all(p.get_subscription_count() > 0 for p in publishers.values()),

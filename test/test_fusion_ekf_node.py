@@ -89,9 +89,10 @@ def stream(count):
     return events
 
 
+# publish_rate_hz 0: an output per wheel and scan input (the tests wait for the last one)
 PARAMS = {'imu.source': 'orientation', 'imu.pose_mode': 'relative', 'imu.covariance': 'message',
           'imu.mount_roll_rad': math.pi, 'imu.gate_chi2': 0.0,
-          'reorder_window_s': 0.5, 'flush_after_s': 3.0}
+          'reorder_window_s': 0.5, 'flush_after_s': 3.0, 'publish_rate_hz': 0.0}
 
 
 @pytest.fixture
@@ -199,7 +200,8 @@ def test_set_pose_moves_the_output(graph):
 
 RATE_PARAMS = {'imu.source': 'rate', 'imu.mask': ['vyaw'], 'imu.gate_chi2': 0.0,  # 'y': quoted
                'wheel_odom.mask': ["'x'", "'y'"], 'use_scan_match_position': False,
-               'use_scan_match_heading': False, 'reorder_window_s': 0.5, 'flush_after_s': 3.0}
+               'use_scan_match_heading': False, 'reorder_window_s': 0.5, 'flush_after_s': 3.0,
+               'publish_rate_hz': 0.0}
 
 
 @pytest.mark.parametrize('mount_from', ['parameters', 'tf_static', 'late_tf_static'])
@@ -305,6 +307,7 @@ def test_a_reset_restarts_the_diagnostics_stamp():
     context.init()
     node = ComplementaryFusionNode(context=context, cli_args=[
         '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
+        '-p', 'publish_rate_hz:=0.0',   # an output per wheel input, which the test reads
         '-p', 'use_imu:=false', '-p', 'use_scan_match_position:=false',
         '-p', 'use_scan_match_heading:=false'], use_global_arguments=False)
     try:
@@ -343,6 +346,7 @@ def test_a_late_imu_mount_restarts_the_orientation_input_without_a_jump():
     context.init()
     node = ComplementaryFusionNode(context=context, cli_args=[
         '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
+        '-p', 'publish_rate_hz:=0.0',   # an output per wheel input, which the test reads
         '-p', 'imu.source:=orientation', '-p', 'imu.pose_mode:=relative',
         '-p', 'imu.covariance:=message', '-p', 'imu.gate_chi2:=0.0',
         '-p', "wheel_odom.mask:=['x', 'y']", '-p', 'use_scan_match_position:=false',
@@ -397,6 +401,7 @@ def test_the_filter_starts_once_every_input_has_spoken():
     context.init()
     node = ComplementaryFusionNode(context=context, cli_args=[
         '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
+        '-p', 'publish_rate_hz:=0.0',   # an output per wheel input, which the test reads
         '-p', 'use_scan_match_position:=false', '-p', 'use_scan_match_heading:=false'],
         use_global_arguments=False)
     bias = math.radians(0.5)              # rad/s, uncorrected until the first stillness window

@@ -111,8 +111,9 @@ def _run(probe, publishers, events, params=None, before_stop=None, expected_coun
     out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
     # A long idle flush: on a loaded machine the test's own publishing may stall for a moment,
     # and an idle flush mid-stream would (correctly) drop what arrives after it as late.
+    # publish_rate_hz 0: an output per wheel and scan input, which these tests count
     params = {'method': 'complementary', 'reorder_window_s': 0.5, 'flush_after_s': 3.0,
-              **(params or {})}
+              'publish_rate_hz': 0.0, **(params or {})}
     with NodeProcess('complementary_fusion', params=params) as node:
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 20)
         _send(probe, publishers, events, sent)
@@ -272,7 +273,8 @@ def test_a_delayed_input_is_published_at_its_stamps_less_the_delay(probe, publis
     events = [e for e in _inputs(count=20) if e[0] == 'wheel']
     out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
     params = {'method': 'ekf', 'use_imu': False, 'use_scan_match_position': False,
-              'use_scan_match_heading': False, 'wheel_odom.delay_s': 0.1, 'flush_after_s': 3.0}
+              'use_scan_match_heading': False, 'wheel_odom.delay_s': 0.1, 'flush_after_s': 3.0,
+              'publish_rate_hz': 0.0}
     wheel = publishers['wheel']
     with NodeProcess('complementary_fusion', params=params) as node:
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0

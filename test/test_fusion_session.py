@@ -96,7 +96,8 @@ def test_every_caller_gives_the_same_outputs(inputs_bag, tmp_path, method):
     tool, session = fused_outputs(inputs_bag, overrides=overrides)
     from_tool = {t: [raw for topic, raw in tool if topic == t] for t in (FUSED, '/tf')}
     assert from_tool == from_pipeline                      # the same bytes, /tf included
-    assert len(from_tool[FUSED]) == session.counts['published'] > 1000
+    # 22 s: 30 Hz of the dead reckoning (publish_rate_hz) plus each of the 221 scan matches
+    assert len(from_tool[FUSED]) == session.counts['published'] > 800
     # the evaluation's driver over the same messages, read by the node's converter
     config = default_config(overrides={'method': method})
     track = run_session(config, _bag_readings(inputs_bag, config))
@@ -190,6 +191,64 @@ def test_set_pose_fuses_what_is_held_first_and_refuses_a_bad_pose():
     assert after[-1][1].pose[0] > 5.0                         # going on from the new pose
     assert session.set_pose((np.nan, 0.0, 0.0), np.eye(3)) == []
     assert session.counts['set_pose'] == 1 and session.counts['set_pose_rejected'] == 1
+
+
+def _drive(publish_rate_hz: float) -> tuple[FusionSession, list]:
+    """1 s of wheels and IMU at 50 Hz and keyframe scan matches at 10 Hz (at wheel stamps),
+    straight at 0.5 m/s, from a stamp where a 30 Hz period starts; (session, [(name, stamp,
+    state)] of every output)."""
+    period = 33_333_333
+    t0 = 1000 * period
+    config = default_config(overrides={'publish_rate_hz': publish_rate_hz})
+    names = {}
+    session = FusionSession(config, on_output=lambda s, st: names.setdefault(s, []))
+    out = []
+    for k in range(50):
+        t = t0 + k * 20_000_000
+        readings = [(WHEEL, Reading(t, (0.01 * k, 0.0, 0.0), np.eye(3) * 1e-4 * (k + 1))),
+                    (IMU, Reading(t, (0.0, 0.0, 0.0), np.diag([0.0, 0.0, 1e-6]),
+                                  (0.0, 0.0, 0.0)))]
+        if k % 5 == 0:
+            match = Reading(t, (0.01 * k, 0.0, 0.0), np.eye(3) * 1e-6, keyframe_ns=t0,
+                            new_keyframe=k == 0) if k else Reading(t, new_keyframe=True)
+            readings.append((SCAN, match))
+        for name, reading in readings:
+            out += [(name, stamp, state) for stamp, state in session.feed(name, reading)]
+    # (which input each output came from: the session's order at equal stamps)
+    out += [(None, stamp, state) for stamp, state in session.flush()]
+    return session, out, t0
+
+
+def test_outputs_at_the_rate_are_the_first_of_each_period_and_every_scan_match():
+    """publish_rate_hz 30 (the default): the same filter (every reading fused, the state read
+    as at every rate), of its outputs the first in each 1/30 s of stamp time and every scan
+    match's. Wheels at 50 Hz from the start of a period: per 100 ms the wheel outputs at 0,
+    40 and 80 ms (the first in each 33.3 ms) and the scan match at 0 ms, which follows the
+    wheel output at its stamp: 30 + 10 outputs a second instead of 50 + 10."""
+    _, every, t0 = _drive(0.0)
+    session, thinned, _ = _drive(30.0)
+    assert len(every) == 60 and len(thinned) == 40
+    ms = [(stamp - t0) // 1_000_000 for _, stamp, _ in thinned]
+    expected = []
+    for tenth in range(10):
+        base = 100 * tenth
+        expected += [base, base, base + 40, base + 80]      # wheel, scan match, wheel, wheel
+    assert ms == expected
+    # the same states as at every output: thinning publishes less, it filters the same
+    states = {}
+    for _, stamp, state in every:
+        states.setdefault(stamp, []).append(state)
+    for i, (_, stamp, state) in enumerate(thinned):
+        same_stamp = [s for _, s2, s in thinned[:i] if s2 == stamp]
+        reference = states[stamp][len(same_stamp)]
+        assert state.pose == reference.pose
+        assert np.array_equal(state.covariance, reference.covariance)
+    assert session.outputs.rate_hz() == pytest.approx(39 / 0.98)   # 40 outputs in 0.98 s
+    # The outputs trail the newest input by up to the scan matches' period: a wheel reading
+    # waits in the reorder buffer until every input has reached its stamp (0.1 s before the
+    # next match); at the end (980 ms, an output) by nothing.
+    assert session.output_lag_s() == pytest.approx((0.0, 0.1))
+    assert session.output_lag_s() == pytest.approx((0.0, 0.0))     # the most since the last call
 
 
 # -- the one parameter translation ---------------------------------------------------------------

@@ -401,6 +401,9 @@ def test_lockstep_into_the_fusion_and_every_record_topic(tmp_path):
                       # messages, fewer than the replay lets be outstanding): each answer comes
                       # by the watermark, not by the 2 s idle flush (15 s -> 6.5 s for the test).
                       '--param', 'complementary_fusion:input_timeout_s:=0.5',
+                      # an answer per /wheel/odom, which --expect waits for (the default
+                      # publish_rate_hz thins the outputs to 30 Hz of stamp time)
+                      '--param', 'complementary_fusion:publish_rate_hz:=0.0',
                       '--timeout', '60'], timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
     assert 'MISSING' not in result.stdout and 'warning' not in result.stderr, result.stderr

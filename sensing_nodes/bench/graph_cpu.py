@@ -95,11 +95,13 @@ def _load_average() -> float:
 
 def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: float,
             rate: float = 1.0, start_timeout_s: float = 60.0, one_process: bool = False,
-            executor: str | None = None, with_sim: bool = True) -> dict:
+            executor: str | None = None, with_sim: bool = True,
+            params_files: tuple[Path, ...] = ()) -> dict:
     """Run sensor_sim and `nodes` as processes (the nodes in one sensing_graph process with
     one_process, spun by `executor`); CPU per process over window_s wall seconds, and memory.
     Without with_sim the nodes run with no input at all: what their processes cost idle
-    (executor, timers, /diagnostics, DDS), the floor under any per-message work.
+    (executor, timers, /diagnostics, DDS), the floor under any per-message work. params_files
+    apply to every node after its config/<node>.yaml (e.g. config/fusion_imu_rate.yaml).
 
     Returns {'processes': {name: {'core_percent_per_1x', 'cpu_us_per_message', 'rss_mb',
     'peak_rss_mb'}}, 'total...'}.
@@ -117,11 +119,12 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
     with tempfile.TemporaryDirectory() as tmp:
         logs = {}
         try:
+            extra = [a for f in params_files for a in ('--params-file', str(f))]
             commands = {name: [str(bin_dir / name), '--ros-args', '--params-file',
-                               str(config_file(f'{name}.yaml'))] for name in nodes}
+                               str(config_file(f'{name}.yaml')), *extra] for name in nodes}
             if one_process:
                 commands = {ONE_PROCESS: [sys.executable, '-m', 'sensing_nodes.tools.graph',
-                                          '--nodes', ','.join(nodes),
+                                          '--nodes', ','.join(nodes), *extra,
                                           *(['--executor', executor] if executor else [])]}
             if with_sim:
                 commands['sensor_sim'] = [str(bin_dir / 'sensor_sim'), '--ros-args',
@@ -344,6 +347,11 @@ if __name__ == '__main__':
                         help='with --one-process: sensing_graph\'s executor')
     parser.add_argument('--idle', action='store_true',
                         help='the processing nodes with no simulator: their cost without input')
+    parser.add_argument('--nodes', default=','.join(PROCESSING_NODES),
+                        help='the processing nodes measured (comma separated; default all five)')
+    parser.add_argument('--params-file', action='append', default=[], type=Path,
+                        help='a parameter file for every node after its config/ file '
+                             '(repeatable), e.g. config/fusion_imu_rate.yaml')
     parser.add_argument('--relay', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.answer_every < 1:
@@ -355,13 +363,14 @@ if __name__ == '__main__':
         result = relay_floor(args.floor, args.window, args.answer_every)
     elif args.imu_rate is None:
         result = measure(
-            PROCESSING_NODES,
+            tuple(args.nodes.split(',')),
             {},
             args.window,
             args.rate,
             one_process=args.one_process,
             executor=args.executor,
             with_sim=not args.idle,
+            params_files=tuple(args.params_file),
         )
     else:
         result = measure(GYRO_1KHZ_NODES, {'imu_rate_hz': args.imu_rate}, args.window, args.rate)

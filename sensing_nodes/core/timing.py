@@ -36,3 +36,27 @@ class SampleOutcome:
     step: StampStep | None = None
     rejection: enum.Enum | None = None
     note: str = ''
+
+
+class StampRate:
+    """Thins a stream of stamps (ns, non-decreasing) to rate_hz: a stamp is due when it is the
+    first in a new period, periods of round(1e9 / rate_hz) ns counted from stamp 0, so what is
+    let through depends on the stamps alone (a replay gives the same); rate_hz 0: every stamp."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period_ns = round(1e9 / rate_hz) if rate_hz > 0.0 else 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Start again (a new timeline): the next stamp is due."""
+        self._period: int | None = None
+
+    def due(self, stamp_ns: int) -> bool:
+        """Whether stamp_ns starts a new period (and then it is the period's)."""
+        if not self.period_ns:
+            return True
+        period = stamp_ns // self.period_ns
+        if self._period is not None and period <= self._period:
+            return False
+        self._period = period
+        return True

@@ -281,6 +281,13 @@ class ComplementaryFusionProcessor:
             if age > session.config.input_timeout_s:
                 missing.append(name)
         diag.values['method'] = session.config.method
+        # The outputs' rate and how far they trail the newest input (stamp time): the reorder
+        # buffer's hold, the output period, inputs that give no output.
+        lag, most = session.output_lag_s()
+        diag.values['publish_rate_hz'] = f'{session.config.publish_rate_hz:g}'
+        diag.values['output_rate_hz'] = f'{session.outputs.rate_hz():.2f}'
+        diag.values['output_lag_s'] = f'{lag:.3f}'
+        diag.values['output_lag_max_s'] = f'{most:.3f}'
         diag.values['fusion_updates'] = str(session.fusion.updates)
         diag.values['late_dropped_total'] = str(session.buffer.late)
         if missing:

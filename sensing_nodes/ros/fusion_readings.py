@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core.fusion.config import SessionConfig
-from sensing_nodes.core.fusion.inputs import IMU, SCAN, InputConfig, Reading
+from sensing_nodes.core.fusion.inputs import IMU, SCAN, DeltaAngles, InputConfig, Reading
 from sensing_nodes.core.fusion.timeline import InputRecord
 from sensing_nodes.core.fusion.validation import covariance_problem, pose_problem
 from sensing_nodes.core.geometry.imu_mount import base_orientation, mount_rotation, to_base
@@ -74,6 +74,8 @@ class ReadingConverter:
     def __post_init__(self) -> None:
         self._delay_ns = {name: round(cfg.delay_s * 1e9) for name, cfg in self.configs.items()
                           if cfg.delay_s}
+        imu = self.configs.get(IMU)
+        self.delta_angles = DeltaAngles(imu.max_gap_s if imu is not None else 0.5)
 
     def stamp_ns(self, source: str, msg) -> int:
         """The time (ns) a message of input `source` describes the robot at: its header stamp
@@ -83,6 +85,7 @@ class ReadingConverter:
     def reset(self) -> None:
         self.previous_scan_ns = None
         self.tilt = np.eye(3)
+        self.delta_angles.reset()
 
     def set_mount(self, rotation: NDArray[np.float64]) -> None:
         """The IMU frame's rotation in base_link from now on (a mount from /tf_static)."""
@@ -146,8 +149,11 @@ class ReadingConverter:
                 np.asarray(msg.angular_velocity_covariance, dtype=float).reshape(3, 3))
             if problem:
                 return None, f'angular velocity {problem}'
-            return Reading(stamp, twist=(0.0, 0.0, rate),
-                           twist_covariance=_yaw_only(rate_var)), ''
+            # The rate (mask vyaw), and the rates summed into a heading (mask yaw: increments).
+            self.delta_angles.add(stamp, rate, rate_var)
+            return Reading(stamp, (0.0, 0.0, self.delta_angles.yaw),
+                           _yaw_only(self.delta_angles.variance), (0.0, 0.0, rate),
+                           _yaw_only(rate_var)), ''
         if msg.orientation_covariance[0] == -1.0:
             return None, 'orientation_covariance[0] = -1: the IMU provides no orientation'
         if not unit_quaternion(msg.orientation):

@@ -1,9 +1,9 @@
 """sensing_fusion_eval: the fusion's accuracy on the simulated robot, without ROS (docs/fusion.md's
 figures): for each seed of each simulator configuration, the package's wheel odometry, gyro
 integrator and keyframe scan matcher over core-simulated sensors (core/sim/inputs.py), then the
-fusion session as the node runs it (the EKF and the seed's complementary filter), scored against
-the ground truth (core/evaluation/fusion.py): RMS and final errors (m, deg), consistency shares,
-heading-step chatter, and each input's own errors.
+fusion session as the node runs it (the EKF and the seed's complementary filter; every output,
+publish_rate_hz 0), scored against the ground truth (core/evaluation/fusion.py): RMS and final
+errors (m, deg), consistency shares, heading-step chatter, and each input's own errors.
 
     sensing_fusion_eval [--seeds 8] [--configs default,strong_errors] [--params-file FILE]
                         [--inputs] [--json OUT]
@@ -16,6 +16,7 @@ import json
 import sys
 
 from sensing_nodes.core.evaluation.fusion import (
+    EVERY_OUTPUT,
     heading_increment_consistency,
     input_errors,
     keyframe_match_consistency,
@@ -111,8 +112,9 @@ def main(argv: list[str] | None = None) -> int:
                              "matches meet the noise models the filter gives them")
     args = parser.parse_args(argv)
     try:
-        ekf = default_config(*args.params_file, overrides={'method': 'ekf'})
-        complementary = default_config(*args.params_file, overrides={'method': 'complementary'})
+        ekf = default_config(*args.params_file, overrides={'method': 'ekf', **EVERY_OUTPUT})
+        complementary = default_config(*args.params_file,
+                                       overrides={'method': 'complementary', **EVERY_OUTPUT})
     except (ConfigError, OSError) as error:
         print(f'sensing_fusion_eval: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -13,7 +13,7 @@ from sensing_nodes.core.evaluation.metrics import express_in_reference_frame, in
 from sensing_nodes.core.fusion.config import SessionConfig, default_config
 from sensing_nodes.core.fusion.ekf import EkfFusion
 from sensing_nodes.core.fusion.filter import FusedState
-from sensing_nodes.core.fusion.inputs import IMU, RANK, SCAN, WHEEL, Reading
+from sensing_nodes.core.fusion.inputs import IMU, RANK, SCAN, WHEEL, DeltaAngles, Reading
 from sensing_nodes.core.fusion.session import FusionSession
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.sim.inputs import FusionInputs
@@ -41,11 +41,12 @@ def _yaw_only(variance: float) -> NDArray[np.float64]:
 def input_readings(inputs: FusionInputs, config: SessionConfig) -> list[tuple[str, Reading]]:
     """The simulated streams as the fusion's readings of its enabled inputs, in stamp order
     (ties: wheel, IMU, scan match), as the node reads the messages: wheel odometry poses, the
-    gyro's integrated heading with its rate (the raw rate where the EKF estimates the bias),
-    and scan matches keyframe-relative (EKF) or cumulative with the increment covariance
-    (complementary filter)."""
+    gyro's integrated heading with its rate (imu.source rate: the IMU's raw rate and those
+    summed, as ros/fusion_readings.py sums them), and scan matches keyframe-relative (EKF) or
+    cumulative with the increment covariance (complementary filter)."""
+    raw_rate = config.method == 'ekf' and config.imu_source == 'rate'
     imu = config.input_map.get(IMU)
-    raw_rate = imu is not None and imu.gyro_bias
+    delta_angles = DeltaAngles(imu.max_gap_s if imu is not None else 0.5)
     events = []
     if config.enabled[WHEEL]:
         events += [(int(t), RANK[WHEEL], i, WHEEL) for i, t in enumerate(inputs.wheel_t)]
@@ -59,10 +60,17 @@ def input_readings(inputs: FusionInputs, config: SessionConfig) -> list[tuple[st
         if name == WHEEL:
             reading = Reading(stamp, tuple(inputs.wheel_pose[i]), inputs.wheel_cov[i],
                               tuple(inputs.wheel_twist[i]), None)
+        elif name == IMU and raw_rate:
+            # The IMU's own rate (imu.source rate), and the rates summed (the converter's).
+            rate, variance = float(inputs.raw_rate[i]), inputs.raw_rate_variance
+            delta_angles.add(stamp, rate, variance)
+            reading = Reading(stamp, (0.0, 0.0, delta_angles.yaw),
+                              _yaw_only(delta_angles.variance), (0.0, 0.0, rate),
+                              _yaw_only(variance))
         elif name == IMU:
-            rate = inputs.raw_rate[i] if raw_rate else inputs.gyro_rate[i]
             reading = Reading(stamp, (0.0, 0.0, float(inputs.gyro_yaw[i])),
-                              _yaw_only(inputs.gyro_yaw_var[i]), (0.0, 0.0, float(rate)), None)
+                              _yaw_only(inputs.gyro_yaw_var[i]),
+                              (0.0, 0.0, float(inputs.gyro_rate[i])), None)
         elif config.method == 'ekf':
             kf = int(inputs.scan_keyframe_t[i])
             reading = Reading(stamp, tuple(inputs.scan_relative[i]) if kf >= 0 else None,
@@ -108,10 +116,16 @@ def run_session(config: SessionConfig, readings, follow_heading_steps: bool = Fa
                       np.array(steps) if follow_heading_steps else None)
 
 
+# The evaluation scores the filter at every wheel and scan-match input: the node's output rate
+# (publish_rate_hz) only thins what it publishes.
+EVERY_OUTPUT = {'publish_rate_hz': 0.0}
+
+
 def run_ekf(inputs: FusionInputs, config: SessionConfig | None = None) -> FusedTrack:
-    """The EKF over every stream, as config (default: config/complementary_fusion.yaml) sets
-    it; output at each wheel and scan stamp, with the heading steps' variances."""
-    config = config or default_config()
+    """The EKF over every stream, as config (default: config/complementary_fusion.yaml with
+    every output) sets it; output at each wheel and scan stamp, with the heading steps'
+    variances."""
+    config = config or default_config(overrides=EVERY_OUTPUT)
     assert config.method == 'ekf', config.method
     return run_session(config, input_readings(inputs, config), follow_heading_steps=True)
 
@@ -119,8 +133,9 @@ def run_ekf(inputs: FusionInputs, config: SessionConfig | None = None) -> FusedT
 def run_complementary(inputs: FusionInputs, config: SessionConfig | None = None
                       ) -> FusedTrack:
     """The seed's complementary filter over the streams, as the node runs it with
-    `method: complementary` (default: config/complementary_fusion.yaml with that method)."""
-    config = config or default_config(overrides={'method': 'complementary'})
+    `method: complementary` (default: config/complementary_fusion.yaml with that method and
+    every output)."""
+    config = config or default_config(overrides={'method': 'complementary', **EVERY_OUTPUT})
     assert config.method == 'complementary', config.method
     return run_session(config, input_readings(inputs, config))
 

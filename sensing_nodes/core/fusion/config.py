@@ -72,6 +72,10 @@ PARAMETERS: dict[str, Parameter] = {
     'publish_tf': Parameter(True, 'broadcast odom_frame -> base_frame on /tf with each output, '
                                   'stamped as the output (one owner per tree: turn it off where '
                                   'another node owns it)'),
+    'publish_rate_hz': Parameter(
+        30.0, 'outputs (/odometry/filtered, /tf) per second of stamp time: the first fused '
+              'output in each new period goes out, with its stamp; 0: one per wheel and '
+              'scan-match input (every input still filtered)', 0.0, 1000.0),
     'wheel_odom.topic': Parameter('/wheel/odom', 'wheel odometry topic'),
     'imu.topic': Parameter('/imu/data', 'IMU topic (sensor_msgs/Imu)'),
     'level_with_imu_tilt': Parameter(
@@ -165,6 +169,7 @@ class SessionConfig:
     odom_frame: str
     base_frame: str
     publish_tf: bool
+    publish_rate_hz: float                # stamp time; 0: every output
 
     @property
     def input_map(self) -> dict[str, InputConfig]:
@@ -251,7 +256,8 @@ def session_config(params: Mapping[str, Any]) -> SessionConfig:
         reorder_window_s=v['reorder_window_s'], flush_after_s=v['flush_after_s'],
         max_gap_s=v['max_gap_s'], reset_on_backwards_jump_s=v['reset_on_backwards_jump_s'],
         input_timeout_s=v['input_timeout_s'], odom_frame=v['odom_frame'],
-        base_frame=v['base_frame'], publish_tf=v['publish_tf'])
+        base_frame=v['base_frame'], publish_tf=v['publish_tf'],
+        publish_rate_hz=v['publish_rate_hz'])
 
 
 def _ekf_inputs(v: Mapping[str, Any], enabled: Mapping[str, bool], imu_source: str

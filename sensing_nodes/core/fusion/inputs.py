@@ -131,6 +131,32 @@ class Reading:
 
 
 
+@dataclass
+class DeltaAngles:
+    """A gyro's z rates (rad/s) summed into a heading (rad) for the EKF's IMU input with
+    imu.source 'rate': each sample taken as the mean rate over the interval since the previous
+    one (a delta-angle IMU, as sensor_sim's), no bias removed (the EKF estimates it:
+    InputConfig.gyro_bias); its variance (rad^2) grows by the rate's variance x interval^2.
+    Across a silence longer than max_gap_s (or a stamp not after the previous) nothing is
+    added: the filter does not chain the input's increments across it either."""
+
+    max_gap_s: float
+    yaw: float = 0.0
+    variance: float = 0.0
+    stamp_ns: int | None = None
+
+    def add(self, stamp_ns: int, rate: float, rate_variance: float) -> None:
+        previous, self.stamp_ns = self.stamp_ns, stamp_ns
+        if previous is None or not 0 < stamp_ns - previous <= self.max_gap_s * 1e9:
+            return
+        dt = (stamp_ns - previous) * 1e-9
+        self.yaw += rate * dt
+        self.variance += rate_variance * dt * dt
+
+    def reset(self) -> None:
+        self.yaw, self.variance, self.stamp_ns = 0.0, 0.0, None
+
+
 def with_mask(cfg: InputConfig, **quantities: bool) -> InputConfig:
     """cfg with the named QUANTITIES switched on or off."""
     mask = list(cfg.mask)

@@ -11,6 +11,7 @@ the offline callers at the end of their input). Stamps in ns.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass
 from typing import Callable
@@ -26,6 +27,7 @@ from sensing_nodes.core.fusion.inputs import IMU, INPUTS, RANK, SCAN, WHEEL, Rea
 from sensing_nodes.core.fusion.timeline import InputRecord, StampOrderedBuffer, watermark
 from sensing_nodes.core.fusion.validation import pose_problem
 from sensing_nodes.core.geometry.se2 import Pose2
+from sensing_nodes.core.timing import StampRate
 
 RESTART = 'restart'   # in the reorder buffer: the input restarts here (e.g. a new IMU mount)
 
@@ -55,9 +57,12 @@ class FusionSession:
 
     A message's life: `arrive(name, stamp)` (counted; time going backwards resets the timeline),
     then `add(name, reading)` or `reject(name, problem)`; `feed` does both for a reading in
-    hand. Each returns the outputs it released: one per wheel or scan-match reading fused (per
-    IMU reading when the IMU is the only input). Counts go to `counts` (the node's diagnostics
-    counter), things to tell the user to `notices` (the caller drains them).
+    hand. Each returns the outputs it released. Every reading is filtered and the state read
+    after each wheel or scan-match reading (each IMU reading when the IMU is the only input);
+    with publish_rate_hz 0 every such state is an output; else each scan match's, and of the
+    others the first in each period of 1/publish_rate_hz of stamp time (core/timing.py's
+    StampRate), each with its stamp. Counts go to `counts` (the node's diagnostics counter),
+    things to tell the user to `notices` (the caller drains them).
     """
 
     def __init__(self, config: SessionConfig, fusion: FusionFilter | None = None,
@@ -74,6 +79,9 @@ class FusionSession:
         self.counts: Counter = counts if counts is not None else Counter()
         self.notices: list[Notice] = []
         self.resets = 0          # timelines ended by time going backwards
+        self._rate = StampRate(config.publish_rate_hz)
+        self.outputs = InputRecord('output')   # the outputs released (rate_hz: stamp time)
+        self._lag_max_ns = 0
         self._on_output = on_output   # called with each output as it is made (evaluation)
         self._clear_timeline()
 
@@ -86,6 +94,8 @@ class FusionSession:
         # moment after the wheels started ended 0.15 deg off and refused every scan match).
         self._first_ns: dict[str, int] = {}
         self._started = False
+        self._rate.reset()
+        self.outputs.clear()
 
     # -- input ---------------------------------------------------------------------------------
     def arrive(self, name: str, stamp_ns: int) -> list[FusedOutput]:
@@ -133,8 +143,11 @@ class FusionSession:
         record = self.records[name]
         if record.arrived_ns is None or stamp > record.arrived_ns:
             record.arrived_ns = stamp
-        return self._process(buffer.pop_ready(watermark(
+        out = self._process(buffer.pop_ready(watermark(
             self._record_list, buffer.newest_ns, self._start_ns, self.config.input_timeout_s)))
+        if self.outputs.last_ns is not None:
+            self._lag_max_ns = max(self._lag_max_ns, buffer.newest_ns - self.outputs.last_ns)
+        return out
 
     def reject(self, name: str, problem: str) -> None:
         """The arrived message could not be read (why: `problem`): counted, not fused."""
@@ -177,6 +190,16 @@ class FusionSession:
         """How many readings the reorder buffer holds."""
         return len(self.buffer)
 
+    def output_lag_s(self) -> tuple[float, float]:
+        """How far the newest output trails the newest input, in stamp time (s): now, and the
+        most after any input since the last call (the reorder buffer's hold, the output period,
+        inputs that give no output); nan before the first output."""
+        if self.outputs.last_ns is None or self.buffer.newest_ns is None:
+            return math.nan, math.nan
+        now = (self.buffer.newest_ns - self.outputs.last_ns) * 1e-9
+        most, self._lag_max_ns = max(self._lag_max_ns * 1e-9, now), 0
+        return now, most
+
     def take_notices(self) -> list[Notice]:
         """The notices since the last call (the caller tells them)."""
         notices, self.notices = self.notices, []
@@ -196,9 +219,15 @@ class FusionSession:
             self.fusion.update(name, reading)
             if name == IMU and not self._imu_publishes:
                 continue  # heading only: published with the next position update
-            state = self.fusion.state
+            state = self.fusion.state     # read as at every rate: the filter runs the same
             if state is None:
                 continue
+            # The first output in each period of the rate goes out (due() takes the period), and
+            # every scan match's: the absolute correction, at once and at its own stamp (a
+            # consumer, or sensing_demo's pacing, waits for the output at each scan's stamp).
+            if not self._rate.due(stamp) and name != SCAN:
+                continue
+            self.outputs.processed_at(stamp)
             out.append((stamp, state))
             if self._on_output is not None:
                 self._on_output(stamp, state)

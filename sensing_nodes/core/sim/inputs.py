@@ -54,6 +54,7 @@ class FusionInputs:
     scan_relative: NDArray[np.float64]       # (S, 3) pose relative to that keyframe
     scan_relative_cov: NDArray[np.float64]   # (S, 3, 3)
     scan_new_keyframe: NDArray[np.bool_]     # this scan is the keyframe of the next matches
+    raw_rate_variance: float = 0.0           # of each raw rate sample (rad^2/s^2)
 
 
 def wheel_config(params: SimParams) -> WheelOdometryConfig:
@@ -132,7 +133,8 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
         scan_t=np.array(st, dtype=np.int64), scan_pose=np.array(sp), scan_cov=np.array(sc),
         scan_keyframe_t=np.array(skt, dtype=np.int64), scan_relative=np.array(srel),
         scan_relative_cov=np.array(src).reshape(-1, 3, 3),
-        scan_new_keyframe=np.array(snew, dtype=bool))
+        scan_new_keyframe=np.array(snew, dtype=bool),
+        raw_rate_variance=params.gyro_noise_std_rad_s ** 2)
 
 
 def simulated_inputs(seed: int = 0, params: SimParams | None = None,
