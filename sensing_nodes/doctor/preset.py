@@ -196,8 +196,12 @@ def commands(d: Diagnosis, params: Path) -> dict[str, str]:
     for topic in sorted(fed):
         name = d.remaps.get(topic, topic)
         answers = [o for n in d.nodes if NODES[n].answers == name for o in NODES[n].answered_with]
-        if topic == wheel_topic:     # the fusion answers each wheel input (once all spoke)
+        if topic == wheel_topic:
+            # The fusion then takes the bag's odometry itself: the lockstep replay is paced by
+            # its answer to each wheel input, which it gives with every input published
+            # (publish_rate_hz 0; at its default rate it answers at most 30 a second).
             answers.append(FUSED)
+            expect += ' --param complementary_fusion:publish_rate_hz:=0.0'
         expect += f' --expect {topic}={",".join(answers)}'
     nodes = ','.join(d.nodes)
     return {'sensing_pipeline': f'sensing_pipeline {d.survey.path} OUT --nodes {nodes} '
