@@ -83,13 +83,9 @@ class Correspondences:
     adaptive_factor: float = 3.0
     min_points: int = 3
     min_inlier_fraction: float = 0.2
-    # Geman-McClure weights (k²/(k² + r²))² on the chosen pairs (r: a pair's residual, k this
-    # scale, m), re-weighted every iteration; 0 = every chosen pair weighs alike.
-    kernel_scale: float = 0.0
 
     def __post_init__(self) -> None:
         _require(self.robust in _ROBUST, f'robust must be one of {_ROBUST}, got {self.robust!r}')
-        _require(self.kernel_scale >= 0, f'kernel_scale must be >= 0, got {self.kernel_scale}')
         _require(self.max_correspondence_distance > 0 and 0 < self.trim_fraction <= 1
                  and self.adaptive_factor > 0 and self.min_points >= 3,
                  'max_correspondence_distance > 0, 0 < trim_fraction <= 1, adaptive_factor > 0 '
@@ -893,7 +889,6 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
     min_gate = min(corr.min_correspondence_distance, gate)
     floor_sq = (0.25 * min_gate) ** 2
     point_to_line = options.method == 'point_to_line'
-    kernel_sq = corr.kernel_scale ** 2
     stop = _Stop(options.convergence)
     n = src.shape[0]
     for iteration in range(1, max_iterations + 1):
@@ -927,9 +922,6 @@ def _icp_loop(src, rows, tgt: Target, pose, options: IcpOptions, max_iterations:
         state.inliers = size_sq.size
         state.error = float(np.sqrt(size_sq).sum()) / size_sq.size
         state.history.append(state.error)
-        if kernel_sq:
-            # Geman-McClure: each pair's rows scaled by √w = k²/(k² + r²).
-            whitened *= kernel_sq / (kernel_sq + size_sq)
         flat = whitened.reshape(4, -1)
         state.normal, state.origin = flat @ flat.T, (x, y)
         if point_to_line:
