@@ -430,7 +430,11 @@ class LocalMapScanMatcher:
         predicted = compose(self.map_pose, predicted_motion)
         predicted_mid = compose(predicted, half)
         guess = compose(predicted_mid, s.laser_pose)
-        result, reason = self._match(points, guess)
+        # After failed matches the pose was carried by a prediction alone: a match from there
+        # can settle in a false minimum that a narrow gate cannot tell (0.5 m along a wall in
+        # the default room after 2.5 s without odometry), so the wide search goes first.
+        lost = self.failures >= s.reacquire_after
+        result, reason = self._match(points, guess) if not lost else (None, 'lost')
         if reason and self.failures + 1 >= s.reacquire_after and len(self.map):
             events.append('reacquire_attempts')
             found = correlative_search(points, self.map.target(), guess,
@@ -438,9 +442,12 @@ class LocalMapScanMatcher:
             if found is not None:
                 second, second_reason = self._match(points, found, gate=s.min_gate_m,
                                                     check_jump=False)
-                if not second_reason:
-                    result, reason = second, ''
+                if not second_reason or result is None:
+                    result, reason = second, second_reason
+                if not reason:
                     events.append('reacquired')
+        if result is None:             # lost, and the wide search found nothing
+            result, reason = self._match(points, guess)
         previous_mid, previous_pose = self.mid_pose, self.pose
         keyframe_stamp = relative = rel_cov = None
         new_anchor = False

@@ -134,6 +134,10 @@ class IcpMatcherNode(Node):
         min_gate = declare(self, 'min_gate_m', 0.10,
                            'local map: the correspondence gate (3 x the recent RMS model error)'
                            ' is at least this (m)', minimum=0.01, maximum=10.0)
+        degeneracy = declare(self, 'map_degeneracy_ratio', 0.03,
+                             'local map: a direction whose information is below this share of '
+                             'the strongest is degenerate (kept from the prediction, variance '
+                             'inflated)', minimum=0.0, maximum=1.0)
         max_error_ratio = declare(self, 'max_error_ratio', 3.0,
                                   'local map: a mean alignment error above this many times the '
                                   'recent median fails the match', minimum=1.0)
@@ -219,6 +223,7 @@ class IcpMatcherNode(Node):
             mode=mode, local_map=local, anchor_distance_m=anchor_distance,
             insert_distance_m=insert_distance, insert_angle_rad=insert_angle,
             min_gate_m=min_gate, max_error_ratio=max_error_ratio,
+            map_degeneracy_ratio=degeneracy,
             reacquire_after=reacquire_after, reacquire_window_m=reacquire_window,
             reacquire_window_rad=reacquire_window_rad, velocity_decay_s=velocity_decay,
             max_speed_m_s=max_speed, max_yaw_rate_rad_s=max_yaw_rate,
