@@ -72,8 +72,9 @@ class ScanMatcherSettings:
     # The map anchor (what /scan_match/keyframe_odom is relative to) is renewed after this far.
     anchor_distance_m: float = 5.0
     # A match whose mean alignment error exceeds this many times the median of the last
-    # model_error_window matches' is rejected (the scale-free form of max_error_m: a long-range
-    # laser in a hall aligns to 3 cm where a short one in a room aligns to 6 mm).
+    # model_error_window matches' (at least icp_options.min_residual_std) is rejected (the
+    # scale-free form of max_error_m: a long-range laser in a hall aligns to 3 cm where a short
+    # one in a room aligns to 6 mm).
     max_error_ratio: float = 3.0
     # Directions whose eigenvalue (yaw as arc length at the scan's radius) is below this x the
     # largest are degenerate: not updated from the prediction, their variance inflated, the
@@ -533,7 +534,9 @@ class LocalMapScanMatcher:
         if not result.converged:
             return result, f'not converged: {result.reason}'
         if self.alignment_errors:
-            typical = float(np.median(self.alignment_errors))
+            # Never below the ICP's own floor on residuals: noiseless scans align to ~0.
+            typical = max(float(np.median(self.alignment_errors)),
+                          s.icp_options.min_residual_std)
             if not result.error <= s.max_error_ratio * typical:
                 return result, (f'mean alignment error {result.error:.3f} m > '
                                 f'{s.max_error_ratio:g} x the recent median {typical:.3f} m')

@@ -340,6 +340,10 @@ class IcpMatcherProcessor:
                 self._warnings.warn('odom', f'no odometry around {stamp * 1e-9:.3f} s: constant '
                                     'velocity prediction instead')
         step = self._matcher.process(stamp, points, prediction, beam_times, sweep)
+        if 'gap' in step.events:
+            self._warnings.warn('gap', f'scan at {stamp * 1e-9:.3f} s: '
+                                f'{(stamp - self._last_scan_ns) * 1e-9:.2f} s since the previous '
+                                'scan: the velocity restarts at zero, the map stays')
         if step.status != 'repeated':
             self._last_scan_ns = stamp
         diag.count(step.status)
