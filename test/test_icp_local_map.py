@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from sensing_nodes.bench.icp_sim import FAST_TURNS_ROUTE, route_errors, simulated_run
 from sensing_nodes.core import icp
 from sensing_nodes.core.correlative import correlative_search
-from sensing_nodes.core.deskew import deskew, twist_motions
+from sensing_nodes.core.deskew import deskew, twist_motion, twist_motions
 from sensing_nodes.core.geometry.se2 import between, compose, transform_points, wrap_angle
 from sensing_nodes.core.local_map import LocalMap, LocalMapSettings
 from sensing_nodes.core.scan_matching import (
@@ -112,6 +112,9 @@ def test_twist_motions_are_the_exact_arcs_of_a_constant_twist():
     np.testing.assert_allclose(tiny, twist, rtol=1e-6)
     straight = twist_motions((0.3, 0.0, 0.0), np.array([0.5]))[0]
     np.testing.assert_allclose(straight, (0.15, 0.0, 0.0), atol=1e-15)
+    for t in (a, -a, 1e-12):                        # the one-pose form agrees
+        np.testing.assert_allclose(twist_motion(twist, t), twist_motions(twist, np.array([t]))[0],
+                                   atol=1e-15)
 
 
 def test_deskewing_with_the_sweeps_motion_gives_back_the_scan_at_the_stamp():
@@ -127,7 +130,7 @@ def test_deskewing_with_the_sweeps_motion_gives_back_the_scan_at_the_stamp():
         r = raycast(ROOM.segments, laser[:2], np.array([angle + laser[2]]))[0]
         swept.append((r * math.cos(angle), r * math.sin(angle)))
     swept = np.array(swept)
-    fixed = deskew(swept, motions, mount)
+    fixed = deskew(swept, twist, times, mount)
     laser = compose(base, mount)
     # Each deskewed point lies on a wall of the world seen from the pose at the stamp.
     on_map = transform_points(laser, fixed)

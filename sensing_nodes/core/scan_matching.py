@@ -11,6 +11,7 @@ with its beam's time after the stamp (s) for deskewing.
 from __future__ import annotations
 
 import math
+from bisect import bisect_left, insort
 from collections import deque
 from dataclasses import dataclass, field, replace
 
@@ -19,7 +20,7 @@ from numpy.typing import NDArray
 
 from sensing_nodes.core import icp
 from sensing_nodes.core.correlative import correlative_search
-from sensing_nodes.core.deskew import deskew, twist_motions
+from sensing_nodes.core.deskew import deskew, twist_motion
 from sensing_nodes.core.geometry.se2 import (
     Pose2,
     between,
@@ -167,7 +168,7 @@ def deskewed_by_odometry(points: NDArray[np.float64], beam_times_s: NDArray[np.f
     if duration <= 0.0:
         return points
     twist = (sweep_motion[0] / duration, sweep_motion[1] / duration, sweep_motion[2] / duration)
-    return deskew(points, twist_motions(twist, beam_times_s), laser_pose)
+    return deskew(points, twist, beam_times_s, laser_pose)
 
 
 def unmount_transform(relative_laser: Pose2, cov_laser: NDArray[np.float64],
@@ -311,6 +312,36 @@ class KeyframeScanMatcher:
         return ''
 
 
+class RecentValues:
+    """The last `window` values added, with their RMS and median kept as they arrive."""
+
+    def __init__(self, window: int) -> None:
+        self.values: deque[float] = deque(maxlen=window)
+        self._sorted: list[float] = []
+        self._square_sum = 0.0
+
+    def add(self, value: float) -> None:
+        if len(self.values) == self.values.maxlen:
+            old = self.values[0]
+            del self._sorted[bisect_left(self._sorted, old)]
+            self._square_sum -= old * old
+        self.values.append(value)
+        insort(self._sorted, value)
+        self._square_sum += value * value
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    @property
+    def rms(self) -> float:
+        return math.sqrt(max(self._square_sum, 0.0) / len(self.values))
+
+    @property
+    def median(self) -> float:
+        n = len(self._sorted)
+        return 0.5 * (self._sorted[(n - 1) // 2] + self._sorted[n // 2])
+
+
 class LocalMapScanMatcher:
     """Registers each (deskewed) scan against a local map of the recent surroundings in the
     odom frame (core/local_map.py) from the predicted pose, with a correspondence gate adapted
@@ -336,8 +367,8 @@ class LocalMapScanMatcher:
         self.anchor_pose: Pose2 = ZERO
         self.anchor_covariance = np.zeros((3, 3))
         self.anchor_stamp_ns: int | None = None
-        self.model_errors: deque[float] = deque(maxlen=self.settings.model_error_window)
-        self.alignment_errors: deque[float] = deque(maxlen=self.settings.model_error_window)
+        self.model_errors = RecentValues(self.settings.model_error_window)
+        self.alignment_errors = RecentValues(self.settings.model_error_window)
         self.failures = 0
         self._inserted_at: Pose2 | None = None
         self._options: dict[float, icp.IcpOptions] = {}
@@ -350,8 +381,7 @@ class LocalMapScanMatcher:
         widest = s.icp_options.correspondences.max_correspondence_distance
         if not self.model_errors:
             return widest
-        rms = math.sqrt(sum(e * e for e in self.model_errors) / len(self.model_errors))
-        return min(widest, max(s.min_gate_m, 3.0 * rms))
+        return min(widest, max(s.min_gate_m, 3.0 * self.model_errors.rms))
 
     def process(self, stamp_ns: int, points: NDArray[np.float64],
                 predicted_motion: Pose2 | None = None,
@@ -403,10 +433,8 @@ class LocalMapScanMatcher:
                      sweep_motion[2] / duration)
             how = 'deskewed_by_odometry'
         middle = 0.5 * duration
-        half = twist_motions(twist, np.array([middle]))[0]
-        moved = deskew(points, twist_motions(twist, beam_times_s - middle),
-                       self.settings.laser_pose)
-        return moved, (float(half[0]), float(half[1]), float(half[2])), how
+        moved = deskew(points, twist, beam_times_s - middle, self.settings.laser_pose)
+        return moved, twist_motion(twist, middle), how
 
     # long: one scan's whole decision (predict, deskew, register, accept or fall back,
     # re-acquire, limit, insert, anchor), kept in one place so its order is visible.
@@ -466,10 +494,10 @@ class LocalMapScanMatcher:
             self.failures = 0
             mid, mid_cov = remove_offset(result.pose, result.covariance, s.laser_pose)
             base, base_cov = remove_offset(mid, mid_cov, half)
-            self.alignment_errors.append(result.error)
+            self.alignment_errors.add(result.error)
             if 'reacquired' not in events:
                 deviation = between(predicted_mid, mid)
-                self.model_errors.append(math.hypot(deviation[0], deviation[1])
+                self.model_errors.add(math.hypot(deviation[0], deviation[1])
                                          + 2.0 * self._reach(points)
                                          * abs(math.sin(0.5 * deviation[2])))
             self.map_pose, self.mid_pose = base, mid
@@ -535,8 +563,7 @@ class LocalMapScanMatcher:
             return result, f'not converged: {result.reason}'
         if self.alignment_errors:
             # Never below the ICP's own floor on residuals: noiseless scans align to ~0.
-            typical = max(float(np.median(self.alignment_errors)),
-                          s.icp_options.min_residual_std)
+            typical = max(self.alignment_errors.median, s.icp_options.min_residual_std)
             if not result.error <= s.max_error_ratio * typical:
                 return result, (f'mean alignment error {result.error:.3f} m > '
                                 f'{s.max_error_ratio:g} x the recent median {typical:.3f} m')
@@ -554,7 +581,9 @@ class LocalMapScanMatcher:
         """The scan's median range (m): how far a yaw error moves a typical correspondence."""
         if points.shape[0] == 0:
             return 0.0
-        return float(np.sqrt(np.median(np.einsum('ij,ij->i', points, points))))
+        squared = np.einsum('ij,ij->i', points, points)
+        middle = squared.size // 2
+        return math.sqrt(float(np.partition(squared, middle)[middle]))
 
     def _maybe_insert(self, points: NDArray[np.float64], base: Pose2,
                       events: list[str]) -> None:

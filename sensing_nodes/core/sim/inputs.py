@@ -81,36 +81,43 @@ def scan_points(run: SimRun, i: int) -> tuple[NDArray[np.float64], NDArray[np.fl
     return points, times
 
 
-def match_scans(run: SimRun, settings: ScanMatcherSettings | None = None,
-                odometry: bool = True, deskew: bool = True,
-                wheel: WheelOdometryConfig | None = None) -> tuple[NDArray[np.int64],
-                                                                   list[ScanStep]]:
-    """The scan matcher alone over a simulated run, each scan taken when it is published
-    (after its sweep): predicted and deskewed by the wheel odometry (odometry=True) or by its
-    own velocity; deskew=False ignores the beams' times. Returns the scans' stamps and steps."""
-    settings = settings or matcher_settings(run.params)
-    matcher = make_scan_matcher(settings)
-    wheels = WheelOdometry(wheel or wheel_config(run.params)) if odometry else None
+def scan_inputs(run: SimRun) -> list[tuple]:
+    """What the node's matcher is given for each scan of a run, as process() arguments: stamp,
+    points, the wheel odometry's motion since the previous scan, beam times and the odometry's
+    motion over the sweep (each scan taken when it is published)."""
+    wheels = WheelOdometry(wheel_config(run.params))
     buffer = OdometryBuffer(max_age_s=10.0, max_extrapolation_s=0.1)
-    joints = [(int(t), 0, i) for i, t in enumerate(run.joint_t)] if odometry else []
-    events = sorted(joints + [(int(t), 2, i) for i, t in enumerate(run.scan_publish_t)])
-    stamps, steps, last_scan = [], [], None
+    events = sorted([(int(t), 0, i) for i, t in enumerate(run.joint_t)]
+                    + [(int(t), 2, i) for i, t in enumerate(run.scan_publish_t)])
+    out, last_scan = [], None
     for stamp, kind, i in events:
         if kind == 0:
-            result = wheels.update(stamp, list(JOINTS), run.joint_position[i],
-                                   run.joint_velocity[i], JOINTS)
-            if result.publish:
+            if wheels.update(stamp, list(JOINTS), run.joint_position[i], run.joint_velocity[i],
+                             JOINTS).publish:
                 buffer.add(stamp, wheels.pose)
             continue
         scan_stamp = int(run.scan_t[i])
         points, times = scan_points(run, i)
-        times = times if deskew else None
-        predicted, sweep = odometry_guidance(buffer, last_scan, scan_stamp, times) \
-            if odometry else (None, None)
-        step = matcher.process(scan_stamp, points, predicted, times, sweep)
+        predicted, sweep = odometry_guidance(buffer, last_scan, scan_stamp, times)
+        out.append((scan_stamp, points, predicted, times, sweep))
+        last_scan = scan_stamp
+    return out
+
+
+def match_scans(run: SimRun, settings: ScanMatcherSettings | None = None,
+                odometry: bool = True, deskew: bool = True) -> tuple[NDArray[np.int64],
+                                                                      list[ScanStep]]:
+    """The scan matcher alone over a simulated run (scan_inputs): predicted and deskewed by the
+    wheel odometry (odometry=True) or by its own velocity; deskew=False ignores the beams'
+    times. Returns the scans' stamps and steps."""
+    matcher = make_scan_matcher(settings or matcher_settings(run.params))
+    stamps, steps = [], []
+    for stamp, points, predicted, times, sweep in scan_inputs(run):
+        if not odometry:
+            predicted = sweep = None
+        step = matcher.process(stamp, points, predicted, times if deskew else None, sweep)
         if step.publish:
-            last_scan = scan_stamp
-            stamps.append(scan_stamp)
+            stamps.append(stamp)
             steps.append(step)
     return np.array(stamps, dtype=np.int64), steps
 
@@ -187,13 +194,14 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
         scan_new_keyframe=np.array(snew, dtype=bool))
 
 
-def simulated_inputs(seed: int = 0, params: SimParams | None = None,
-                     laps: float = 1.0) -> FusionInputs:
-    """Simulate `laps` of the route (default world) and run the fusion's input chain over it."""
+def simulated_inputs(seed: int = 0, params: SimParams | None = None, laps: float = 1.0,
+                     matcher_mode: str = 'local_map') -> FusionInputs:
+    """Simulate `laps` of the route (default world) and run the fusion's input chain over it,
+    the scan matcher in matcher_mode (the node's default, or 'keyframe')."""
     params = params or SimParams()
     run = simulate(params, load_world(config_file('default_world.yaml')),
                    laps * make_route(params).period_s, seed)
-    return inputs_from_run(run)
+    return inputs_from_run(run, matcher=matcher_settings(params, mode=matcher_mode))
 
 
 def save(inputs: FusionInputs, path: str) -> None:
