@@ -115,6 +115,53 @@ def deskew_table(seeds: int = 2) -> dict:
     return out
 
 
+CORRIDOR_ROUTE = ('wait 3', 'straight 30 0.5', 'wait 2')
+
+
+def corridor_table(seeds: int = 4) -> dict:
+    """The corridor world (config/corridor_world.yaml), 30 m along it at 0.5 m/s: per seed the
+    RMS and final along-corridor (x) and RMS across (y) errors (m) of the wheel odometry, the
+    matcher (predicted by the wheels) and today's EKF over them (core.evaluation.fusion), the
+    smallest along / across variance ratio of the matcher's relative covariances, and how many
+    matches were degenerate."""
+    from sensing_nodes.core.evaluation.fusion import run_ekf
+    from sensing_nodes.core.evaluation.metrics import (
+        express_in_reference_frame,
+        interpolate_poses,
+    )
+    from sensing_nodes.core.sim.inputs import inputs_from_run
+
+    params = dataclasses.replace(SimParams(), start_x_m=-20.0, start_y_m=0.0,
+                                 route=CORRIDOR_ROUTE)
+    world = load_world(config_file('corridor_world.yaml'))
+
+    def errors(inputs, t, poses):
+        reference = interpolate_poses(inputs.truth_t, inputs.truth_pose, t)
+        keep = np.all(np.isfinite(reference), axis=1)
+        error = (express_in_reference_frame(tuple(inputs.truth_pose[0]), poses)[keep]
+                 - reference[keep])
+        return {'along_rms_m': float(np.sqrt(np.mean(error[:, 0] ** 2))),
+                'along_final_m': float(abs(error[-1, 0])),
+                'across_rms_m': float(np.sqrt(np.mean(error[:, 1] ** 2)))}
+
+    rows = []
+    for seed in range(seeds):
+        run = simulate(params, world, make_route(params).period_s, seed)
+        inputs = inputs_from_run(run)
+        track = run_ekf(inputs)
+        stamps, steps = match_scans(run, matcher_settings(params))
+        ratios = [step.relative_covariance[0, 0] / step.relative_covariance[1, 1]
+                  for step in steps if step.relative_covariance is not None]
+        rows.append({'seed': seed,
+                     'wheels': errors(inputs, inputs.wheel_t, inputs.wheel_pose),
+                     'matcher': errors(inputs, inputs.scan_t, inputs.scan_pose),
+                     'fused': errors(inputs, track.t, track.pose),
+                     'min_along_over_across_variance': float(min(ratios)),
+                     'degenerate': sum('degenerate' in step.events for step in steps),
+                     'matches': len(ratios)})
+    return {'seeds': rows}
+
+
 def run(quick: bool = False) -> dict:
     """Figures for the benchmark aggregator."""
     out = {f'alone_{k}': v for k, v in route_drift(laps=1.0).items()}
@@ -128,6 +175,12 @@ def run(quick: bool = False) -> dict:
                 out[f'fast_turns_{name}_{key}'] = value
         else:
             out[f'fast_turns_{name}'] = figures
+    for row in corridor_table(1 if quick else 4)['seeds']:
+        for source in ('wheels', 'matcher', 'fused'):
+            for key, value in row[source].items():
+                out[f"corridor_seed{row['seed']}_{source}_{key}"] = value
+        out[f"corridor_seed{row['seed']}_min_variance_ratio"] = \
+            row['min_along_over_across_variance']
     return out
 
 
