@@ -35,7 +35,6 @@ from sensing_nodes.core.local_map import LocalMap, LocalMapSettings
 from sensing_nodes.core.timing import StampStep, classify_step
 
 ZERO: Pose2 = (0.0, 0.0, 0.0)
-MAP_NORMAL_NEIGHBOURS = 7
 
 
 # A scan stamped closer than this to the previous one (a driver's duplicate with a nudged stamp)
@@ -369,6 +368,8 @@ class LocalMapScanMatcher:
         self.anchor_stamp_ns: int | None = None
         self.model_errors = RecentValues(self.settings.model_error_window)
         self.alignment_errors = RecentValues(self.settings.model_error_window)
+        self.sweep_errors = RecentValues(self.settings.model_error_window)
+        self.sweep_yaw_errors = RecentValues(self.settings.model_error_window)
         self.failures = 0
         self._inserted_at: Pose2 | None = None
         self._options: dict[float, icp.IcpOptions] = {}
@@ -508,6 +509,17 @@ class LocalMapScanMatcher:
             keyframe_stamp = self.anchor_stamp_ns
             _, j_base = compose_jacobians(inverse(self.anchor_pose), base)
             relative = between(self.anchor_pose, base)
+            if how and 'reacquired' not in events:
+                deviation = between(predicted_mid, mid)
+                self.sweep_errors.add(math.hypot(deviation[0], deviation[1]))
+                self.sweep_yaw_errors.add(abs(deviation[2]))
+            if how and len(self.sweep_errors):
+                # The sweep's motion comes from the prediction's source, whose error over a
+                # scan interval the matches measure: half a sweep of it is in the pose at the
+                # stamp (and in the scan's shape), which the registration's residuals do not see.
+                share = 0.5 * float(beam_times_s.max()) / max(dt, 1e-9)
+                base_cov = base_cov + np.diag([(share * self.sweep_errors.rms) ** 2] * 2
+                                              + [(share * self.sweep_yaw_errors.rms) ** 2])
             rel_cov = j_base @ base_cov @ j_base.T
             rel_cov = 0.5 * (rel_cov + rel_cov.T)
             _, self.covariance = compose_with_covariance(self.anchor_pose,
@@ -607,7 +619,7 @@ class LocalMapScanMatcher:
         normal in this scan."""
         if points.shape[0] == 0:
             return
-        normals, planarity = icp.scan_normals(points, MAP_NORMAL_NEIGHBOURS)
+        normals, planarity = icp.scan_normals(points)
         c, s_ = math.cos(laser[2]), math.sin(laser[2])
         rotation = np.array([[c, s_], [-s_, c]])             # row vectors: p @ Rᵀ
         moved = points @ rotation
