@@ -189,9 +189,10 @@ def laser_scan(t_ns: int, ranges, frame_id: str = 'laser', angle_min: float = -3
     return msg
 
 
-def carmen_pipeline(log: Path, tmp: Path) -> Path:
+def carmen_pipeline(log: Path, tmp: Path, mode: str = 'keyframe') -> Path:
     """docs/real-data.md's commands on a CARMEN log: carmen_to_bag into tmp/log, then
-    icp_matcher and the fusion (config/fusion_carmen.yaml) through sensing_pipeline into tmp/out,
+    icp_matcher (in `mode`: keyframe, with which the fusion's bounds on these logs were
+    measured) and the fusion (config/fusion_carmen.yaml) through sensing_pipeline into tmp/out,
     which is returned."""
     from sensing_nodes.paths import config_file
     from sensing_nodes.tools import pipeline
@@ -203,5 +204,6 @@ def carmen_pipeline(log: Path, tmp: Path) -> Path:
         '--remap', '/odom:=/wheel/odom', '--param', 'icp_matcher:laser_x_m:=0.0',
         '--param', 'icp_matcher:max_gap_s:=60.0',
         '--param', 'icp_matcher:odom_max_extrapolation_s:=1.0',
+        '--param', f'icp_matcher:mode:={mode}',
         '--params-file', str(config_file('fusion_carmen.yaml')), '--no-progress']) == 0
     return tmp / 'out'

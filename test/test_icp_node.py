@@ -119,16 +119,19 @@ def diagnostic_values(collector):
     return {kv.key: kv.value for d in collector.messages for s in d.status for kv in s.values}
 
 
-def test_follows_the_truth_with_odometry_initial_guess(probe, pubs):
+@pytest.mark.parametrize('mode', ['local_map', 'keyframe'])
+def test_follows_the_truth_with_odometry_initial_guess(probe, pubs, mode):
     count = 25
     diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 10)
-    with NodeProcess('icp_matcher', params_file=config_file('icp_matcher.yaml')) as node:
+    with NodeProcess('icp_matcher', params_file=config_file('icp_matcher.yaml'),
+                     params={'mode': mode}) as node:
         out = run_sequence(probe, pubs, node, count)
         spin_until(probe, lambda: diagnostic_values(diagnostics).get('matched') == str(count - 1),
                    5)
         assert node.alive(), node.output()
     values = diagnostic_values(diagnostics)
     diagnostics.close()
+    assert values['mode'] == mode
     assert values['predicted_by_odometry'] == str(count - 1)      # every step, none by default
     assert values['matched'] == str(count - 1)
     assert 'fallback' not in values
@@ -206,6 +209,9 @@ def test_constant_velocity_model_without_odometry(probe, pubs):
     (['-p', 'max_iterations:=0'], 'max_iterations'),
     (['-p', 'odom_delay_s:=1.5'], 'odom_delay_s'),
     (['-p', 'odom_delay_s:=.nan'], 'odom_delay_s'),
+    (['-p', 'mode:=grid'], 'mode'),
+    (['-p', 'map_cell_m:=0.0'], 'map_cell_m'),
+    (['-p', 'max_speed_m_s:=0.0'], 'max_speed_m_s'),
 ])
 def test_bad_parameters_exit_with_2(args, name):
     result = run_to_exit('icp_matcher', ['--ros-args', *args])
@@ -221,9 +227,11 @@ def test_bad_scans_and_backwards_time_keep_the_node_running(probe, pubs):
         rng = np.random.default_rng(1)
         broken = scan_msg(6, rng=rng)
         broken.angle_increment = math.nan             # every beam angle NaN: no valid point
+        backwards_sweep = scan_msg(7, rng=rng)
+        backwards_sweep.time_increment = -1.0         # not deskewed, said, the scan used
         replay = scan_msg(2, rng=rng)                 # a looping bag: time goes backwards
         collector = Collector(probe, Odometry, '/scan_match/odom', ESTIMATE_QOS)
-        for msg in (broken, scan_msg(7, rng=rng), replay):
+        for msg in (broken, backwards_sweep, replay):
             scan_pub.publish(msg)
             spin_until(probe, lambda: False, 0.3)
         collector.wait_for(3, 10)
@@ -241,6 +249,7 @@ def test_bad_scans_and_backwards_time_keep_the_node_running(probe, pubs):
     assert pose_error(got[T0 + 7 * SCAN_DT], reference(7))[0] < 0.02
     assert got[T0 + 2 * SCAN_DT] == (0.0, 0.0, 0.0)        # restarted at the origin
     assert values['reset_backwards'] == '1' and values['too_few_points'] == '1'
+    assert values['time_increment_unusable'] == '1' and 'time_increment -1.0' in log
     assert 'backwards' in log
 
 

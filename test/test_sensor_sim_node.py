@@ -235,8 +235,9 @@ def test_paced_mode_waits_for_the_graph_and_loses_no_scan(probe):
             assert spin_until(probe, lambda: not node.alive(), timeout=60), node.output()
             assert node.proc.returncode == 0
             assert 'no answer' not in node.output()
-        # every scan from the first to the last, none lost, none early
-        assert scans == [START + k * SECOND // 10 for k in range(51)]
+        # every scan from the first to the last, none lost, none early (the one stamped at
+        # 5 s ends its sweep at 5.1 s, after the run)
+        assert scans == [START + k * SECOND // 10 for k in range(50)]
     finally:
         probe.destroy_subscription(sub)
         probe.destroy_publisher(answer)
@@ -257,7 +258,7 @@ def test_paced_mode_goes_on_after_the_timeout_with_a_warning(probe):
             assert spin_until(probe, lambda: not node.alive(), timeout=60), node.output()
             assert node.proc.returncode == 0
             assert 'no answer on /pace_silent' in node.output()
-        assert len(scans.messages) == 6
+        assert len(scans.messages) == 5          # stamped 0 .. 0.4 s: each sweep ends by 0.5 s
     finally:
         scans.close()
         probe.destroy_publisher(silent)

@@ -319,12 +319,56 @@ def test_stepping_block_by_block_gives_the_batch_numbers():
     blocks = [engine.advance() for _ in range(30)]
     times, kinds, _ = sim.block_events(blocks[0])
     assert np.all(np.diff(times) >= 0)
-    assert list(kinds[:5]) == [sim.CLOCK, sim.TRUTH, sim.IMU, sim.JOINTS, sim.SCAN]
+    assert list(kinds[:4]) == [sim.CLOCK, sim.TRUTH, sim.IMU, sim.JOINTS]
+    # The first scan (stamped at the start) goes out when its sweep ends, 0.1 s later.
+    first_scan = times[kinds == sim.SCAN][0]
+    assert first_scan == params.start_ns + 10**8 == blocks[0].scan_publish_t[0]
+    assert blocks[0].scan_t[0] == params.start_ns
     for name in ARRAYS:
         stacked = np.concatenate([getattr(b, name) for b in blocks])
         np.testing.assert_array_equal(stacked, getattr(run, name)[:len(stacked)], err_msg=name)
     assert run.imu_t[0] == params.start_ns and run.imu_t[-1] == params.start_ns + 3 * 10**9
     assert np.all(np.diff(run.scan_t) == 10**8)
+
+
+# --- the sweep: each beam at its own time ---------------------------------------------------
+
+def test_a_scan_is_stamped_at_its_first_beam_and_published_when_its_sweep_ends():
+    params = sim.SimParams()
+    run = sim.simulate(params, DEFAULT_WORLD, 2.0, seed=1)
+    assert params.scan_time_increment_s == pytest.approx(0.1 / 360)
+    assert run.scan_time_increment == params.scan_time_increment_s
+    assert np.all(run.scan_t == params.start_ns + 10**8 * np.arange(run.scan_t.size))
+    np.testing.assert_array_equal(run.scan_publish_t - run.scan_t, 10**8)
+    half = sim.simulate(dataclasses.replace(params, scan_sweep_fraction=0.5), DEFAULT_WORLD,
+                        2.0, seed=1)
+    np.testing.assert_array_equal(half.scan_publish_t - half.scan_t, 5 * 10**7)
+
+
+def test_each_beam_is_ranged_from_where_the_laser_was_at_its_own_time():
+    # Turning in place at 1 rad/s with the laser 0.1 m ahead: during a 0.1 s sweep the laser
+    # turns 5.7 deg and moves 1 cm. Every beam equals a ray cast from the truth at its own time;
+    # from the pose at the stamp, the last beams are centimetres off.
+    params = dataclasses.replace(
+        sim.SimParams(**NOISELESS), route=('turn 360 57.29577951308232',),
+        max_angular_accel_rad_s2=1e3, start_x_m=0.0, start_y_m=0.0)
+    run = sim.simulate(params, DEFAULT_WORLD, 1.0, seed=0)
+    k = 5                                              # a scan well inside the turn
+    beam_times = run.scan_t[k] + np.round(np.arange(params.scan_beams)
+                                          * params.scan_time_increment_s * 1e9).astype(np.int64)
+    truth = run.truth_at(beam_times)
+    origins = truth[:, :2] + 0.1 * np.column_stack((np.cos(truth[:, 2]), np.sin(truth[:, 2])))
+    swept = raycast(DEFAULT_WORLD.segments, origins, truth[:, 2] + run.scan_angles)
+    at_stamp = raycast(DEFAULT_WORLD.segments, origins[0], truth[0, 2] + run.scan_angles)
+    valid = np.isfinite(swept) & (swept < params.range_max_m)
+    np.testing.assert_allclose(run.scan_ranges[k][valid], swept[valid], atol=2e-5)
+    assert np.abs(run.scan_ranges[k][valid] - at_stamp[valid]).max() > 0.05
+    # sweep 0: every beam from the pose at the stamp, as before the sweep was simulated.
+    instant = sim.simulate(dataclasses.replace(params, scan_sweep_fraction=0.0), DEFAULT_WORLD,
+                           1.0, seed=0)
+    assert instant.scan_time_increment == 0.0
+    np.testing.assert_array_equal(instant.scan_publish_t, instant.scan_t)
+    np.testing.assert_allclose(instant.scan_ranges[k][valid], at_stamp[valid], atol=2e-5)
 
 
 # --- /cmd_vel following ---------------------------------------------------------------------

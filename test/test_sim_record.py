@@ -66,7 +66,9 @@ def test_bag_has_every_topic_at_its_rate_and_valid_metadata(bags):
     counts = topic_counts(bags['a'])
     assert set(counts) == set(RATES)
     for topic, rate in RATES.items():
-        assert counts[topic][1] == round(rate * DURATION) + 1, topic   # both ends included
+        # both ends included; the scan stamped at the end goes out 0.1 s later (its sweep)
+        expected = round(rate * DURATION) + (0 if topic == '/scan' else 1)
+        assert counts[topic][1] == expected, topic
     meta = yaml.safe_load((bags['a'] / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     assert meta['storage_identifier'] == 'mcap'
     assert meta['starting_time']['nanoseconds_since_epoch'] == sim.SimParams().start_ns
@@ -100,11 +102,14 @@ def test_bag_holds_exactly_the_batch_simulation(bags):
     got = {}
     for topic, stamp, msg in read_messages(bags['a']):
         t = msg.header.stamp if hasattr(msg, 'header') else msg.clock
-        assert stamp == t.sec * 10**9 + t.nanosec                    # bag time = message stamp
+        # bag time = when the message goes out: its stamp, a scan's when its sweep has ended
+        sweep = 10**8 if topic == '/scan' else 0
+        assert stamp == t.sec * 10**9 + t.nanosec + sweep
         got.setdefault(topic, []).append(msg)
     scans = got['/scan']
     ranges = np.array([m.ranges for m in scans], dtype=np.float32)
     np.testing.assert_array_equal(ranges, run.scan_ranges)
+    assert scans[0].time_increment == pytest.approx(0.1 / 360)
     assert scans[0].header.frame_id == 'laser'
     assert scans[0].angle_min == pytest.approx(run.scan_angle_min)
     assert scans[0].angle_increment == pytest.approx(run.scan_angle_increment)

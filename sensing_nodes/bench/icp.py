@@ -20,6 +20,9 @@ import numpy as np
 
 from sensing_nodes.bench import icp_real
 from sensing_nodes.core import icp
+from sensing_nodes.core.geometry.se2 import compose, inverse
+from sensing_nodes.core.scan_matching import LocalMapScanMatcher, ScanMatcherSettings
+from sensing_nodes.core.sim.simulator import SimParams, make_route
 
 
 def textbook_icp_loops(source, target, initial=(0.0, 0.0, 0.0), iterations: int = 20):
@@ -122,6 +125,62 @@ def _streaming_rates(points, guesses, repeats: int, options: dict,
     return (len(points) - 1) / best_ours, (len(points) - 1) / best_sg
 
 
+def _local_map_streaming_rate(points, guesses, repeats: int) -> float:
+    """The local-map matcher streaming over the same scans and guesses as _streaming_rates (the
+    guess as the odometry's motion, the laser at base_link, scans 1 s apart): matches per
+    second, CPU time, best of `repeats`."""
+    settings = ScanMatcherSettings(laser_pose=(0.0, 0.0, 0.0), max_gap_s=10.0)
+    best = math.inf
+    for _ in range(repeats):
+        matcher = LocalMapScanMatcher(settings)
+        start = time.process_time()
+        for k, scan in enumerate(points):
+            guess = tuple(guesses[k - 1]) if k else None
+            matcher.process(k * 1_000_000_000, scan, guess)
+        best = min(best, time.process_time() - start)
+    return (len(points) - 1) / best
+
+
+def simulated_streaming(seconds: float = 60.0, repeats: int = 3) -> dict:
+    """Per 360-beam scan of the simulated route (10 Hz, a 0.1 s sweep, the wheel odometry's
+    guess and sweep motion, as the node runs): CPU ms per scan of each mode and of small_gicp's
+    GICP on the same scans (scan to scan, the odometry's guess), interleaved pass by pass, best
+    of `repeats`."""
+    import small_gicp
+
+    from sensing_nodes.bench.icp_sim import simulated_run
+    from sensing_nodes.core.scan_matching import make_scan_matcher
+    from sensing_nodes.core.sim.inputs import matcher_settings, scan_inputs
+
+    run = simulated_run(seed=0, laps=seconds / make_route(SimParams()).period_s)
+    inputs = scan_inputs(run)
+    opts = dict(icp_real.SMALL_GICP_OPTIONS)
+    heights, neighbours = opts.pop('heights_m'), opts.pop('num_neighbors')
+    resolution = opts.pop('downsampling_resolution')
+    laser = matcher_settings(run.params).laser_pose
+    best = {'local_map': math.inf, 'keyframe': math.inf, 'small_gicp_gicp': math.inf}
+    for _ in range(repeats):
+        for mode in ('local_map', 'keyframe'):
+            matcher = make_scan_matcher(matcher_settings(run.params, mode=mode))
+            start = time.process_time()
+            for args in inputs:
+                matcher.process(*args)
+            best[mode] = min(best[mode], time.process_time() - start)
+        start = time.process_time()
+        previous = None
+        for stamp, scan, motion, _, _ in inputs:
+            current = small_gicp.preprocess_points(icp_real.lift(scan, heights), resolution,
+                                                   num_neighbors=neighbours, num_threads=1)
+            if previous is not None:
+                guess = compose(compose(inverse(laser), motion or (0.0, 0.0, 0.0)), laser)
+                small_gicp.align(previous[0], current[0], previous[1], _init_matrix(guess),
+                                 registration_type='GICP', num_threads=1, **opts)
+            previous = current
+        best['small_gicp_gicp'] = min(best['small_gicp_gicp'], time.process_time() - start)
+    return {f'simulated_{name}_ms_per_scan': 1e3 * spent / len(inputs)
+            for name, spent in best.items()} | {'simulated_scans': len(inputs)}
+
+
 def run(quick: bool = False) -> dict:
     """Matches per second of each method and the ratios ours / other, from one run."""
     pairs = icp_real.scan_pairs('freiburg-101')
@@ -162,6 +221,12 @@ def run(quick: bool = False) -> dict:
     out['streaming_ratio_ours_vs_small_gicp_gicp'] = (
         out['streaming_ours_matches_per_s'] / out['streaming_small_gicp_gicp_matches_per_s']
     )
+    # The local-map matcher over the same stream (each scan inserted: they are 1 m apart).
+    out['streaming_local_map_matches_per_s'] = _local_map_streaming_rate(points, guesses,
+                                                                         repeats)
+    out['streaming_ratio_local_map_vs_keyframe'] = (out['streaming_local_map_matches_per_s']
+                                                    / out['streaming_ours_matches_per_s'])
+    out.update(simulated_streaming(20.0 if quick else 60.0, 1 if quick else 3))
     # The same with neighbours from a k-d tree (the same neighbours, found more slowly:
     # core/icp.prepare_target), against a second small_gicp pass.
     tree, sg_again = _streaming_rates(points, guesses, repeats, {}, 'GICP', search='kd_tree')

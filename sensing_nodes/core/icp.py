@@ -28,6 +28,8 @@ DEGENERATE_VARIANCE = 100.0
 # (a scan's points are ordered by bearing, so the nearest one is usually among them; the bearing
 # gap to the window's edges certifies it, else it is sought among all points).
 ANGULAR_WINDOW = 10
+# A GridIndex cell without a point: far enough that no query ever takes it for a neighbour.
+EMPTY_CELL = complex(1e15, 1e15)
 # Queries the bearing window cannot certify are answered by computing every distance while
 # they are fewer than this many query-target pairs (a k-d tree's call costs more: ~40 us), else
 # by the target's k-d tree.
@@ -165,6 +167,41 @@ class BearingIndex:
 
 
 @dataclass(frozen=True)
+class GridIndex:
+    """Points binned in square cells of side `cell` (m), at most one point per cell (a local
+    map's cell means): `table[(ix - ix0) · height + (iy - iy0)]` is the index of the point in
+    cell (ix, iy), or -1. An empty ring of cells surrounds the points, so a query's 3x3 block of
+    cells stays inside the table. Every point within `cell` of a query lies in the query's 3x3
+    block, which certifies the block's nearest point as the nearest of all up to that distance.
+    """
+
+    cell: float
+    ix0: int
+    iy0: int
+    width: int
+    height: int
+    table: NDArray[np.int32] = field(repr=False, compare=False)
+    # Each cell's point as x + iy (m), EMPTY_CELL where none: one take per query block.
+    points: NDArray[np.complex128] = field(repr=False, compare=False)
+    block: NDArray[np.intp] = field(repr=False, compare=False)     # the 3x3 block's offsets
+
+    @cached_property
+    def low(self) -> NDArray[np.float64]:
+        """(ix0, iy0) as floats: a cell index minus this is its table row and column."""
+        return np.array([self.ix0, self.iy0], dtype=float)
+
+    @cached_property
+    def high(self) -> NDArray[np.float64]:
+        """The last row and column a query's block may be centred on."""
+        return np.array([self.width - 2, self.height - 2], dtype=float)
+
+    @cached_property
+    def strides(self) -> NDArray[np.float64]:
+        """(height, 1): a cell's row and column -> its flat index in the table."""
+        return np.array([self.height, 1.0])
+
+
+@dataclass(frozen=True)
 class Target:
     """A target scan prepared once for many matches: points (N, 2) in its frame (m), how its
     neighbours are found (`search`: 'bearing' = `bearing_index`, its points sorted by bearing,
@@ -189,6 +226,8 @@ class Target:
     rows: NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
     bearing_index: BearingIndex | None = field(default=None, repr=False, compare=False)
     search: str = 'bearing'
+    # search='grid' (map_target): the points' cells, one point each.
+    grid: GridIndex | None = field(default=None, repr=False, compare=False)
 
     @cached_property
     def tree(self) -> cKDTree:
@@ -420,11 +459,91 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
         return Target(array, np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)), dropped,
                       search=search)
     array = np.ascontiguousarray(array)
+    bearing_index, normals, planarity, tree = _normals_of(array, search, normal_neighbours,
+                                                          normal_radius)
+    target = _target_with_normals(array, normals, planarity, min_planarity, tangent_weight,
+                                  dropped=dropped, bearing_index=bearing_index, search=search)
+    if tree is not None:
+        target.__dict__['tree'] = tree        # the cached_property's slot: built once
+    return target
+
+
+def scan_normals(points: ArrayLike, normal_neighbours: int = 7,
+                 normal_radius: float = 1.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Unit normal (N, 2) and planarity (N,) of each point of a scan (N, 2), m, in its own
+    frame, as prepare_target finds them: from its normal_neighbours nearest points within
+    normal_radius (m). ValueError on a wrong shape or non-finite points."""
+    array = np.ascontiguousarray(points, dtype=float)
+    if array.ndim != 2 or array.shape[1] != 2 or not np.isfinite(array).all():
+        raise ValueError('scan_normals needs finite points (N, 2)')
+    if array.shape[0] == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    _, normals, planarity, _ = _normals_of(array, 'bearing', normal_neighbours, normal_radius)
+    return normals, planarity
+
+
+def _normals_of(array: NDArray[np.float64], search: str, neighbours: int, radius: float):
+    """(bearing index or None, normals, planarity, k-d tree or None) of finite points."""
     bearing_index = _bearing_index(array, max(ANGULAR_WINDOW, NORMAL_WINDOW + 1),
                                    ANGULAR_WINDOW) if search == 'bearing' else None
-    dx, dy, present, tree = _neighbourhoods(array, bearing_index, normal_neighbours,
-                                            normal_radius)
+    dx, dy, present, tree = _neighbourhoods(array, bearing_index, neighbours, radius)
     normals, planarity = _line_normals(dx, dy, present)
+    return bearing_index, normals, planarity, tree
+
+
+def map_target(points: ArrayLike, normals: ArrayLike, planarity: ArrayLike, grid: GridIndex,
+               min_planarity: float = 0.5, tangent_weight: float = 0.0) -> Target:
+    """A target from points (N, 2), m, with their unit normals (N, 2) and planarity (N,) given
+    (a local map's cells: core/local_map.py), point i alone in cell i of `grid`
+    (grid_index(cells, ...)), found through those cells (the k-d tree for what a cell's
+    neighbours cannot certify). A point is line-like when its planarity >= min_planarity.
+    ValueError on mismatched shapes or non-finite values."""
+    array = np.ascontiguousarray(points, dtype=float)
+    normals = np.ascontiguousarray(normals, dtype=float)
+    planarity = np.asarray(planarity, dtype=float)
+    n = array.shape[0] if array.ndim == 2 else -1
+    if not (array.shape == (n, 2) and normals.shape == (n, 2) and planarity.shape == (n,)
+            and np.isfinite(array).all() and np.isfinite(normals).all()):
+        raise ValueError('map_target needs finite points (N, 2), normals (N, 2) and '
+                         'planarity (N,)')
+    return _target_with_normals(array, normals, planarity, min_planarity, tangent_weight,
+                                search='grid', grid=grid)
+
+
+def grid_index(points: NDArray[np.float64], cells: NDArray[np.int64], cell: float) -> GridIndex:
+    """The GridIndex of points (N, 2), m, each alone in its cell: cells (N, 2) are their integer
+    cell indices (floor(x / cell), floor(y / cell)), cell the side (m). ValueError when two
+    points share a cell."""
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
+    points = _complex(points)
+    if cells.shape[0] == 0:
+        return GridIndex(cell, 0, 0, 3, 3, np.full(9, -1, dtype=np.int32),
+                         np.full(9, EMPTY_CELL), _block_offsets(3))
+    low = cells.min(axis=0) - 1
+    width, height = (cells.max(axis=0) - low + 2).tolist()
+    flat = (cells[:, 0] - low[0]) * height + (cells[:, 1] - low[1])
+    table = np.full(width * height, -1, dtype=np.int32)
+    table[flat] = np.arange(cells.shape[0], dtype=np.int32)
+    if np.count_nonzero(table >= 0) != cells.shape[0]:
+        raise ValueError(f'grid_index: two points share a cell of {cell} m')
+    located = np.full(width * height, EMPTY_CELL)
+    located[flat] = points
+    return GridIndex(cell, int(low[0]), int(low[1]), width, height, table, located,
+                     _block_offsets(height))
+
+
+def _block_offsets(height: int) -> NDArray[np.intp]:
+    """Flat offsets of a cell's 3x3 block in a table of columns `height` long (dx major)."""
+    return (np.arange(-1, 2)[:, None] * height + np.arange(-1, 2)[None, :]).ravel()
+
+
+def _target_with_normals(array: NDArray[np.float64], normals: NDArray[np.float64],
+                         planarity: NDArray[np.float64], min_planarity: float,
+                         tangent_weight: float, dropped: int = 0,
+                         bearing_index: BearingIndex | None = None, search: str = 'bearing',
+                         grid: GridIndex | None = None) -> Target:
+    """A Target from points with their normals and planarity: per-point information and the
+    residual rows."""
     corner = planarity < min_planarity
     n = array.shape[0]
     # Information n·nᵀ + w·I on a line, I elsewhere, as rows (m00, m01, m11).
@@ -451,11 +570,8 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     rows[1, corner] = (0.0, 1.0)
     np.multiply(rows[0], array[:, 0, None], out=rows[2])
     rows[2] += rows[1] * array[:, 1, None]
-    target = Target(array, normals, planarity, information, dropped, _residual_table(*rows),
-                    bearing_index, search)
-    if tree is not None:
-        target.__dict__['tree'] = tree        # the cached_property's slot: built once
-    return target
+    return Target(array, normals, planarity, information, dropped, _residual_table(*rows),
+                  bearing_index, search, grid)
 
 
 def _bearing_index(points: NDArray[np.float64], pad: int, window: int) -> BearingIndex | None:
@@ -498,6 +614,8 @@ def _nearest(target: Target, points: NDArray[np.complex128],
     gate, and the index of the nearest one (any index when none). Exact with either search:
     with 'bearing', the nearest in the query's bearing window (_bearing_nearest) where the
     window certifies it, elsewhere from every distance (few such queries) or the k-d tree."""
+    if target.grid is not None:
+        return _grid_nearest(target, points, gate)
     bearing_index = target.bearing_index
     if bearing_index is None:
         distance, index = target.tree.query(np.column_stack((points.real, points.imag)), k=1,
@@ -525,6 +643,53 @@ def _nearest(target: Target, points: NDArray[np.complex128],
             where = uncertain[inside]
             index[where] = found[inside]
             distance_sq[where] = np.square(distance[inside])
+    return distance_sq < gate_sq, index
+
+
+def _grid_nearest(target: Target, points: NDArray[np.complex128],
+                  gate: float) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
+    """_nearest through the target's cells: each query's nearest point in its 3x3 block of
+    cells. Every point within one cell of a query is in its block, so with a gate up to a cell
+    the block's answer is exact; with a wider gate a query is certified up to the distance to
+    its block's edge, and the rest (nothing that close, or a query off the table) are answered
+    by the k-d tree."""
+    grid = target.grid
+    cells = points.view(np.float64).reshape(-1, 2) * (1.0 / grid.cell)
+    wide = gate > grid.cell
+    if wide:
+        # The block's edge lies a cell beyond the nearest edge of the query's own cell.
+        fraction = cells - np.floor(cells)
+        margin = np.minimum(fraction, 1.0 - fraction).min(axis=1)
+    np.floor(cells, out=cells)
+    cells -= grid.low
+    if wide:
+        inside = ((cells >= 1.0) & (cells <= grid.high)).all(axis=1)
+    # Far queries are pulled onto the table's edge (its ring of empty cells: nothing within a
+    # cell of them).
+    np.clip(cells, 1.0, grid.high, out=cells)
+    block = (cells @ grid.strides).astype(np.intp)[:, None] + grid.block       # (n, 9)
+    offset = grid.points.take(block)
+    offset -= points[:, None]
+    parts = offset.view(np.float64)
+    np.square(parts, out=parts)
+    distance_sq = parts[:, 0::2] + parts[:, 1::2]
+    best = distance_sq.argmin(axis=1)
+    best += _row_starts(*distance_sq.shape)
+    distance_sq = distance_sq.take(best)
+    index = grid.table.take(block.take(best)).astype(np.intp)   # -1 (none): never kept
+    gate_sq = gate * gate
+    if wide:
+        certain = (1.0 + margin) * grid.cell
+        certain[~inside] = 0.0
+        uncertain = np.flatnonzero(np.minimum(distance_sq, gate_sq) > certain * certain)
+        if uncertain.size and target.points.shape[0]:
+            query = points.take(uncertain)
+            distance, found = target.tree.query(np.column_stack((query.real, query.imag)),
+                                                k=1, distance_upper_bound=gate)
+            inside_gate = distance < gate
+            where = uncertain[inside_gate]
+            index[where] = found[inside_gate]
+            distance_sq[where] = np.square(distance[inside_gate])
     return distance_sq < gate_sq, index
 
 

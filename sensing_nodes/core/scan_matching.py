@@ -1,18 +1,26 @@
-"""Scan-matching odometry without ROS: keyframes, motion prediction, fallback on a failed match.
+"""Scan-matching odometry without ROS: each scan registered against a local map of the recent
+surroundings (LocalMapScanMatcher, icp_matcher's default) or against one keyframe
+(KeyframeScanMatcher, the lesson's method); motion prediction, deskewing, fallback on a failed
+match, physical limits and re-acquisition.
 
 Poses are base_link in the odometry frame (x, y, yaw; m, rad). The laser is mounted at
-`laser_pose` in base_link; scans are (N, 2) points in the laser frame.
+`laser_pose` in base_link; scans are (N, 2) points in the laser frame, each point optionally
+with its beam's time after the stamp (s) for deskewing.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from bisect import bisect_left, insort
+from collections import deque
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core import icp
+from sensing_nodes.core.correlative import correlative_search
+from sensing_nodes.core.deskew import deskew, twist_motion
 from sensing_nodes.core.geometry.se2 import (
     Pose2,
     between,
@@ -23,6 +31,7 @@ from sensing_nodes.core.geometry.se2 import (
     inverse,
     wrap_angle,
 )
+from sensing_nodes.core.local_map import LocalMap, LocalMapSettings
 from sensing_nodes.core.timing import StampStep, classify_step
 
 ZERO: Pose2 = (0.0, 0.0, 0.0)
@@ -34,10 +43,15 @@ ZERO: Pose2 = (0.0, 0.0, 0.0)
 MIN_VELOCITY_INTERVAL_S = 1e-3
 
 
+MODES = ('local_map', 'keyframe')
+
+
 @dataclass(frozen=True)
 class ScanMatcherSettings:
-    """Keyframe policy, laser mount, acceptance gates and fallback noise (m, rad, s)."""
+    """Mode, laser mount, keyframe or local-map policy, acceptance gates, physical limits and
+    fallback noise (m, rad, s)."""
 
+    mode: str = 'local_map'                       # local_map | keyframe (make_scan_matcher)
     laser_pose: Pose2 = (0.0, 0.0, 0.0)          # laser in base_link
     keyframe_distance_m: float = 0.10
     keyframe_angle_rad: float = math.radians(10.0)
@@ -50,6 +64,42 @@ class ScanMatcherSettings:
     # keyframe's neighbour search (icp.prepare_target)
     search: str = 'bearing'
     icp_options: icp.IcpOptions = icp.IcpOptions()   # how each scan is matched
+    # --- local_map mode (LocalMapScanMatcher) ---
+    local_map: LocalMapSettings = LocalMapSettings()
+    # No published step faster than these: a match beyond them is not believed at once.
+    max_speed_m_s: float = 2.0
+    max_yaw_rate_rad_s: float = 3.0
+    # The map anchor (what /scan_match/keyframe_odom is relative to) is renewed after this far.
+    anchor_distance_m: float = 5.0
+    # A match whose mean alignment error exceeds this many times the median of the last
+    # model_error_window matches' (at least icp_options.min_residual_std) is rejected (the
+    # scale-free form of max_error_m: a long-range laser in a hall aligns to 3 cm where a short
+    # one in a room aligns to 6 mm).
+    max_error_ratio: float = 3.0
+    # Directions whose eigenvalue (yaw as arc length at the scan's radius) is below this x the
+    # largest are degenerate: not updated from the prediction, their variance inflated, the
+    # match still used. In a featureless corridor the map's normal noise alone leaves up to
+    # 0.025 along it (simulated corridor world, 2 seeds), a room 0.2 and more; solved down to
+    # 1e-3 (the keyframe mode's ratio), the match stuck to the map and lagged the truth by
+    # 0.36-1.3 m over 30 m.
+    map_degeneracy_ratio: float = 0.03
+    # Correspondence gate: 3 x the RMS model error (prediction vs match) of the last
+    # model_error_window matches, within [min_gate_m, icp max_correspondence_distance].
+    min_gate_m: float = 0.1
+    model_error_window: int = 100
+    # A matched scan is inserted into the map once the robot moved or turned this much since
+    # the last insertion (the keyframe spacing; 0, 0: every matched scan).
+    insert_distance_m: float = 0.10
+    insert_angle_rad: float = math.radians(10.0)
+    # Without odometry, a failed match leaves the velocity decaying with this time constant.
+    velocity_decay_s: float = 0.5
+    # When a match fails and this many have failed in a row (this one included), the scan is
+    # searched for over a wide window around the prediction (core/correlative.py), then matched
+    # from what that finds: a bad prediction (the odometry off by tens of degrees, a long gap)
+    # is caught at its first scan.
+    reacquire_after: int = 1
+    reacquire_window_m: float = 1.0
+    reacquire_window_rad: float = math.pi
 
 
 @dataclass
@@ -74,6 +124,10 @@ class ScanStep:
     keyframe_stamp_ns: int | None = None
     relative: Pose2 | None = None
     relative_covariance: NDArray[np.float64] | None = None
+    # What else happened, each counted on /diagnostics: deskewed_by_odometry,
+    # deskewed_by_velocity, gap, limited (the published step was held to the physical limits),
+    # prediction_limited, reacquire_attempts, reacquired, degenerate, map_pruned.
+    events: tuple[str, ...] = ()
 
     @property
     def publish(self) -> bool:
@@ -84,6 +138,36 @@ class ScanStep:
 def mount_transform(relative_base: Pose2, laser_pose: Pose2) -> Pose2:
     """Motion of base_link (in the earlier base frame) -> the same motion seen by the laser."""
     return compose(compose(inverse(laser_pose), relative_base), laser_pose)
+
+
+def limit_step(step: Pose2, dt_s: float, max_speed_m_s: float,
+               max_yaw_rate_rad_s: float) -> tuple[Pose2, bool]:
+    """A motion (base frame, m, rad) over dt_s held to the physical limits: translation and
+    rotation each scaled down to at most max_speed x dt and max_yaw_rate x dt; and whether it
+    had to be."""
+    distance = math.hypot(step[0], step[1])
+    reach, turn = max_speed_m_s * dt_s, max_yaw_rate_rad_s * dt_s
+    if distance <= reach and abs(step[2]) <= turn:
+        return step, False
+    scale = reach / distance if distance > reach else 1.0
+    yaw = max(-turn, min(turn, step[2]))
+    return (step[0] * scale, step[1] * scale, yaw), True
+
+
+def deskewed_by_odometry(points: NDArray[np.float64], beam_times_s: NDArray[np.float64] | None,
+                         sweep_motion: Pose2 | None, laser_pose: Pose2) -> NDArray[np.float64]:
+    """Points moved to the laser's pose at the stamp at the constant twist of the odometry's
+    motion over the sweep (sweep_motion: base_link's motion from the stamp to the last beam's
+    time); unchanged without beam times or odometry. A constant twist from the odometry's end
+    points rather than the odometry at each beam: its wobble within a sweep (wheel slip) is
+    noise the scan would keep."""
+    if beam_times_s is None or sweep_motion is None or points.shape[0] == 0:
+        return points
+    duration = float(beam_times_s.max())
+    if duration <= 0.0:
+        return points
+    twist = (sweep_motion[0] / duration, sweep_motion[1] / duration, sweep_motion[2] / duration)
+    return deskew(points, twist, beam_times_s, laser_pose)
 
 
 def unmount_transform(relative_laser: Pose2, cov_laser: NDArray[np.float64],
@@ -125,11 +209,19 @@ class KeyframeScanMatcher:
         self.keyframe_covariance = self.covariance.copy()
 
     def process(self, stamp_ns: int, points: NDArray[np.float64],
-                predicted_motion: Pose2 | None = None) -> ScanStep:
+                predicted_motion: Pose2 | None = None,
+                beam_times_s: NDArray[np.float64] | None = None,
+                sweep_motion: Pose2 | None = None) -> ScanStep:
         """One scan: points (N, 2) in the laser frame at stamp_ns; predicted_motion is base_link's
         motion since the previous scan (in the previous base frame), or None for the
-        constant-velocity model."""
+        constant-velocity model; beam_times_s (N,) when each point was taken (s after the
+        stamp) and sweep_motion, base_link's motion from the stamp to the last beam's time (from
+        odometry; None: local_map mode deskews by its own velocity, keyframe mode not at all),
+        deskew the scan."""
         s = self.settings
+        # Only the odometry's motion deskews here: the matcher's own twist, deskewing to the
+        # stamp, feeds back into the next twist (core/scan_matching.LocalMapScanMatcher._sweep).
+        points = deskewed_by_odometry(points, beam_times_s, sweep_motion, s.laser_pose)
         step = classify_step(self.stamp_ns, stamp_ns, s.max_gap_s)
         if step is StampStep.REPEATED:
             return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, 'repeated',
@@ -217,6 +309,361 @@ class KeyframeScanMatcher:
             return (f'match {math.hypot(jump[0], jump[1]):.2f} m / '
                     f'{math.degrees(abs(jump[2])):.1f} deg from the prediction')
         return ''
+
+
+class RecentValues:
+    """The last `window` values added, with their RMS and median kept as they arrive."""
+
+    def __init__(self, window: int) -> None:
+        self.values: deque[float] = deque(maxlen=window)
+        self._sorted: list[float] = []
+        self._square_sum = 0.0
+
+    def add(self, value: float) -> None:
+        if len(self.values) == self.values.maxlen:
+            old = self.values[0]
+            del self._sorted[bisect_left(self._sorted, old)]
+            self._square_sum -= old * old
+        self.values.append(value)
+        insort(self._sorted, value)
+        self._square_sum += value * value
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    @property
+    def rms(self) -> float:
+        return math.sqrt(max(self._square_sum, 0.0) / len(self.values))
+
+    @property
+    def median(self) -> float:
+        n = len(self._sorted)
+        return 0.5 * (self._sorted[(n - 1) // 2] + self._sorted[n // 2])
+
+
+class LocalMapScanMatcher:
+    """Registers each (deskewed) scan against a local map of the recent surroundings in the
+    odom frame (core/local_map.py) from the predicted pose, with a correspondence gate adapted
+    to the recent model error; inserts each matched scan into the map. A failed match takes the
+    odometry's motion, or without odometry a decaying velocity; after repeated failures a wide
+    search re-acquires the pose in the map. The published pose never steps beyond the physical
+    limits. Matches are also given relative to a long-lived map anchor (keyframe_stamp_ns)."""
+
+    def __init__(self, settings: ScanMatcherSettings | None = None) -> None:
+        self.settings = settings or ScanMatcherSettings()
+        self.map = LocalMap(self.settings.local_map)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything, the map too: the next scan starts again at the origin."""
+        self.pose: Pose2 = ZERO                 # published (continuous) pose
+        self.covariance = np.zeros((3, 3))
+        self.map_pose: Pose2 = ZERO             # the pose in the map (== pose unless limited)
+        self.mid_pose: Pose2 = ZERO             # ... at the middle of the last scan's sweep
+        self.twist = (0.0, 0.0, 0.0)
+        self.stamp_ns: int | None = None
+        self.map.clear()
+        self.anchor_pose: Pose2 = ZERO
+        self.anchor_covariance = np.zeros((3, 3))
+        self.anchor_stamp_ns: int | None = None
+        self.model_errors = RecentValues(self.settings.model_error_window)
+        self.alignment_errors = RecentValues(self.settings.model_error_window)
+        self.sweep_errors = RecentValues(self.settings.model_error_window)
+        self.sweep_yaw_errors = RecentValues(self.settings.model_error_window)
+        self.failures = 0
+        self._inserted_at: Pose2 | None = None
+        self._options: dict[float, icp.IcpOptions] = {}
+
+    @property
+    def gate_m(self) -> float:
+        """The correspondence gate (m): 3 x the RMS model error of the recent matches, within
+        [min_gate_m, max_correspondence_distance]; the largest before any match."""
+        s = self.settings
+        widest = s.icp_options.correspondences.max_correspondence_distance
+        if not self.model_errors:
+            return widest
+        return min(widest, max(s.min_gate_m, 3.0 * self.model_errors.rms))
+
+    def process(self, stamp_ns: int, points: NDArray[np.float64],
+                predicted_motion: Pose2 | None = None,
+                beam_times_s: NDArray[np.float64] | None = None,
+                sweep_motion: Pose2 | None = None) -> ScanStep:
+        """One scan, as KeyframeScanMatcher.process."""
+        s = self.settings
+        step = classify_step(self.stamp_ns, stamp_ns, s.max_gap_s)
+        if step is StampStep.REPEATED:
+            return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, 'repeated',
+                            'same stamp as the previous scan: skipped')
+        events: list[str] = []
+        if step in (StampStep.FIRST, StampStep.BACKWARDS):
+            self.reset()
+            points, half, how = self._sweep(points, beam_times_s, sweep_motion)
+            self.stamp_ns = stamp_ns
+            self.mid_pose = half
+            self._insert(points, compose(half, s.laser_pose))
+            self.anchor_stamp_ns = stamp_ns
+            status = 'first' if step is StampStep.FIRST else 'reset_backwards'
+            reason = '' if step is StampStep.FIRST else \
+                'stamp went backwards: map cleared, restarted at origin'
+            return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, status, reason,
+                            new_keyframe=True, events=(how,) if how else ())
+        if step is StampStep.GAP:
+            # The map stays (it is in the odom frame); the velocity across the gap is unknown.
+            self.twist = (0.0, 0.0, 0.0)
+            events.append('gap')
+        return self._register(stamp_ns, points, predicted_motion, beam_times_s, sweep_motion,
+                              events)
+
+    def _sweep(self, points: NDArray[np.float64], beam_times_s: NDArray[np.float64] | None,
+               sweep_motion: Pose2 | None) -> tuple[NDArray[np.float64], Pose2, str]:
+        """A swept scan deskewed to the middle of its sweep, base_link's motion from the stamp
+        to that middle, and how (by the odometry's motion over the sweep or the matcher's own
+        twist); unchanged, no motion and '' when the beams carry no times.
+
+        The middle, not the stamp: a constant-twist error then shears the scan symmetrically
+        and barely moves its registration, so the twist the registrations give is not fed back
+        into them (deskewed to the first beam, a twist error moved the next registration by it
+        times half the sweep, which made the next twist's error as large and of opposite sign:
+        without odometry the simulated route ran away to 1.4 m)."""
+        if beam_times_s is None or points.shape[0] == 0 or not np.any(beam_times_s):
+            return points, ZERO, ''
+        duration = float(beam_times_s.max())
+        twist, how = self.twist, 'deskewed_by_velocity'
+        if sweep_motion is not None:
+            twist = (sweep_motion[0] / duration, sweep_motion[1] / duration,
+                     sweep_motion[2] / duration)
+            how = 'deskewed_by_odometry'
+        middle = 0.5 * duration
+        moved = deskew(points, twist, beam_times_s - middle, self.settings.laser_pose)
+        return moved, twist_motion(twist, middle), how
+
+    # long: one scan's whole decision (predict, deskew, register, accept or fall back,
+    # re-acquire, limit, insert, anchor), kept in one place so its order is visible.
+    def _register(self, stamp_ns: int, points: NDArray[np.float64],
+                  predicted_motion: Pose2 | None, beam_times_s: NDArray[np.float64] | None,
+                  sweep_motion: Pose2 | None, events: list[str]) -> ScanStep:
+        """process() for a scan after the first. The scan is registered at the middle of its
+        sweep (mid_pose); the published pose is base_link's at the stamp."""
+        s = self.settings
+        dt = (stamp_ns - self.stamp_ns) * 1e-9
+        source = 'odometry'
+        if predicted_motion is None or not all(math.isfinite(v) for v in predicted_motion):
+            source = 'constant_velocity'
+            predicted_motion = (self.twist[0] * dt, self.twist[1] * dt, self.twist[2] * dt)
+        predicted_motion, limited = limit_step(predicted_motion, dt, s.max_speed_m_s,
+                                               s.max_yaw_rate_rad_s)
+        if limited:
+            events.append('prediction_limited')
+        points, half, how = self._sweep(points, beam_times_s, sweep_motion)
+        if how:
+            events.append(how)
+        predicted = compose(self.map_pose, predicted_motion)
+        predicted_mid = compose(predicted, half)
+        guess = compose(predicted_mid, s.laser_pose)
+        # After failed matches the pose was carried by a prediction alone: a match from there
+        # can settle in a false minimum that a narrow gate cannot tell (0.5 m along a wall in
+        # the default room after 2.5 s without odometry), so the wide search goes first.
+        lost = self.failures >= s.reacquire_after
+        result, reason = self._match(points, guess) if not lost else (None, 'lost')
+        if reason and self.failures + 1 >= s.reacquire_after and len(self.map):
+            events.append('reacquire_attempts')
+            found = correlative_search(points, self.map.target(), guess,
+                                       s.reacquire_window_m, s.reacquire_window_rad)
+            if found is not None:
+                second, second_reason = self._match(points, found, gate=s.min_gate_m,
+                                                    check_jump=False)
+                if not second_reason or result is None:
+                    result, reason = second, second_reason
+                if not reason:
+                    events.append('reacquired')
+        if result is None:             # lost, and the wide search found nothing
+            result, reason = self._match(points, guess)
+        previous_mid, previous_pose = self.mid_pose, self.pose
+        keyframe_stamp = relative = rel_cov = None
+        new_anchor = False
+        if reason:
+            self.failures += 1
+            fallback_cov = np.diag([s.fallback_std_m ** 2, s.fallback_std_m ** 2,
+                                    s.fallback_std_rad ** 2])
+            self.map_pose, self.mid_pose = predicted, predicted_mid
+            target_pose = compose(self.pose, predicted_motion)
+            status = 'fallback'
+            motion_cov = fallback_cov
+            _, self.covariance = compose_with_covariance(self.pose, self.covariance,
+                                                         predicted_motion, fallback_cov)
+        else:
+            self.failures = 0
+            mid, mid_cov = remove_offset(result.pose, result.covariance, s.laser_pose)
+            base, base_cov = remove_offset(mid, mid_cov, half)
+            self.alignment_errors.add(result.error)
+            if 'reacquired' not in events:
+                deviation = between(predicted_mid, mid)
+                self.model_errors.add(math.hypot(deviation[0], deviation[1])
+                                         + 2.0 * self._reach(points)
+                                         * abs(math.sin(0.5 * deviation[2])))
+            self.map_pose, self.mid_pose = base, mid
+            target_pose = base
+            status = 'matched'
+            if result.degenerate:
+                events.append('degenerate')
+            keyframe_stamp = self.anchor_stamp_ns
+            _, j_base = compose_jacobians(inverse(self.anchor_pose), base)
+            relative = between(self.anchor_pose, base)
+            if how and 'reacquired' not in events:
+                deviation = between(predicted_mid, mid)
+                self.sweep_errors.add(math.hypot(deviation[0], deviation[1]))
+                self.sweep_yaw_errors.add(abs(deviation[2]))
+            if how and len(self.sweep_errors):
+                # The sweep's motion comes from the prediction's source, whose error over a
+                # scan interval the matches measure: half a sweep of it is in the pose at the
+                # stamp (and in the scan's shape), which the registration's residuals do not see.
+                share = 0.5 * float(beam_times_s.max()) / max(dt, 1e-9)
+                base_cov = base_cov + np.diag([(share * self.sweep_errors.rms) ** 2] * 2
+                                              + [(share * self.sweep_yaw_errors.rms) ** 2])
+            rel_cov = j_base @ base_cov @ j_base.T
+            rel_cov = 0.5 * (rel_cov + rel_cov.T)
+            _, self.covariance = compose_with_covariance(self.anchor_pose,
+                                                         self.anchor_covariance, relative, rel_cov)
+            motion_cov = 2.0 * rel_cov
+            self._maybe_insert(points, mid, events)
+            new_anchor = math.hypot(base[0] - self.anchor_pose[0],
+                                    base[1] - self.anchor_pose[1]) > s.anchor_distance_m
+        # The published pose moves towards the map pose, never faster than the limits.
+        step, limited = limit_step(between(previous_pose, target_pose), dt, s.max_speed_m_s,
+                                   s.max_yaw_rate_rad_s)
+        if limited:
+            events.append('limited')
+        self.pose = compose(previous_pose, step)
+        if new_anchor:
+            self.anchor_pose, self.anchor_covariance = self.map_pose, self.covariance.copy()
+            self.anchor_stamp_ns = stamp_ns
+        if dt >= MIN_VELOCITY_INTERVAL_S:
+            if status == 'matched' and 'reacquired' not in events:
+                # From the registered middles of the sweeps, not the stamps: those carry the
+                # twist itself (half a sweep of it), which would feed back.
+                motion = between(previous_mid, self.mid_pose)
+                self.twist = (motion[0] / dt, motion[1] / dt, motion[2] / dt)
+            elif status == 'matched' or source == 'constant_velocity':
+                # Re-acquired (the jump is no velocity) or lost without odometry: decaying.
+                decay = math.exp(-dt / s.velocity_decay_s) if status != 'matched' else 0.0
+                self.twist = tuple(v * decay for v in self.twist)
+            else:
+                self.twist = (predicted_motion[0] / dt, predicted_motion[1] / dt,
+                              predicted_motion[2] / dt)
+        self.stamp_ns = stamp_ns
+        return ScanStep(stamp_ns, self.pose, self.covariance.copy(), self.twist, status, reason,
+                        new_keyframe=new_anchor, prediction=source, result=result,
+                        twist_covariance=motion_cov / (dt * dt),
+                        keyframe_stamp_ns=keyframe_stamp, relative=relative,
+                        relative_covariance=rel_cov, events=tuple(events))
+
+    def _match(self, points: NDArray[np.float64], guess: Pose2, gate: float | None = None,
+               check_jump: bool = True) -> tuple[icp.MatchResult, str]:
+        """ICP of the scan (laser frame) against the map from the laser pose guess (odom), and
+        why it must not be used ('' when it is fine)."""
+        s = self.settings
+        gate = self.gate_m if gate is None else gate
+        options = self._options.get(gate)
+        if options is None:
+            options = replace(
+                s.icp_options, degeneracy_ratio=s.map_degeneracy_ratio,
+                correspondences=replace(s.icp_options.correspondences,
+                                        max_correspondence_distance=gate))
+            self._options = {gate: options}            # the gate changes slowly: keep one
+        result = icp.match(points, self.map.target(), guess, options=options)
+        if not result.converged:
+            return result, f'not converged: {result.reason}'
+        if self.alignment_errors:
+            # Never below the ICP's own floor on residuals: noiseless scans align to ~0.
+            typical = max(self.alignment_errors.median, s.icp_options.min_residual_std)
+            if not result.error <= s.max_error_ratio * typical:
+                return result, (f'mean alignment error {result.error:.3f} m > '
+                                f'{s.max_error_ratio:g} x the recent median {typical:.3f} m')
+        elif not math.isfinite(result.error):
+            return result, 'mean alignment error is not finite'
+        if check_jump:
+            jump = between(guess, result.pose)
+            if math.hypot(jump[0], jump[1]) > s.max_jump_m or abs(jump[2]) > s.max_jump_rad:
+                return result, (f'match {math.hypot(jump[0], jump[1]):.2f} m / '
+                                f'{math.degrees(abs(jump[2])):.1f} deg from the prediction')
+        return result, ''
+
+    @staticmethod
+    def _reach(points: NDArray[np.float64]) -> float:
+        """The scan's median range (m): how far a yaw error moves a typical correspondence."""
+        if points.shape[0] == 0:
+            return 0.0
+        squared = np.einsum('ij,ij->i', points, points)
+        middle = squared.size // 2
+        return math.sqrt(float(np.partition(squared, middle)[middle]))
+
+    def _maybe_insert(self, points: NDArray[np.float64], base: Pose2,
+                      events: list[str]) -> None:
+        """Insert a matched scan (laser frame) seen from base (odom; at the middle of the
+        sweep) when the robot moved or turned enough since the last insertion, and prune the
+        map around the robot."""
+        s = self.settings
+        laser = compose(base, s.laser_pose)
+        if self._inserted_at is not None and (s.insert_distance_m or s.insert_angle_rad):
+            moved = between(self._inserted_at, base)
+            if math.hypot(moved[0], moved[1]) < s.insert_distance_m \
+                    and abs(moved[2]) < s.insert_angle_rad:
+                return
+        self._insert(points, laser)
+        self._inserted_at = base
+        if self.map.prune((base[0], base[1])):
+            events.append('map_pruned')
+
+    def _insert(self, points: NDArray[np.float64], laser: Pose2) -> None:
+        """Add points (laser frame) seen from the laser pose (odom) to the map, each with its
+        normal in this scan."""
+        if points.shape[0] == 0:
+            return
+        normals, planarity = icp.scan_normals(points)
+        c, s_ = math.cos(laser[2]), math.sin(laser[2])
+        rotation = np.array([[c, s_], [-s_, c]])             # row vectors: p @ Rᵀ
+        moved = points @ rotation
+        moved += laser[:2]
+        self.map.insert(moved, normals @ rotation, planarity)
+        if self._inserted_at is None:
+            self._inserted_at = compose(laser, inverse(self.settings.laser_pose))
+
+
+def remove_offset(pose: Pose2, cov: NDArray[np.float64],
+                  offset: Pose2) -> tuple[Pose2, NDArray[np.float64]]:
+    """pose ∘ offset⁻¹ and its covariance (over x, y, yaw in the parent frame), the offset
+    exact: the laser's pose in odom -> base_link's (offset: the mount), or base_link's pose at
+    the middle of a sweep -> at its stamp (offset: the motion to the middle)."""
+    offset_inverse = inverse(offset)
+    j_pose, _ = compose_jacobians(pose, offset_inverse)
+    out = j_pose @ cov @ j_pose.T
+    return compose(pose, offset_inverse), 0.5 * (out + out.T)
+
+
+def make_scan_matcher(settings: ScanMatcherSettings) -> LocalMapScanMatcher | KeyframeScanMatcher:
+    """The matcher of settings.mode: each scan against a local map, or against one keyframe."""
+    if settings.mode == 'local_map':
+        return LocalMapScanMatcher(settings)
+    if settings.mode == 'keyframe':
+        return KeyframeScanMatcher(settings)
+    raise ValueError(f'mode must be one of {MODES}, got {settings.mode!r}')
+
+
+def odometry_guidance(odometry: OdometryBuffer, previous_ns: int | None, stamp_ns: int,
+                      beam_times_s: NDArray[np.float64] | None
+                      ) -> tuple[Pose2 | None, Pose2 | None]:
+    """What the odometry tells a matcher about a scan stamped stamp_ns: base_link's motion
+    since the previous scan (None when there is none or the odometry does not reach), and its
+    motion over the sweep, from the stamp to the last beam's time (None without beam times or
+    odometry there)."""
+    predicted = None
+    if previous_ns is not None and stamp_ns > previous_ns:
+        predicted = odometry.motion_between(previous_ns, stamp_ns)
+    sweep = None
+    if beam_times_s is not None and beam_times_s.size and beam_times_s.max() > 0.0:
+        sweep = odometry.motion_between(stamp_ns,
+                                        stamp_ns + int(round(float(beam_times_s.max()) * 1e9)))
+    return predicted, sweep
 
 
 class OdometryBuffer:

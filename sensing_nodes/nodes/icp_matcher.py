@@ -1,5 +1,6 @@
-"""icp_matcher: /scan -> /scan_match/odom (base_link motion from point-to-line ICP on keyframes),
-with the initial guess from an odometry topic or a constant-velocity model."""
+"""icp_matcher: /scan -> /scan_match/odom (base_link pose from point-to-line ICP of each deskewed
+scan against a local map of the recent surroundings, or against one keyframe), with the
+initial guess from an odometry topic or a constant-velocity model."""
 
 from __future__ import annotations
 
@@ -17,12 +18,15 @@ from tf2_msgs.msg import TFMessage
 from sensing_nodes.core.geometry.scan import scan_to_points
 from sensing_nodes.core.geometry.transform import Transform
 from sensing_nodes.core.icp import Convergence, Correspondences, IcpOptions
+from sensing_nodes.core.local_map import LocalMapSettings
 from sensing_nodes.core.scan_matching import (
+    MODES,
     ZERO,
-    KeyframeScanMatcher,
     OdometryBuffer,
     ScanMatcherSettings,
     ScanStep,
+    make_scan_matcher,
+    odometry_guidance,
 )
 from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
 from sensing_nodes.ros.conversions import (
@@ -72,22 +76,29 @@ class IcpMatcherNode(Node):
         self.processor = IcpMatcherProcessor(
             settings, odom_topic, self._odom_extrapolation_s, self._min_points, self._odom_frame,
             self._base_frame, self._publish_tf, mount, self.diagnostics, ThrottledWarnings(self),
-            self._odom_delay_s)
+            self._odom_delay_s, self._deskew)
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.diagnostics.values['prediction'] = odom_topic or 'constant_velocity'
         laser, options = settings.laser_pose, settings.icp_options
+        self.diagnostics.values['mode'] = settings.mode
+        against = (f'a local map ({settings.local_map.cell_m} m cells within '
+                   f'{settings.local_map.radius_m} m)' if settings.mode == 'local_map' else
+                   f'keyframes every {settings.keyframe_distance_m} m / '
+                   f'{math.degrees(settings.keyframe_angle_rad):.1f} deg')
         self.get_logger().info(
             f"initial guess from {odom_topic or 'a constant-velocity model'}; laser at "
-            f'({laser[0]}, {laser[1]}, {laser[2]}) in {self._base_frame}; keyframes every '
-            f'{settings.keyframe_distance_m} m / '
-            f'{math.degrees(settings.keyframe_angle_rad):.1f} deg; '
-            f'{options.method}, robust {options.correspondences.robust}')
+            f'({laser[0]}, {laser[1]}, {laser[2]}) in {self._base_frame}; each scan against '
+            f'{against}; {options.method}, robust {options.correspondences.robust}; '
+            f"deskewing {'on' if self._deskew else 'off'}")
 
     # long: a parameter table (descriptors, ranges) in its documented order.
     def _declare_settings(self) -> ScanMatcherSettings:
-        """Declare and check the parameters after the frames (laser mount, keyframes, ICP,
-        acceptance gates, fallback, odometry use) in their documented order: a parameter table,
-        hence its length."""
+        """Declare and check the parameters after the frames (mode, laser mount, keyframes,
+        local map, ICP, acceptance gates, limits, fallback, odometry use) in their documented
+        order: a parameter table, hence its length."""
+        mode = declare(self, 'mode', 'local_map',
+                       "'local_map': each scan against a map of the recent surroundings; "
+                       "'keyframe': each scan against one keyframe")
         laser = (declare(self, 'laser_x_m', 0.10, 'laser mount x in base_link (m)'),
                  declare(self, 'laser_y_m', 0.0, 'laser mount y in base_link (m)'),
                  declare(self, 'laser_yaw_rad', 0.0, 'laser mount yaw in base_link (rad)',
@@ -98,6 +109,58 @@ class IcpMatcherNode(Node):
         kf_angle = declare(self, 'keyframe_angle_rad', math.radians(10.0),
                            'new keyframe after turning this much from the last one (rad)',
                            minimum=0.0, maximum=math.pi)
+        local = LocalMapSettings(
+            cell_m=declare(self, 'map_cell_m', 0.10, 'local map: side of its cells (m)',
+                           minimum=0.01, maximum=1.0),
+            max_points_per_cell=declare(self, 'map_points_per_cell', 20,
+                                        'local map: points a cell takes before it is full',
+                                        minimum=1, maximum=10_000),
+            radius_m=declare(self, 'map_radius_m', 30.0,
+                             'local map: cells further than this from the robot are dropped (m)',
+                             minimum=0.1, maximum=1000.0),
+            max_cells=declare(self, 'map_max_cells', 60_000,
+                              'local map: at most this many cells (the furthest dropped)',
+                              minimum=1, maximum=10_000_000))
+        anchor_distance = declare(self, 'anchor_distance_m', 5.0,
+                                  'local map: /scan_match/keyframe_odom relative to an anchor '
+                                  'renewed after the robot moved this far from it (m)',
+                                  minimum=0.0, maximum=1000.0)
+        insert_distance = declare(self, 'insert_distance_m', 0.10,
+                                  'local map: insert a matched scan after moving this far (m)',
+                                  minimum=0.0, maximum=10.0)
+        insert_angle = declare(self, 'insert_angle_rad', math.radians(10.0),
+                               '... or turning this much (rad) since the last insertion',
+                               minimum=0.0, maximum=math.pi)
+        min_gate = declare(self, 'min_gate_m', 0.10,
+                           'local map: the correspondence gate (3 x the recent RMS model error)'
+                           ' is at least this (m)', minimum=0.01, maximum=10.0)
+        degeneracy = declare(self, 'map_degeneracy_ratio', 0.03,
+                             'local map: a direction whose information is below this share of '
+                             'the strongest is degenerate (kept from the prediction, variance '
+                             'inflated)', minimum=0.0, maximum=1.0)
+        max_error_ratio = declare(self, 'max_error_ratio', 3.0,
+                                  'local map: a mean alignment error above this many times the '
+                                  'recent median fails the match', minimum=1.0)
+        reacquire_after = declare(self, 'reacquire_after', 1,
+                                  'local map: failed matches in a row after which a scan is '
+                                  'searched for over a wide window', minimum=1, maximum=1000)
+        reacquire_window = declare(self, 'reacquire_window_m', 1.0,
+                                   'local map: that window, x and y each way (m)',
+                                   minimum=0.0, maximum=10.0)
+        reacquire_window_rad = declare(self, 'reacquire_window_rad', math.pi,
+                                       '... and yaw each way (rad)', minimum=0.0,
+                                       maximum=math.pi)
+        velocity_decay = declare(self, 'velocity_decay_s', 0.5,
+                                 'without odometry, a failed match leaves the velocity decaying '
+                                 'with this time constant (s)', minimum=1e-3)
+        max_speed = declare(self, 'max_speed_m_s', 2.0,
+                            'no published step faster than this (m/s)', minimum=1e-3)
+        max_yaw_rate = declare(self, 'max_yaw_rate_rad_s', 3.0,
+                               'no published step turning faster than this (rad/s)',
+                               minimum=1e-3)
+        self._deskew = declare(self, 'deskew', True,
+                               "move each beam to the scan's stamp by the motion during the "
+                               'sweep, where the scan gives time_increment')
         method = declare(self, 'method', 'point_to_line', "'point_to_line' or 'point_to_point'")
         robust = declare(self, 'robust', 'adaptive',
                          "outlier rule: 'adaptive' (3 x robust std of residuals), 'trim', 'none'")
@@ -142,6 +205,7 @@ class IcpMatcherNode(Node):
                                    'broadcast odom_frame -> base_frame on /tf (one owner per '
                                    'tree: the fusion broadcasts it by default)')
 
+        require(mode in MODES, 'mode', "must be 'local_map' or 'keyframe'", mode)
         require(method in ('point_to_line', 'point_to_point'), 'method',
                 "must be 'point_to_line' or 'point_to_point'", method)
         require(robust in ('adaptive', 'trim', 'none'), 'robust',
@@ -156,6 +220,13 @@ class IcpMatcherNode(Node):
         require(math.isfinite(self._odom_delay_s), 'odom_delay_s', 'must be finite',
                 self._odom_delay_s)
         return ScanMatcherSettings(
+            mode=mode, local_map=local, anchor_distance_m=anchor_distance,
+            insert_distance_m=insert_distance, insert_angle_rad=insert_angle,
+            min_gate_m=min_gate, max_error_ratio=max_error_ratio,
+            map_degeneracy_ratio=degeneracy,
+            reacquire_after=reacquire_after, reacquire_window_m=reacquire_window,
+            reacquire_window_rad=reacquire_window_rad, velocity_decay_s=velocity_decay,
+            max_speed_m_s=max_speed, max_yaw_rate_rad_s=max_yaw_rate,
             laser_pose=laser, keyframe_distance_m=kf_distance, keyframe_angle_rad=kf_angle,
             max_error_m=max_error, max_jump_m=max_jump, max_jump_rad=max_jump_rad,
             fallback_std_m=fallback_std_m, fallback_std_rad=fallback_std_rad, max_gap_s=max_gap,
@@ -175,9 +246,11 @@ class IcpMatcherProcessor:
     def __init__(self, settings: ScanMatcherSettings, odom_topic: str,
                  odom_extrapolation_s: float, min_points: int, odom_frame: str, base_frame: str,
                  publish_tf: bool, mount: SensorMount, diagnostics: Diagnostics,
-                 warnings: ThrottledWarnings, odom_delay_s: float = 0.0) -> None:
+                 warnings: ThrottledWarnings, odom_delay_s: float = 0.0,
+                 deskew: bool = True) -> None:
         self._settings = settings
-        self._matcher = KeyframeScanMatcher(settings)
+        self._matcher = make_scan_matcher(settings)
+        self._deskew = deskew
         self._odom_topic = odom_topic
         # Odometry history must reach back to the previous scan, however far apart scans may be
         # (max_gap_s): a real log's keyframes can be tens of seconds apart.
@@ -222,12 +295,25 @@ class IcpMatcherProcessor:
                                 'backwards: odometry buffer cleared')
         return []
 
+    def _beam_times(self, msg: LaserScan, beams, stamp: int):
+        """Each valid point's time after the stamp (s) from the scan's time_increment, or None
+        (deskewing off, every beam at the stamp, or an unusable increment: counted)."""
+        increment = float(msg.time_increment)
+        if not self._deskew or increment == 0.0:
+            return None
+        if not (math.isfinite(increment) and increment > 0.0):
+            self.diagnostics.count('time_increment_unusable')
+            self._warnings.warn('time_increment', f'scan at {stamp * 1e-9:.3f} s has '
+                                f'time_increment {increment}: not deskewed')
+            return None
+        return beams * increment
+
     def _use_mount(self, laser_pose: tuple[float, float, float]) -> None:
         """Match with this laser mount; a new mount (a late /tf_static) restarts the keyframe."""
         if laser_pose == self._settings.laser_pose:
             return
         self._settings = dataclasses.replace(self._settings, laser_pose=laser_pose)
-        self._matcher = KeyframeScanMatcher(self._settings)
+        self._matcher = make_scan_matcher(self._settings)
         self.diagnostics.count('mount_changes')
         self.diagnostics.values['laser_mount'] = '%.4f %.4f %.4f' % laser_pose
 
@@ -238,23 +324,31 @@ class IcpMatcherProcessor:
         mount = self._mount.from_tf(msg.header.frame_id)
         self._use_mount(mount.planar() if mount is not None else self._laser_parameters)
         ranges, angles = scan_arrays(msg)
-        points, _ = scan_to_points(ranges, angles, msg.range_min, msg.range_max)
+        points, beams = scan_to_points(ranges, angles, msg.range_min, msg.range_max)
         if points.shape[0] < self._min_points:
             diag.count('too_few_points')
             self._warnings.warn('few', f'scan at {stamp * 1e-9:.3f} s has {points.shape[0]} valid '
                                 f'points (< {self._min_points}): falling back to the prediction')
-        prediction = None
-        if self._odometry is not None and self._last_scan_ns is not None \
-                and stamp > self._last_scan_ns:
-            prediction = self._odometry.motion_between(self._last_scan_ns, stamp)
-            if prediction is None:
+        beam_times = self._beam_times(msg, beams, stamp)
+        prediction = sweep = None
+        if self._odometry is not None:
+            prediction, sweep = odometry_guidance(self._odometry, self._last_scan_ns, stamp,
+                                                  beam_times)
+            if prediction is None and self._last_scan_ns is not None \
+                    and stamp > self._last_scan_ns:
                 diag.count('odom_unavailable')
                 self._warnings.warn('odom', f'no odometry around {stamp * 1e-9:.3f} s: constant '
                                     'velocity prediction instead')
-        step = self._matcher.process(stamp, points, prediction)
+        step = self._matcher.process(stamp, points, prediction, beam_times, sweep)
+        if 'gap' in step.events:
+            self._warnings.warn('gap', f'scan at {stamp * 1e-9:.3f} s: '
+                                f'{(stamp - self._last_scan_ns) * 1e-9:.2f} s since the previous '
+                                'scan: the velocity restarts at zero, the map stays')
         if step.status != 'repeated':
             self._last_scan_ns = stamp
         diag.count(step.status)
+        for event in step.events:
+            diag.count(event)
         if step.prediction:
             diag.count(f'predicted_by_{step.prediction}')
         if step.new_keyframe:
@@ -268,6 +362,9 @@ class IcpMatcherProcessor:
         if step.result is not None and step.status == 'matched':
             diag.values['last_error_m'] = f'{step.result.error:.4f}'
             diag.values['last_iterations'] = str(step.result.iterations)
+        if self._settings.mode == 'local_map':
+            diag.values['map_cells'] = str(len(self._matcher.map))
+            diag.values['gate_m'] = f'{self._matcher.gate_m:.3f}'
         if not step.publish:
             return []
         # The keyframe-relative message first: a consumer waiting for /scan_match/odom (a lockstep

@@ -284,7 +284,9 @@ class SensorSimNode(Node):
                 if self._held:
                     self._held = False
                     self._anchor = (time.monotonic(), t)
-                self._awaited_ns, self._awaited_since = t, time.monotonic()
+                # The answer carries the scan's stamp (its first beam), not when it went out.
+                self._awaited_ns = int(block.scan_t[i])
+                self._awaited_since = time.monotonic()
             publisher = self._outputs.get(kind)
             if publisher is not None:
                 publisher.publish(self._convert.message(block, kind, i, t))

@@ -144,7 +144,8 @@ class SimMessages:
         self._scan.angle_increment = p.scan_angle_increment_rad
         self._scan.angle_max = (p.scan_angle_min_rad
                                 + (p.scan_beams - 1) * p.scan_angle_increment_rad)
-        self._scan.time_increment = 0.0                    # every beam at the scan's stamp
+        # Beam i taken at stamp + i x time_increment (0: every beam at the stamp).
+        self._scan.time_increment = p.scan_time_increment_s
         self._scan.scan_time = 1.0 / p.scan_rate_hz
         self._scan.range_min = p.range_min_m
         self._scan.range_max = p.range_max_m
@@ -156,7 +157,10 @@ class SimMessages:
             yield t, kind, self.message(block, kind, i, t)
 
     def message(self, block: core.SimBlock, kind: int, i: int, t: int) -> Any:
-        """The message of sample i of the given kind, stamped t (ns)."""
+        """The message of sample i of the given kind, published at t (ns): stamped t, a scan
+        with its first beam's time (block.scan_t)."""
+        if kind == core.SCAN:
+            t = int(block.scan_t[i])
         sec, nanosec = divmod(t, core.NS_PER_S)
         if kind == core.CLOCK:
             msg = self._clock

@@ -17,9 +17,11 @@ from numpy.typing import NDArray
 from sensing_nodes.core.geometry.scan import scan_to_points
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
 from sensing_nodes.core.scan_matching import (
-    KeyframeScanMatcher,
     OdometryBuffer,
     ScanMatcherSettings,
+    ScanStep,
+    make_scan_matcher,
+    odometry_guidance,
 )
 from sensing_nodes.core.sim.simulator import SimParams, SimRun, make_route, simulate
 from sensing_nodes.core.sim.world import load_world
@@ -64,26 +66,83 @@ def wheel_config(params: SimParams) -> WheelOdometryConfig:
                                right_radius_multiplier=1.01)
 
 
-# long: one loop over the events in stamp order, a branch per sensor, as the graph runs them.
+def matcher_settings(params: SimParams, **overrides) -> ScanMatcherSettings:
+    """The scan matcher as config/icp_matcher.yaml sets it for the simulated robot (its laser
+    mount), with any field overridden (mode='keyframe', ...)."""
+    return ScanMatcherSettings(
+        laser_pose=(params.laser_x_m, params.laser_y_m, params.laser_yaw_rad), **overrides)
+
+
+def scan_points(run: SimRun, i: int) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """Scan i as the node reads it: valid points (N, 2) in the laser frame and each point's
+    beam time after the stamp (s; None when every beam is at the stamp)."""
+    points, beams = scan_to_points(run.scan_ranges[i], run.scan_angles, run.scan_range_min,
+                                   run.scan_range_max)
+    times = beams * run.scan_time_increment if run.scan_time_increment > 0.0 else None
+    return points, times
+
+
+def scan_inputs(run: SimRun) -> list[tuple]:
+    """What the node's matcher is given for each scan of a run, as process() arguments: stamp,
+    points, the wheel odometry's motion since the previous scan, beam times and the odometry's
+    motion over the sweep (each scan taken when it is published)."""
+    wheels = WheelOdometry(wheel_config(run.params))
+    buffer = OdometryBuffer(max_age_s=10.0, max_extrapolation_s=0.1)
+    events = sorted([(int(t), 0, i) for i, t in enumerate(run.joint_t)]
+                    + [(int(t), 2, i) for i, t in enumerate(run.scan_publish_t)])
+    out, last_scan = [], None
+    for stamp, kind, i in events:
+        if kind == 0:
+            if wheels.update(stamp, list(JOINTS), run.joint_position[i], run.joint_velocity[i],
+                             JOINTS).publish:
+                buffer.add(stamp, wheels.pose)
+            continue
+        scan_stamp = int(run.scan_t[i])
+        points, times = scan_points(run, i)
+        predicted, sweep = odometry_guidance(buffer, last_scan, scan_stamp, times)
+        out.append((scan_stamp, points, predicted, times, sweep))
+        last_scan = scan_stamp
+    return out
+
+
+def match_scans(run: SimRun, settings: ScanMatcherSettings | None = None,
+                odometry: bool = True, deskew: bool = True) -> tuple[NDArray[np.int64],
+                                                                      list[ScanStep]]:
+    """The scan matcher alone over a simulated run (scan_inputs): predicted and deskewed by the
+    wheel odometry (odometry=True) or by its own velocity; deskew=False ignores the beams'
+    times. Returns the scans' stamps and steps."""
+    matcher = make_scan_matcher(settings or matcher_settings(run.params))
+    stamps, steps = [], []
+    for stamp, points, predicted, times, sweep in scan_inputs(run):
+        if not odometry:
+            predicted = sweep = None
+        step = matcher.process(stamp, points, predicted, times if deskew else None, sweep)
+        if step.publish:
+            stamps.append(stamp)
+            steps.append(step)
+    return np.array(stamps, dtype=np.int64), steps
+
+
+# long: one loop over the events in publishing order, a branch per sensor, as the graph runs
+# them.
 def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
                     gyro: GyroConfig | None = None,
                     matcher: ScanMatcherSettings | None = None) -> FusionInputs:
-    """Run wheel odometry, the gyro integrator (with the wheel stillness veto) and the keyframe
-    scan matcher (predicted by the wheel odometry) over a simulated run, in stamp order."""
+    """Run wheel odometry, the gyro integrator (with the wheel stillness veto) and the scan
+    matcher (config/icp_matcher.yaml's: predicted and deskewed by the wheel odometry) over a
+    simulated run, each sample when it is published (a scan after its sweep)."""
     params = run.params
     odometry = WheelOdometry(wheel or wheel_config(params))
     integrator = GyroIntegrator(gyro or GyroConfig())
-    scan_matcher = KeyframeScanMatcher(matcher or ScanMatcherSettings(
-        laser_pose=(params.laser_x_m, params.laser_y_m, params.laser_yaw_rad)))
+    scan_matcher = make_scan_matcher(matcher or matcher_settings(params))
     buffer = OdometryBuffer(max_age_s=10.0, max_extrapolation_s=0.1)
     wt, wp, wc, wtw = [], [], [], []
     gt, gy, gv, gr, raw, gb, gbv, gs = [], [], [], [], [], [], [], []
     st, sp, sc, skt, srel, src, snew = [], [], [], [], [], [], []
-    angles = run.scan_angles
-    # Same-stamp order as the graph delivers it closely enough: joints, IMU, then scans.
+    # Same-time order as the graph delivers it closely enough: joints, IMU, then scans.
     events = sorted([(int(t), 0, i) for i, t in enumerate(run.joint_t)]
                     + [(int(t), 1, i) for i, t in enumerate(run.imu_t)]
-                    + [(int(t), 2, i) for i, t in enumerate(run.scan_t)])
+                    + [(int(t), 2, i) for i, t in enumerate(run.scan_publish_t)])
     last_scan = None
     for stamp, kind, i in events:
         if kind == 0:
@@ -108,10 +167,10 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
                 gbv.append(integrator.p_bias)
                 gs.append(integrator.still)
         else:
-            points, _ = scan_to_points(run.scan_ranges[i], angles, run.scan_range_min,
-                                       run.scan_range_max)
-            prediction = buffer.motion_between(last_scan, stamp) if last_scan is not None else None
-            step = scan_matcher.process(stamp, points, prediction)
+            stamp = int(run.scan_t[i])
+            points, times = scan_points(run, i)
+            predicted, sweep = odometry_guidance(buffer, last_scan, stamp, times)
+            step = scan_matcher.process(stamp, points, predicted, times, sweep)
             if not step.publish:
                 continue
             last_scan = stamp
@@ -137,13 +196,14 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
         raw_rate_variance=params.gyro_noise_std_rad_s ** 2)
 
 
-def simulated_inputs(seed: int = 0, params: SimParams | None = None,
-                     laps: float = 1.0) -> FusionInputs:
-    """Simulate `laps` of the route (default world) and run the fusion's input chain over it."""
+def simulated_inputs(seed: int = 0, params: SimParams | None = None, laps: float = 1.0,
+                     matcher_mode: str = 'local_map') -> FusionInputs:
+    """Simulate `laps` of the route (default world) and run the fusion's input chain over it,
+    the scan matcher in matcher_mode (the node's default, or 'keyframe')."""
     params = params or SimParams()
     run = simulate(params, load_world(config_file('default_world.yaml')),
                    laps * make_route(params).period_s, seed)
-    return inputs_from_run(run)
+    return inputs_from_run(run, matcher=matcher_settings(params, mode=matcher_mode))
 
 
 def save(inputs: FusionInputs, path: str) -> None:

@@ -116,6 +116,11 @@ class SimParams:
     scan_beams: int = _p(360, 'beams per scan', 1, 100_000)
     scan_fov_rad: float = _p(2.0 * math.pi, 'field of view, centred on the laser x axis; beams '
                              'at -fov/2 + i * fov/beams (rad)', 1e-6, 2.0 * math.pi)
+    scan_sweep_fraction: float = _p(1.0, 'share of the scan period over which the beams are '
+                                    'taken in order, as a spinning laser does: beam i at stamp + '
+                                    'i x this / (scan_rate_hz x scan_beams), the scan published '
+                                    'when the sweep ends (stamp + this / scan_rate_hz); 0 = every '
+                                    'beam at the stamp', 0.0, 1.0)
     range_min_m: float = _p(0.12, 'returns shorter than this read -inf (m)', 0.0)
     range_max_m: float = _p(8.0, 'returns longer than this, and no hit, read +inf (m)', 1e-6)
     range_noise_std_m: float = _p(0.01, 'Gaussian range noise std (m)', 0.0)
@@ -146,6 +151,11 @@ class SimParams:
     def scan_angle_increment_rad(self) -> float:
         """Angle between neighbouring beams (rad)."""
         return self.scan_fov_rad / self.scan_beams
+
+    @property
+    def scan_time_increment_s(self) -> float:
+        """Time between two beams of a scan (s; LaserScan.time_increment)."""
+        return self.scan_sweep_fraction / (self.scan_rate_hz * self.scan_beams)
 
     @property
     def start_ns(self) -> int:
@@ -380,7 +390,7 @@ class SimBlock:
     truth_t: NDArray[np.int64]
     truth_pose: NDArray[np.float64]
     truth_twist: NDArray[np.float64]
-    scan_t: NDArray[np.int64]
+    scan_t: NDArray[np.int64]                # stamp: the first beam's time
     scan_ranges: NDArray[np.float32]
     imu_t: NDArray[np.int64]
     imu_gyro: NDArray[np.float64]
@@ -389,19 +399,21 @@ class SimBlock:
     joint_position: NDArray[np.float64]
     joint_velocity: NDArray[np.float64]
     clock_t: NDArray[np.int64]
+    scan_publish_t: NDArray[np.int64]        # when the sweep has ended and the scan goes out
 
 
 # Kinds of events, in the order they are published when they share a stamp.
 CLOCK, TRUTH, IMU, JOINTS, SCAN = range(5)
 _KIND_TIMES = ((CLOCK, 'clock_t'), (TRUTH, 'truth_t'), (IMU, 'imu_t'), (JOINTS, 'joint_t'),
-               (SCAN, 'scan_t'))
+               (SCAN, 'scan_publish_t'))
 
 
 def block_events(
     block: SimBlock,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
     """(time ns, kind, index into that kind's arrays) of every sample of a block, in publishing
-    order: by time, then by kind (CLOCK, TRUTH, IMU, JOINTS, SCAN)."""
+    order: by time, then by kind (CLOCK, TRUTH, IMU, JOINTS, SCAN). A scan's time is when it is
+    published (scan_publish_t, its sweep ended), not its stamp (scan_t, its first beam)."""
     times = [getattr(block, name) for _, name in _KIND_TIMES]
     t = np.concatenate(times)
     kind = np.concatenate([np.full(len(x), k, dtype=np.int64)
@@ -458,6 +470,13 @@ class SensorSim:
                                                      self._motion_last[1:2])[0]
         self._wheel_angle_last = np.zeros(2)
         self._counts_last = np.zeros(2, dtype=np.int64)
+        # A scan is published this many ticks after its stamp (its sweep: the first tick at or
+        # after the last beam's time + one beam interval); the truth poses of the ticks since
+        # then are kept (ticks, x, y, unwrapped yaw), the robot at its start pose before tick 0.
+        self.scan_publish_ticks = math.ceil(p.scan_sweep_fraction * self.periods['scan']
+                                            - 1e-9)
+        self._history = np.array([[0.0], [p.start_x_m], [p.start_y_m],
+                                  [p.start_yaw_rad + self._motion_last[1]]])
 
     @property
     def time_ns(self) -> int:
@@ -514,9 +533,20 @@ class SensorSim:
         joint_t = stamps(k)
         joint_position, joint_velocity = self._encoders(distance[k], heading[k])
 
-        k = samples('scan')
-        scan_t = stamps(k)
-        scan_ranges = self._scans(x[k], y[k], yaw[k])
+        # Scans: published scan_publish_ticks after their stamp (the sweep), each beam ranged
+        # from where the laser was at its own time.
+        offset, period = self.scan_publish_ticks, self.periods['scan']
+        k = np.flatnonzero(((ticks - offset) % period == 0) & (ticks >= offset))
+        k = k if first else k[k > 0]
+        scan_publish_t = stamps(k)
+        scan_t = scan_publish_t - offset * self.tick_ns
+        if p.scan_sweep_fraction > 0.0:
+            history = np.concatenate((self._history[:, :-1],
+                                      np.vstack((ticks, x, y, yaw))), axis=1)
+            self._history = history[:, -(offset + 1):]
+            scan_ranges = self._swept_scans(ticks[k] - offset, history)
+        else:
+            scan_ranges = self._scans(x[k], y[k], yaw[k])
 
         clock_t = stamps(samples('clock'))
 
@@ -524,7 +554,8 @@ class SensorSim:
         self._xy_last = np.array([x[-1], y[-1]])
         self._motion_last = np.array([c[-1] for c in cols])
         return SimBlock(truth_t, truth_pose, truth_twist, scan_t, scan_ranges, imu_t, imu_gyro,
-                        imu_accel, joint_t, joint_position, joint_velocity, clock_t)
+                        imu_accel, joint_t, joint_position, joint_velocity, clock_t,
+                        scan_publish_t)
 
     def _imu(self, heading: NDArray, speed: NDArray, yaw_rate: NDArray
              ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -586,6 +617,26 @@ class SensorSim:
         return out
 
 
+    def _swept_scans(self, stamp_ticks: NDArray, history: NDArray) -> NDArray[np.float32]:
+        """Noisy ranges (m, float32) of scans stamped at stamp_ticks whose beams are taken in
+        turn over the sweep, each from the laser's pose at its own time (the truth interpolated
+        linearly between ticks: history rows tick, x, y, unwrapped yaw)."""
+        p = self.params
+        laser_x, laser_y, laser_yaw = self._laser_pose
+        beam_ticks = np.arange(p.scan_beams) * (p.scan_time_increment_s * p.physics_rate_hz)
+        out = np.empty((stamp_ticks.size, p.scan_beams), dtype=np.float32)
+        noise = self._rng_scan.standard_normal((stamp_ticks.size, p.scan_beams))
+        for i, stamp_tick in enumerate(stamp_ticks):
+            at = stamp_tick + beam_ticks
+            bx, by, byaw = (np.interp(at, history[0], row) for row in history[1:])
+            c, s = np.cos(byaw), np.sin(byaw)
+            origins = np.column_stack((bx + c * laser_x - s * laser_y,
+                                       by + s * laser_x + c * laser_y))
+            true = raycast(self.world.segments, origins, byaw + laser_yaw + self.beam_angles)
+            out[i] = measured_ranges(true, noise[i], p)
+        return out
+
+
 def measured_ranges(
     true_ranges: NDArray, noise: NDArray, params: SimParams
 ) -> NDArray[np.float64]:
@@ -615,6 +666,7 @@ class SimRun(SimBlock):
     scan_angle_increment: float
     scan_range_min: float
     scan_range_max: float
+    scan_time_increment: float = 0.0      # s between two beams (0: every beam at the stamp)
 
     @property
     def scan_angles(self) -> NDArray[np.float64]:
@@ -657,4 +709,5 @@ def simulate(params: SimParams, world: World, duration_s: float, seed: int) -> S
     return SimRun(params=params, seed=int(seed), **arrays,
                   scan_angle_min=params.scan_angle_min_rad,
                   scan_angle_increment=params.scan_angle_increment_rad,
-                  scan_range_min=params.range_min_m, scan_range_max=params.range_max_m)
+                  scan_range_min=params.range_min_m, scan_range_max=params.range_max_m,
+                  scan_time_increment=params.scan_time_increment_s)

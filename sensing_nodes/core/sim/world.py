@@ -75,9 +75,14 @@ def _numeric(value) -> bool:
 def raycast(
     segments: NDArray[np.float64], origin: ArrayLike, angles: ArrayLike
 ) -> NDArray[np.float64]:
-    """Distance (m) from origin (x, y) along each world-frame beam angle (rad) to the first
-    segment it hits; +inf where it hits none. Occlusion follows from taking the nearest hit."""
-    ox, oy = float(origin[0]), float(origin[1])
+    """Distance (m) from origin (x, y), or from each beam's own origin ((B, 2): a laser that
+    moves during its sweep), along each world-frame beam angle (rad) to the first segment it
+    hits; +inf where it hits none. Occlusion follows from taking the nearest hit."""
+    origin = np.asarray(origin, dtype=float)
+    if origin.ndim == 2:
+        ox, oy = origin[:, :1], origin[:, 1:]                            # (B, 1)
+    else:
+        ox, oy = float(origin[0]), float(origin[1])
     angles = np.asarray(angles, dtype=float)
     dx, dy = np.cos(angles)[:, None], np.sin(angles)[:, None]           # (B, 1)
     px, py = segments[:, 0] - ox, segments[:, 1] - oy                     # (M,)
