@@ -124,6 +124,20 @@ class ScanStep:
     keyframe_stamp_ns: int | None = None
     relative: Pose2 | None = None
     relative_covariance: NDArray[np.float64] | None = None
+    # local_map mode, what /scan_match/keyframe_odom carries for the fusion: base_link in the map
+    # (the odom frame the map is built in, whose origin is base_link at the map's first scan,
+    # map_stamp_ns) at the middle of the sweep (map_time_ns: the stamp plus half the sweep; the
+    # stamp without beam times), where the registration is made, with the registration's own
+    # covariance (map x, y, yaw). At the stamp the pose carries half a sweep of the prediction's
+    # error besides (the odometry's motion over the sweep): on the simulated route that half
+    # sweep was half the heading error's variance, and on strong_errors a 0.1 deg bias.
+    # map_time_ns is set for every scan of a local map, map_pose only for a match. The scan
+    # that starts a map (status first or reset_backwards) is its origin: map_time_ns is then
+    # its stamp (base_link there is the map's origin, exactly).
+    map_stamp_ns: int | None = None
+    map_time_ns: int | None = None
+    map_pose: Pose2 | None = None
+    map_covariance: NDArray[np.float64] | None = None
     # What else happened, each counted on /diagnostics: deskewed_by_odometry,
     # deskewed_by_velocity, gap, limited (the published step was held to the physical limits),
     # prediction_limited, reacquire_attempts, reacquired, degenerate, map_pruned.
@@ -366,6 +380,7 @@ class LocalMapScanMatcher:
         self.anchor_pose: Pose2 = ZERO
         self.anchor_covariance = np.zeros((3, 3))
         self.anchor_stamp_ns: int | None = None
+        self.map_stamp_ns: int | None = None    # the map's first scan (it names the map)
         self.model_errors = RecentValues(self.settings.model_error_window)
         self.alignment_errors = RecentValues(self.settings.model_error_window)
         self.sweep_errors = RecentValues(self.settings.model_error_window)
@@ -397,16 +412,17 @@ class LocalMapScanMatcher:
         events: list[str] = []
         if step in (StampStep.FIRST, StampStep.BACKWARDS):
             self.reset()
-            points, half, how = self._sweep(points, beam_times_s, sweep_motion)
+            points, half, how, _ = self._sweep(points, beam_times_s, sweep_motion)
             self.stamp_ns = stamp_ns
             self.mid_pose = half
             self._insert(points, compose(half, s.laser_pose))
-            self.anchor_stamp_ns = stamp_ns
+            self.anchor_stamp_ns = self.map_stamp_ns = stamp_ns
             status = 'first' if step is StampStep.FIRST else 'reset_backwards'
             reason = '' if step is StampStep.FIRST else \
                 'stamp went backwards: map cleared, restarted at origin'
             return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, status, reason,
-                            new_keyframe=True, events=(how,) if how else ())
+                            new_keyframe=True, events=(how,) if how else (),
+                            map_stamp_ns=stamp_ns, map_time_ns=stamp_ns)
         if step is StampStep.GAP:
             # The map stays (it is in the odom frame); the velocity across the gap is unknown.
             self.twist = (0.0, 0.0, 0.0)
@@ -415,10 +431,11 @@ class LocalMapScanMatcher:
                               events)
 
     def _sweep(self, points: NDArray[np.float64], beam_times_s: NDArray[np.float64] | None,
-               sweep_motion: Pose2 | None) -> tuple[NDArray[np.float64], Pose2, str]:
+               sweep_motion: Pose2 | None) -> tuple[NDArray[np.float64], Pose2, str, float]:
         """A swept scan deskewed to the middle of its sweep, base_link's motion from the stamp
-        to that middle, and how (by the odometry's motion over the sweep or the matcher's own
-        twist); unchanged, no motion and '' when the beams carry no times.
+        to that middle, how (by the odometry's motion over the sweep or the matcher's own
+        twist) and the middle's time after the stamp (s); unchanged, no motion, '' and 0 when
+        the beams carry no times.
 
         The middle, not the stamp: a constant-twist error then shears the scan symmetrically
         and barely moves its registration, so the twist the registrations give is not fed back
@@ -426,7 +443,7 @@ class LocalMapScanMatcher:
         times half the sweep, which made the next twist's error as large and of opposite sign:
         without odometry the simulated route ran away to 1.4 m)."""
         if beam_times_s is None or points.shape[0] == 0 or not np.any(beam_times_s):
-            return points, ZERO, ''
+            return points, ZERO, '', 0.0
         duration = float(beam_times_s.max())
         twist, how = self.twist, 'deskewed_by_velocity'
         if sweep_motion is not None:
@@ -435,7 +452,7 @@ class LocalMapScanMatcher:
             how = 'deskewed_by_odometry'
         middle = 0.5 * duration
         moved = deskew(points, twist, beam_times_s - middle, self.settings.laser_pose)
-        return moved, twist_motion(twist, middle), how
+        return moved, twist_motion(twist, middle), how, middle
 
     # long: one scan's whole decision (predict, deskew, register, accept or fall back,
     # re-acquire, limit, insert, anchor), kept in one place so its order is visible.
@@ -454,7 +471,7 @@ class LocalMapScanMatcher:
                                                s.max_yaw_rate_rad_s)
         if limited:
             events.append('prediction_limited')
-        points, half, how = self._sweep(points, beam_times_s, sweep_motion)
+        points, half, how, middle_s = self._sweep(points, beam_times_s, sweep_motion)
         if how:
             events.append(how)
         predicted = compose(self.map_pose, predicted_motion)
@@ -480,6 +497,7 @@ class LocalMapScanMatcher:
             result, reason = self._match(points, guess)
         previous_mid, previous_pose = self.mid_pose, self.pose
         keyframe_stamp = relative = rel_cov = None
+        map_pose = map_cov = None
         new_anchor = False
         if reason:
             self.failures += 1
@@ -494,6 +512,7 @@ class LocalMapScanMatcher:
         else:
             self.failures = 0
             mid, mid_cov = remove_offset(result.pose, result.covariance, s.laser_pose)
+            map_pose, map_cov = mid, mid_cov
             base, base_cov = remove_offset(mid, mid_cov, half)
             self.alignment_errors.add(result.error)
             if 'reacquired' not in events:
@@ -555,7 +574,10 @@ class LocalMapScanMatcher:
                         new_keyframe=new_anchor, prediction=source, result=result,
                         twist_covariance=motion_cov / (dt * dt),
                         keyframe_stamp_ns=keyframe_stamp, relative=relative,
-                        relative_covariance=rel_cov, events=tuple(events))
+                        relative_covariance=rel_cov, events=tuple(events),
+                        map_stamp_ns=self.map_stamp_ns,
+                        map_time_ns=stamp_ns + round(middle_s * 1e9), map_pose=map_pose,
+                        map_covariance=map_cov)
 
     def _match(self, points: NDArray[np.float64], guess: Pose2, gate: float | None = None,
                check_jump: bool = True) -> tuple[icp.MatchResult, str]:

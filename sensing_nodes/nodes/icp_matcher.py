@@ -31,6 +31,7 @@ from sensing_nodes.core.scan_matching import (
 from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
 from sensing_nodes.ros.conversions import (
     keyframe_frame_id,
+    map_frame_id,
     odometry_pose,
     scan_arrays,
     stamp_to_ns,
@@ -46,11 +47,27 @@ from sensing_nodes.topics import SCAN, SCAN_MATCH, SCAN_MATCH_KEYFRAME
 
 
 def keyframe_odometry(step: ScanStep, base_frame: str) -> bytes:
-    """A scan step as /scan_match/keyframe_odom, packed into CDR bytes (ros/cdr.py):
-    header.frame_id 'keyframe/<stamp ns>' names the keyframe the pose (base_link at the scan, in
-    the keyframe's base_link) is relative to, or is 'keyframe/none' when nothing was matched;
-    child_frame_id is 'keyframe/<this stamp>' when this scan becomes the next keyframe, else the
-    base frame."""
+    """A scan step as /scan_match/keyframe_odom, the fusion's input, packed into CDR bytes
+    (ros/cdr.py; docs/fusion.md).
+
+    local_map mode: stamped at the middle of the scan's sweep (step.map_time_ns), the pose is
+    base_link then in the map, header.frame_id 'map/<ns>' naming the map by its first scan's
+    stamp, with the registration's covariance; 'keyframe/none' when nothing was matched. The
+    scan that starts a map is its origin: stamped at the scan, frame_id and child_frame_id
+    both 'map/<its stamp>', the pose zero.
+    keyframe mode: stamped at the scan, header.frame_id 'keyframe/<stamp ns>' names the keyframe
+    the pose (base_link at the scan, in the keyframe's base_link) is relative to, or is
+    'keyframe/none' when nothing was matched; child_frame_id is 'keyframe/<this stamp>' when
+    this scan becomes the next keyframe, else the base frame."""
+    if step.map_time_ns is not None:
+        if step.map_stamp_ns == step.stamp_ns:
+            origin = map_frame_id(step.map_stamp_ns)
+            return odometry_cdr(step.stamp_ns, origin, origin, ZERO, np.zeros((3, 3)))
+        if step.map_pose is None:
+            return odometry_cdr(step.map_time_ns, keyframe_frame_id(None), base_frame, ZERO,
+                                np.zeros((3, 3)))
+        return odometry_cdr(step.map_time_ns, map_frame_id(step.map_stamp_ns), base_frame,
+                            step.map_pose, step.map_covariance)
     matched = step.keyframe_stamp_ns is not None and step.relative is not None
     frame = keyframe_frame_id(step.keyframe_stamp_ns if matched else None)
     child = keyframe_frame_id(step.stamp_ns) if step.new_keyframe else base_frame

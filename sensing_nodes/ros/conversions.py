@@ -139,6 +139,22 @@ def keyframe_stamp(frame_id: str) -> int | None:
     return int(digits) if digits.isdigit() else None
 
 
+# icp_matcher's local map (/scan_match/keyframe_odom in local_map mode, docs/fusion.md): the
+# pose is base_link in the map's frame, 'map/<ns>', the map named by the stamp of its first scan.
+MAP_PREFIX = 'map/'
+
+
+def map_frame_id(stamp_ns: int) -> str:
+    """The frame id naming the local map started at stamp_ns."""
+    return f'{MAP_PREFIX}{int(stamp_ns)}'
+
+
+def map_stamp(frame_id: str) -> int | None:
+    """The map stamp (ns) a frame id 'map/<ns>' names; None for anything else."""
+    digits = frame_id[len(MAP_PREFIX):] if frame_id.startswith(MAP_PREFIX) else ''
+    return int(digits) if digits.isdigit() else None
+
+
 def make_transform_stamped(stamp_ns: int, parent: str, child: str,
                            transform: Transform) -> TransformStamped:
     """geometry_msgs/TransformStamped: the child frame's pose in the parent frame at stamp_ns."""

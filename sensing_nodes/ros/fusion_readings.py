@@ -25,6 +25,7 @@ from sensing_nodes.core.geometry.imu_mount import base_orientation, mount_rotati
 from sensing_nodes.ros.conversions import (
     NO_KEYFRAME,
     keyframe_stamp,
+    map_stamp,
     odometry_pose,
     odometry_twist,
     quaternion_to_yaw,
@@ -186,25 +187,31 @@ class ReadingConverter:
                        _yaw_only(max(rate_var, 0.0))), ''
 
     def _keyframe(self, msg, stamp: int) -> tuple[Reading | None, str]:
-        """icp_matcher's keyframe-relative match (frame ids name keyframes: docs/fusion.md), the
-        keyframes' stamps retimed as the message's."""
+        """icp_matcher's match (docs/fusion.md): in a local map's frame ('map/<stamp ns>'), or
+        relative to a keyframe ('keyframe/<stamp ns>'), the keyframes' stamps retimed as the
+        message's; 'keyframe/none': nothing matched."""
         delay = self._delay_ns.get(SCAN, 0)
         child = keyframe_stamp(msg.child_frame_id)
         new_keyframe = child is not None and child - delay == stamp
         keyframe = keyframe_stamp(msg.header.frame_id)
-        if msg.header.frame_id != NO_KEYFRAME and keyframe is None:
-            return None, (f"frame_id '{msg.header.frame_id}' names no keyframe "
-                          f"('keyframe/<stamp ns>' or '{NO_KEYFRAME}')")
+        local_map = map_stamp(msg.header.frame_id)
+        if msg.header.frame_id != NO_KEYFRAME and keyframe is None and local_map is None:
+            return None, (f"frame_id '{msg.header.frame_id}' names no keyframe or map "
+                          f"('keyframe/<stamp ns>', 'map/<stamp ns>' or '{NO_KEYFRAME}')")
         if keyframe is not None:
             keyframe -= delay
-        if keyframe is None:
+        if local_map is not None and msg.child_frame_id == msg.header.frame_id:
+            # The scan that starts the map: base_link at this stamp is the map's origin.
+            return Reading(stamp, new_keyframe=True, map_ns=local_map), ''
+        if keyframe is None and local_map is None:
             return Reading(stamp, new_keyframe=new_keyframe), ''
         pose, cov = odometry_pose(msg)
         problem = pose_problem(pose, cov, None, False) or (
             '' if np.all(np.diag(cov) > 0.0) else 'a match must have a covariance')
         if problem:
             return None, problem
-        return Reading(stamp, pose, cov, keyframe_ns=keyframe, new_keyframe=new_keyframe), ''
+        return Reading(stamp, pose, cov, keyframe_ns=keyframe, new_keyframe=new_keyframe,
+                       map_ns=local_map), ''
 
     def _scan_increment_covariance(self, twist_cov, stamp: int):
         """Covariance of the motion since the matcher's previous output, from its twist

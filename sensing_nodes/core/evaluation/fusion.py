@@ -42,7 +42,8 @@ def input_readings(inputs: FusionInputs, config: SessionConfig) -> list[tuple[st
     """The simulated streams as the fusion's readings of its enabled inputs, in stamp order
     (ties: wheel, IMU, scan match), as the node reads the messages: wheel odometry poses, the
     gyro's integrated heading with its rate (imu.source rate: the IMU's raw rate and those
-    summed, as ros/fusion_readings.py sums them), and scan matches keyframe-relative (EKF) or
+    summed, as ros/fusion_readings.py sums them), and scan matches as /scan_match/keyframe_odom
+    carries them (EKF: in the local map's frame at the sweep's middle, or keyframe-relative) or
     cumulative with the increment covariance (complementary filter)."""
     raw_rate = config.method == 'ekf' and config.imu_source == 'rate'
     imu = config.input_map.get(IMU)
@@ -53,7 +54,10 @@ def input_readings(inputs: FusionInputs, config: SessionConfig) -> list[tuple[st
     if config.enabled[IMU]:
         events += [(int(t), RANK[IMU], i, IMU) for i, t in enumerate(inputs.gyro_t)]
     if config.enabled[SCAN]:
-        events += [(int(t), RANK[SCAN], i, SCAN) for i, t in enumerate(inputs.scan_t)]
+        # The EKF's matches in a local map's frame are stamped at their sweep's middle.
+        in_map = config.method == 'ekf' and inputs.scan_map_t.size and inputs.scan_map_t[0] >= 0
+        scan_t = inputs.scan_map_t if in_map else inputs.scan_t
+        events += [(int(t), RANK[SCAN], i, SCAN) for i, t in enumerate(scan_t)]
     readings = []
     previous_scan = None
     for stamp, _, i, name in sorted(events):
@@ -71,6 +75,14 @@ def input_readings(inputs: FusionInputs, config: SessionConfig) -> list[tuple[st
             reading = Reading(stamp, (0.0, 0.0, float(inputs.gyro_yaw[i])),
                               _yaw_only(inputs.gyro_yaw_var[i]),
                               (0.0, 0.0, float(inputs.gyro_rate[i])), None)
+        elif config.method == 'ekf' and in_map:
+            local_map = int(inputs.scan_map_id[i])
+            if local_map == stamp:       # the scan that starts the map: its origin
+                reading = Reading(stamp, new_keyframe=True, map_ns=local_map)
+            else:
+                reading = Reading(stamp, tuple(inputs.scan_map_pose[i]) if local_map >= 0
+                                  else None, inputs.scan_map_cov[i],
+                                  map_ns=local_map if local_map >= 0 else None)
         elif config.method == 'ekf':
             kf = int(inputs.scan_keyframe_t[i])
             reading = Reading(stamp, tuple(inputs.scan_relative[i]) if kf >= 0 else None,
@@ -228,6 +240,58 @@ def keyframe_match_consistency(truth_t, truth_pose, keyframe_t, stamps, relative
             'heading_z_rms': float(np.sqrt(np.mean(err[:, 2] ** 2 / cov[:, 2, 2]))),
             'heading_error_correlation': corr,
             'matches_per_keyframe': float(len(kf_t) / max(len(np.unique(kf_t)), 1))}
+
+
+def map_match_consistency(truth_t, truth_pose, stamps, map_id, pose, covariance,
+                          window: int = 10, distances_m=(1.0, 2.0, 3.0, 4.0, 6.0)
+                          ) -> dict[str, float]:
+    """How the scan matcher's poses in its local map (m, rad, at stamps ns; map_id -1: no
+    match, equal to the stamp: the map's origin) meet their covariances against ground truth
+    (the map's frame is base_link at its origin's stamp): mean squared Mahalanobis distance (3
+    when consistent; /3 is the covariance's scale), RMS heading z, the correlation of
+    consecutive heading errors, and the part of the error that varies slowly with the
+    distance travelled: the means of `window` consecutive matches, half the variance of their
+    differences per axis against the distance between them (bins at distances_m, m) fitted
+    with a line, whose slope is a random walk per metre (x and y m^2/m, yaw rad^2/m) and whose
+    intercept the window means' own noise."""
+    stamps, map_id = np.asarray(stamps), np.asarray(map_id)
+    ok = (map_id >= 0) & (map_id != stamps)
+    at = interpolate_poses(truth_t, truth_pose, stamps[ok])
+    origin = interpolate_poses(truth_t, truth_pose, map_id[ok])
+    keep = np.all(np.isfinite(at), axis=1) & np.all(np.isfinite(origin), axis=1)
+    at, origin = at[keep], origin[keep]
+    truth_rel = np.array([se2.between(tuple(a), tuple(b)) for a, b in zip(origin, at)])
+    err = np.asarray(pose)[ok][keep] - truth_rel
+    err[:, 2] = se2.wrap_angle(err[:, 2])
+    cov = np.asarray(covariance)[ok][keep]
+    d2 = np.einsum('ni,nij,nj->n', err, np.linalg.inv(cov), err)
+    out = {'mean_distance2': float(np.mean(d2)),
+           'heading_z_rms': float(np.sqrt(np.mean(err[:, 2] ** 2 / cov[:, 2, 2]))),
+           'heading_error_correlation': float(np.corrcoef(err[:-1, 2], err[1:, 2])[0, 1])}
+    # Slowly varying part: window means against the distance along the true path.
+    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(at[:, :2], axis=0).T))])
+    n = err.shape[0] // window
+    means = err[:n * window].reshape(n, window, 3).mean(axis=1)
+    where = path[:n * window].reshape(n, window).mean(axis=1)
+    i, j = np.triu_indices(n, 1)
+    apart = where[j] - where[i]
+    half = 0.5 * (means[j] - means[i]) ** 2
+    edges = np.asarray(distances_m)
+    centres, xy, yaw = [], [], []
+    for low, high in zip(edges[:-1], edges[1:]):
+        in_bin = (apart >= low) & (apart < high)
+        if np.count_nonzero(in_bin) < 10:
+            continue
+        centres.append(float(np.mean(apart[in_bin])))
+        xy.append(float(np.mean(half[in_bin, :2])))
+        yaw.append(float(np.mean(half[in_bin, 2])))
+    if len(centres) >= 2:
+        slope_xy, intercept_xy = np.polyfit(centres, xy, 1)
+        slope_yaw, _ = np.polyfit(centres, yaw, 1)
+        out.update({'drift_xy_m2_per_m': float(slope_xy),
+                    'drift_yaw_rad2_per_m': float(slope_yaw),
+                    'window_mean_xy_m2': float(intercept_xy)})
+    return out
 
 
 def heading_increment_consistency(truth_t, truth_pose, t, yaw, variance_per_s: float,

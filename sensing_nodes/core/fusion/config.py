@@ -95,7 +95,11 @@ def _ekf_parameters() -> dict[str, Parameter]:
     process noise."""
     table = {'imu.source': Parameter(
         'integrated', "'integrated' (gyro_integrator's heading), 'orientation' (the IMU's own "
-                      "orientation) or 'rate' (raw gyro rate, bias estimated in the filter)")}
+                      "orientation) or 'rate' (raw gyro rate, bias estimated in the filter)"),
+        'imu.estimate_bias': Parameter(
+            False, "imu.source 'integrated': estimate the integrator's remaining bias (its "
+                   'heading increments measure the turn plus bias x interval; observable where '
+                   "another input measures the heading absolutely: a local map's matches)")}
     for axis in ('roll', 'pitch', 'yaw'):
         table[f'imu.mount_{axis}_rad'] = Parameter(
             0.0, f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi; the '
@@ -265,7 +269,9 @@ def _ekf_inputs(v: Mapping[str, Any], enabled: Mapping[str, bool], imu_source: s
     """The enabled inputs' EKF configurations (use_scan_match_position / _heading switch the
     scan's quantities off); the problems of an enabled one raise ConfigError."""
     window_s, max_gap_s = v['reorder_window_s'], v['max_gap_s']
-    fixed = {WHEEL: {}, IMU: {'gyro_bias': imu_source == 'rate'}, SCAN: {'keyframes': True}}
+    # The bias is a state for the raw rate always, for the integrated heading on request.
+    bias = imu_source == 'rate' or (imu_source == 'integrated' and v['imu.estimate_bias'])
+    fixed = {WHEEL: {}, IMU: {'gyro_bias': bias}, SCAN: {'keyframes': True}}
     configs = []
     for name in INPUTS:
         values = {key: v[f'{name}.{key}'] for key in INPUT_DEFAULTS[name]}

@@ -126,12 +126,15 @@ def _selection(mask: tuple[bool, ...]) -> tuple[NDArray, tuple[NDArray, NDArray]
 @dataclass
 class _Clone:
     """A slot of the state holding the pose at `stamp_ns` (None: empty), and for a
-    differential input the reading taken then."""
+    differential input the reading taken then; for the scan matcher's input either the pose at
+    its keyframe (key: the keyframe's stamp) or, with `map` set, the pose of a local map's
+    origin in the odom frame (key: the map's stamp)."""
 
     offset: int
     stamp_ns: int | None = None
     key: object = None
     reading: Reading | None = None
+    map: bool = False
 
 
 class EkfFusion:
@@ -157,6 +160,12 @@ class EkfFusion:
                 offset += 3
         self._size = offset
         self._keyframe_slots = [self._slots[cfg.name] for cfg in inputs if cfg.keyframes]
+        # A local map's offset random-walks with the distance travelled: (slot, x and y
+        # variance per metre, yaw variance per metre).
+        self._map_drift = [(self._slots[cfg.name], cfg.map_variance_per_m,
+                            cfg.map_yaw_variance_per_m) for cfg in inputs
+                           if cfg.keyframes and (cfg.map_variance_per_m
+                                                 or cfg.map_yaw_variance_per_m)]
         # Per input, the rows of its pose and twist measurements that its mask selects (None:
         # all three), as index arrays made once.
         self._rows = {cfg.name: (_selection(cfg.mask[:3]), _selection(cfg.mask[3:]))
@@ -189,7 +198,7 @@ class EkfFusion:
         self.p[BG, BG] = s.initial_bias_std ** 2
         self.stamp_ns: int | None = None
         for slot in self._slots.values():
-            slot.stamp_ns, slot.key, slot.reading = None, None, None
+            slot.stamp_ns, slot.key, slot.reading, slot.map = None, None, None, False
         self._pending: dict[str, Reading] = {}   # coalesced differential readings
         self._last_seen: dict[str, int] = {}     # stamp of each input's newest reading
         self._origin: dict[str, Pose2] = {}      # relative mode: source pose -> fused pose
@@ -245,7 +254,7 @@ class EkfFusion:
         self.p[at:at + 3, at:at + 3] = self.p[:3, :3]
         if self._step_cross is not None:
             self._step_cross[at:at + 3] = self._step_cross[:3]
-        slot.stamp_ns, slot.key, slot.reading = self.stamp_ns, key, reading
+        slot.stamp_ns, slot.key, slot.reading, slot.map = self.stamp_ns, key, reading, False
 
     def _empty(self, slot: _Clone) -> None:
         at = slot.offset
@@ -254,7 +263,7 @@ class EkfFusion:
         self.p[:, at:at + 3] = 0.0
         if self._step_cross is not None:
             self._step_cross[at:at + 3] = 0.0
-        slot.stamp_ns, slot.key, slot.reading = None, None, None
+        slot.stamp_ns, slot.key, slot.reading, slot.map = None, None, None, False
 
     @property
     def pose(self) -> Pose2:
@@ -302,9 +311,25 @@ class EkfFusion:
         p[:3, :] = f @ p[:BASE, :]
         p[:, :3] = p[:, :BASE] @ f.T
         p[self._diagonal] += self._q_diagonal * dt
+        if self._map_drift:
+            self._drift_maps(math.hypot(vx, vy) * dt)
         if self._step_cross is not None:
             self._step_cross[:3] = f @ self._step_cross[:BASE]
         self.stamp_ns = stamp_ns
+
+    def _drift_maps(self, distance: float) -> None:
+        """A local map's error where the robot is changes as it travels (m): a random walk of
+        the map's pose seen from the robot (x, y and yaw variance per metre), turned into its
+        origin's body-frame error (rel ⊕ w = (Ad(rel)·w) ⊕ rel, rel = between(origin, pose)):
+        a heading drift turns the map about the robot, not about its far origin."""
+        x = self.x.tolist()
+        for slot, xy, yaw in self._map_drift:
+            if not slot.map or distance <= 0.0:
+                continue
+            at = slot.offset
+            rel = se2.between((x[at], x[at + 1], x[at + 2]), (x[X], x[Y], x[YAW]))
+            a = adjoint(rel)
+            self.p[at:at + 3, at:at + 3] += (a * (np.array([xy, xy, yaw]) * distance)) @ a.T
 
     def _correct(self, residual: NDArray, h: NDArray, r: NDArray, gate_chi2: float) -> Outcome:
         """EKF update with innovation `residual` (angle rows already wrapped), Jacobian h over
@@ -341,8 +366,8 @@ class EkfFusion:
         clones taken since the keyframe move with the pose: left behind, the next increment
         from one would see the shift as motion and take most of it back."""
         for slot in self._keyframe_slots:
-            if slot.key is None or slot.stamp_ns is None:
-                continue
+            if slot.key is None or slot.stamp_ns is None or slot.map:
+                continue   # a map's offset is a state like any other: revised by the gain
             at = slot.offset
             x = self.x.tolist()       # plain floats: this runs at every correction
             keyframe = (x[at], x[at + 1], x[at + 2])
@@ -439,12 +464,19 @@ class EkfFusion:
     @staticmethod
     def _pose_noise(cfg: InputConfig, covariance, increment: Pose2 | None,
                     static: bool, dt: float = 0.0) -> NDArray[np.float64]:
-        use_model = cfg.covariance == 'model' or (
+        use_model = cfg.covariance in ('model', 'both') or (
             cfg.covariance == 'auto' and (covariance is None or static or not np.any(covariance)))
         if use_model:
             if increment is None:
-                return np.diag([max(cfg.noise.min_variance, MIN_VARIANCE)] * 3)
-            return cfg.noise.increment_covariance(increment, dt)
+                model = np.diag([max(cfg.noise.min_variance, MIN_VARIANCE)] * 3)
+            else:
+                model = cfg.noise.increment_covariance(increment, dt)
+            if cfg.covariance != 'both' or covariance is None or static:
+                return model
+            # 'both': the model's white noise plus what the source says it added (a gyro
+            # integrator's bias uncertainty, growing with the time since its calibration).
+            return model + _symmetric(np.asarray(covariance, dtype=float)) \
+                * cfg.covariance_scale
         cov = _symmetric(np.asarray(covariance, dtype=float)) * cfg.covariance_scale
         cov[_DIAG3] += MIN_VARIANCE
         return cov
@@ -503,7 +535,7 @@ class EkfFusion:
         if cfg.covariance != 'model' and reading.pose_covariance is not None \
                 and previous.pose_covariance is not None:
             static = bool(np.array_equal(reading.pose_covariance, previous.pose_covariance))
-            if not static and cfg.covariance == 'auto':
+            if not static and cfg.covariance in ('auto', 'both'):
                 # None (then the noise model) when the source's covariance does not compound.
                 cov = compounded_increment_covariance(
                     previous.pose, previous.pose_covariance, reading.pose,
@@ -535,12 +567,32 @@ class EkfFusion:
         return self._correct(*self._masked(self._rows[cfg.name][0], residual, h, noise),
                              cfg.gate_chi2)
 
+    def _map(self, cfg: InputConfig, reading: Reading) -> Outcome:
+        """A match in a local map's frame: it measures between(map origin, pose), the map's
+        origin a state (its slot) that every match against the map refines, and that drifts
+        with the distance travelled. The first match of a map only places its origin."""
+        slot = self._slots[cfg.name]
+        noise = self._pose_noise(cfg, reading.pose_covariance, reading.pose, False)
+        if not slot.map or slot.key != reading.map_ns:
+            # Its origin was not fused (dropped as late, or before the filter started).
+            self._adopt_keyframe(slot, reading.map_ns, reading.pose, noise)
+            slot.map = True
+            return Outcome(note="map adopted: its origin placed by this match")
+        return self._relative_update(cfg, slot, reading.pose, noise)
+
     def _keyframe(self, cfg: InputConfig, reading: Reading) -> Outcome:
         slot = self._slots[cfg.name]
+        if reading.map_ns is not None and reading.pose is None:
+            # A map starts at this reading: its origin is the pose now, exactly.
+            self._clone(slot, key=reading.map_ns)
+            slot.map = True
+            return Outcome(note="a map's origin")
+        if reading.map_ns is not None:
+            return self._map(cfg, reading)
         outcome = Outcome(note='no match in this reading')
         if reading.pose is not None and reading.keyframe_ns is not None:
             noise = self._pose_noise(cfg, reading.pose_covariance, reading.pose, False)
-            if slot.key == reading.keyframe_ns:
+            if slot.key == reading.keyframe_ns and not slot.map:
                 outcome = self._relative_update(cfg, slot, reading.pose, noise)
             else:
                 # The message that started this keyframe was never fused (dropped as late,

@@ -21,12 +21,14 @@ WHEEL, IMU, SCAN = 'wheel_odom', 'imu', 'scan_match'
 INPUTS = (WHEEL, IMU, SCAN)
 # Processing rank at equal stamps: dead reckoning up to a stamp is in before the scan match
 # at that stamp is fused.
-RANK = {WHEEL: 0, IMU: 1, SCAN: 2}
+RANK = {IMU: 0, WHEEL: 1, SCAN: 2}
 # What the IMU input reads of sensor_msgs/Imu: gyro_integrator's heading, the IMU's own
 # orientation, or its raw rate (the bias estimated in the EKF).
 IMU_SOURCES = ('integrated', 'orientation', 'rate')
 QUANTITIES = ('x', 'y', 'yaw', 'vx', 'vy', 'vyaw')
 POSE_MODES = ('absolute', 'relative', 'differential')
+# Where a reading's covariance comes from (InputConfig.covariance).
+COVARIANCE_SOURCES = ('auto', 'message', 'model', 'both')
 
 
 @dataclass(frozen=True)
@@ -72,6 +74,11 @@ class InputConfig:
     # differential yaw measures the heading change + bias x interval.
     gyro_bias: bool = False
     keyframes: bool = False              # pose is relative to a keyframe (scan matcher)
+    # Scan matches in a local map's frame (Reading.map_ns): how far that frame may drift from
+    # the fused odom frame per metre travelled, x and y (m^2/m) and yaw (rad^2/m), the map
+    # offset's random walk.
+    map_variance_per_m: float = 0.0
+    map_yaw_variance_per_m: float = 0.0
     max_gap_s: float = 2.0               # differential: no increment across a longer silence
     # The reading's yaw is the heading this long before its stamp (s): the fusion reads it as
     # yaw + (the reading's yaw rate) x heading_delay_s. A gyro integrator whose samples are
@@ -88,8 +95,9 @@ class InputConfig:
         out: list[tuple[str, str, object]] = []
         if self.pose_mode not in POSE_MODES:
             out.append(('pose_mode', f'must be one of {POSE_MODES}', self.pose_mode))
-        if self.covariance not in ('auto', 'message', 'model'):
-            out.append(('covariance', "must be 'auto', 'message' or 'model'", self.covariance))
+        if self.covariance not in COVARIANCE_SOURCES:
+            out.append(('covariance', "must be 'auto', 'message', 'model' or 'both'",
+                        self.covariance))
         if not (math.isfinite(self.covariance_scale) and self.covariance_scale > 0.0):
             out.append(('covariance_scale', 'must be finite and > 0', self.covariance_scale))
         if not (self.gate_chi2 > 0.0):
@@ -100,6 +108,10 @@ class InputConfig:
         for name in ('variance_per_m', 'variance_per_rad', 'yaw_variance_per_m',
                      'yaw_variance_per_s', 'min_variance'):
             value = getattr(self.noise, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                out.append((name, 'must be finite and >= 0', value))
+        for name in ('map_variance_per_m', 'map_yaw_variance_per_m'):
+            value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 out.append((name, 'must be finite and >= 0', value))
         if not all(math.isfinite(v) and v > 0.0 for v in self.twist_variance):
@@ -118,7 +130,8 @@ class Reading:
 
     pose/pose_covariance: a pose (absolute or cumulative); twist/twist_covariance: body
     velocities (vx, vy, wz); for a keyframe input, pose is relative to keyframe_ns and
-    new_keyframe says this stamp starts the next keyframe (pose None: no match, keyframe only).
+    new_keyframe says this stamp starts the next keyframe (pose None: no match, keyframe only),
+    or pose is base_link in the frame of the local map map_ns (named by its first scan's stamp).
     """
 
     stamp_ns: int
@@ -128,6 +141,7 @@ class Reading:
     twist_covariance: NDArray[np.float64] | None = None
     keyframe_ns: int | None = None
     new_keyframe: bool = False
+    map_ns: int | None = None
 
 
 
@@ -192,7 +206,8 @@ INPUT_DEFAULTS: dict[str, dict] = {
                    'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,
                    'variance_per_rad': 1e-3, 'yaw_variance_per_m': 1e-4,
                    'yaw_variance_per_s': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
-                   'gate_chi2': 25.0, 'max_gap_s': 0.0, 'delay_s': 0.0},
+                   'gate_chi2': 25.0, 'max_gap_s': 0.0, 'delay_s': 0.0,
+                   'map_variance_per_m': 0.0, 'map_yaw_variance_per_m': 0.0},
 }
 
 
@@ -217,6 +232,10 @@ INPUT_DESCRIPTIONS: dict[str, str] = {
                        'yaw + yaw rate x this (sensor_sim: half its IMU period)',
     'delay_s': "how far the input's stamps lag the robot (s): a message stamped t is fused "
                'and published as at t - this (< 0: stamps early); within +-reorder_window_s',
+    'map_variance_per_m': "matches in a local map's frame: how far the map may drift from the "
+                          'fused odom frame, x and y variance per metre travelled (m^2/m)',
+    'map_yaw_variance_per_m': "matches in a local map's frame: the map's heading drift, "
+                              'variance per metre travelled (rad^2/m)',
 }
 
 
@@ -239,5 +258,7 @@ def input_config(name: str, values: dict, **fixed) -> InputConfig:
                          yaw_variance_per_s=float(v['yaw_variance_per_s'])),
         twist_variance=tuple(float(x) for x in v['twist_variance']),
         heading_delay_s=float(v.get('heading_delay_s', 0.0)),   # imu only
+        map_variance_per_m=float(v.get('map_variance_per_m', 0.0)),   # scan_match only
+        map_yaw_variance_per_m=float(v.get('map_yaw_variance_per_m', 0.0)),
         delay_s=float(v['delay_s']),
         gate_chi2=gate if gate > 0.0 else math.inf, **fixed)

@@ -128,19 +128,25 @@ class FusionSession:
         inputs after its stamp were already fused), then whatever is ready is fused."""
         stamp = reading.stamp_ns
         buffer = self.buffer
+        record = self.records[name]
         if not buffer.push(stamp, RANK[name], (name, reading)):
             self.counts[f'{name}_dropped_late'] += 1
             self.notices.append(Notice('warn', (
                 f'{name} message at {stamp * 1e-9:.3f} s arrived after inputs up to '
                 f'{buffer.released_ns * 1e-9:.3f} s were fused: dropped ({buffer.late} so far)'),
                 f'{name}_late'))
+            # Still where the input has got to: an input that fell out of the watermark (silent
+            # for input_timeout_s, e.g. a restarted matcher whose messages go out a sweep after
+            # their stamps) is waited for again from its next message, instead of having every
+            # later message dropped too.
+            if record.arrived_ns is None or stamp > record.arrived_ns:
+                record.arrived_ns = stamp
             return []
         if self._start_ns is None:
             self._start_ns = stamp
         first = self._first_ns.get(name)
         if first is None or stamp < first:
             self._first_ns[name] = stamp
-        record = self.records[name]
         if record.arrived_ns is None or stamp > record.arrived_ns:
             record.arrived_ns = stamp
         out = self._process(buffer.pop_ready(watermark(

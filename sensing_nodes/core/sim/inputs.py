@@ -56,6 +56,13 @@ class FusionInputs:
     scan_relative: NDArray[np.float64]       # (S, 3) pose relative to that keyframe
     scan_relative_cov: NDArray[np.float64]   # (S, 3, 3)
     scan_new_keyframe: NDArray[np.bool_]     # this scan is the keyframe of the next matches
+    # local_map mode (/scan_match/keyframe_odom): when each scan's map pose is (the sweep's
+    # middle; -1: keyframe mode), the map it is in (its first scan's stamp, equal to the time
+    # at the scan that starts it; -1: no match), the pose (S, 3) and its covariance (S, 3, 3)
+    scan_map_t: NDArray[np.int64]
+    scan_map_id: NDArray[np.int64]
+    scan_map_pose: NDArray[np.float64]
+    scan_map_cov: NDArray[np.float64]
     raw_rate_variance: float = 0.0           # of each raw rate sample (rad^2/s^2)
 
 
@@ -139,6 +146,7 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
     wt, wp, wc, wtw = [], [], [], []
     gt, gy, gv, gr, raw, gb, gbv, gs = [], [], [], [], [], [], [], []
     st, sp, sc, skt, srel, src, snew = [], [], [], [], [], [], []
+    smt, smi, smp, smc = [], [], [], []
     # Same-time order as the graph delivers it closely enough: joints, IMU, then scans.
     events = sorted([(int(t), 0, i) for i, t in enumerate(run.joint_t)]
                     + [(int(t), 1, i) for i, t in enumerate(run.imu_t)]
@@ -182,6 +190,12 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
             src.append(step.relative_covariance if step.relative_covariance is not None
                        else np.zeros((3, 3)))
             snew.append(step.new_keyframe)
+            matched = step.map_pose is not None
+            origin = step.map_stamp_ns is not None and step.map_stamp_ns == step.stamp_ns
+            smt.append(-1 if step.map_time_ns is None else step.map_time_ns)
+            smi.append(step.map_stamp_ns if matched or origin else -1)
+            smp.append(step.map_pose if matched else (0.0, 0.0, 0.0))
+            smc.append(step.map_covariance if matched else np.zeros((3, 3)))
     return FusionInputs(
         truth_t=run.truth_t, truth_pose=run.truth_pose,
         wheel_t=np.array(wt, dtype=np.int64), wheel_pose=np.array(wp), wheel_cov=np.array(wc),
@@ -193,6 +207,8 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
         scan_keyframe_t=np.array(skt, dtype=np.int64), scan_relative=np.array(srel),
         scan_relative_cov=np.array(src).reshape(-1, 3, 3),
         scan_new_keyframe=np.array(snew, dtype=bool),
+        scan_map_t=np.array(smt, dtype=np.int64), scan_map_id=np.array(smi, dtype=np.int64),
+        scan_map_pose=np.array(smp).reshape(-1, 3), scan_map_cov=np.array(smc).reshape(-1, 3, 3),
         raw_rate_variance=params.gyro_noise_std_rad_s ** 2)
 
 
