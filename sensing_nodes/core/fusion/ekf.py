@@ -464,19 +464,12 @@ class EkfFusion:
     @staticmethod
     def _pose_noise(cfg: InputConfig, covariance, increment: Pose2 | None,
                     static: bool, dt: float = 0.0) -> NDArray[np.float64]:
-        use_model = cfg.covariance in ('model', 'both') or (
+        use_model = cfg.covariance == 'model' or (
             cfg.covariance == 'auto' and (covariance is None or static or not np.any(covariance)))
         if use_model:
             if increment is None:
-                model = np.diag([max(cfg.noise.min_variance, MIN_VARIANCE)] * 3)
-            else:
-                model = cfg.noise.increment_covariance(increment, dt)
-            if cfg.covariance != 'both' or covariance is None or static:
-                return model
-            # 'both': the model's white noise plus what the source says it added (a gyro
-            # integrator's bias uncertainty, growing with the time since its calibration).
-            return model + _symmetric(np.asarray(covariance, dtype=float)) \
-                * cfg.covariance_scale
+                return np.diag([max(cfg.noise.min_variance, MIN_VARIANCE)] * 3)
+            return cfg.noise.increment_covariance(increment, dt)
         cov = _symmetric(np.asarray(covariance, dtype=float)) * cfg.covariance_scale
         cov[_DIAG3] += MIN_VARIANCE
         return cov
@@ -535,7 +528,7 @@ class EkfFusion:
         if cfg.covariance != 'model' and reading.pose_covariance is not None \
                 and previous.pose_covariance is not None:
             static = bool(np.array_equal(reading.pose_covariance, previous.pose_covariance))
-            if not static and cfg.covariance in ('auto', 'both'):
+            if not static and cfg.covariance == 'auto':
                 # None (then the noise model) when the source's covariance does not compound.
                 cov = compounded_increment_covariance(
                     previous.pose, previous.pose_covariance, reading.pose,

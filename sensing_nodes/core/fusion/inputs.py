@@ -27,8 +27,6 @@ RANK = {IMU: 0, WHEEL: 1, SCAN: 2}
 IMU_SOURCES = ('integrated', 'orientation', 'rate')
 QUANTITIES = ('x', 'y', 'yaw', 'vx', 'vy', 'vyaw')
 POSE_MODES = ('absolute', 'relative', 'differential')
-# Where a reading's covariance comes from (InputConfig.covariance).
-COVARIANCE_SOURCES = ('auto', 'message', 'model', 'both')
 
 
 @dataclass(frozen=True)
@@ -95,9 +93,8 @@ class InputConfig:
         out: list[tuple[str, str, object]] = []
         if self.pose_mode not in POSE_MODES:
             out.append(('pose_mode', f'must be one of {POSE_MODES}', self.pose_mode))
-        if self.covariance not in COVARIANCE_SOURCES:
-            out.append(('covariance', "must be 'auto', 'message', 'model' or 'both'",
-                        self.covariance))
+        if self.covariance not in ('auto', 'message', 'model'):
+            out.append(('covariance', "must be 'auto', 'message' or 'model'", self.covariance))
         if not (math.isfinite(self.covariance_scale) and self.covariance_scale > 0.0):
             out.append(('covariance_scale', 'must be finite and > 0', self.covariance_scale))
         if not (self.gate_chi2 > 0.0):
