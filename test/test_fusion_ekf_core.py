@@ -271,3 +271,83 @@ def test_heading_step_variance_counts_both_ends_and_their_correlation():
     ekf.update('b', Reading(T0 + 2_000_000_000, (0.0, 0.0, 0.4), np.diag([1.0, 1.0, 0.02])))
     ekf.set_pose((0.0, 0.0, 1.0), np.diag([1.0, 1.0, 0.5]))   # followed on from the new start
     assert ekf.heading_step_variance() == pytest.approx(0.0, abs=1e-12)
+
+
+# --- matches in a local map's frame (icp_matcher's local_map mode) ----------------------------
+
+def _map_input(**kw):
+    return InputConfig('scan_match', mask=(True, True, True, False, False, False),
+                       keyframes=True, covariance='message', **kw)
+
+
+def test_a_match_in_a_map_measures_the_pose_from_the_maps_origin():
+    """The map starts at T0 where the pose is exactly known: its origin is that pose. One
+    second later (pose noise 0.1 m/sqrt(s): x variance 0.01) a match puts base_link at
+    x = 0.02 m in the map with variance 0.01: the fused x is their inverse-variance mean,
+    0.01 m with variance 0.005."""
+    settings = EkfSettings(pose_noise_density=0.1, accel_noise_density=1e-9,
+                           angular_accel_noise_density=1e-9, initial_velocity_std=1e-9)
+    ekf = EkfFusion((_map_input(),), settings)
+    assert "origin" in ekf.update('scan_match', Reading(T0, map_ns=T0)).note
+    outcome = ekf.update('scan_match', Reading(T0 + 10**9, (0.02, 0.0, 0.0),
+                                               np.diag([0.01, 0.01, 0.01]), map_ns=T0))
+    assert outcome.fused
+    assert ekf.state.pose[0] == pytest.approx(0.01, abs=1e-9)
+    assert ekf.state.covariance[0, 0] == pytest.approx(0.005, abs=1e-9)
+
+
+def test_matches_in_one_map_average_their_noise_and_each_moves_the_maps_origin():
+    """A hundred matches at the origin (std 0.01 m, alternating +-0.01 m in x) in a map whose
+    origin was placed by a first match (its noise in the origin): the pose stays between the
+    origin's uncertainty and the matches' averaged noise, and the origin itself is revised
+    (not held as a keyframe's clone is)."""
+    ekf = EkfFusion((_map_input(),), QUIET)
+    ekf.update('scan_match', Reading(T0, (0.0, 0.0, 0.0), np.diag([1e-4, 1e-4, 1e-6]),
+                                     map_ns=T0 - 5))
+    origin_before = ekf.x[7:10].copy()
+    for k in range(1, 101):
+        ekf.update('scan_match', Reading(T0 + k * 10 * MS, (0.01 * (-1) ** k, 0.0, 0.0),
+                                         np.diag([1e-4, 1e-4, 1e-6]), map_ns=T0 - 5))
+    assert ekf.updates == 100
+    # The map's pose in odom absorbs the matches' mean (0): exact zero; its variance shrinks
+    # from the first match's 1e-4 towards the averaged noise, 1e-4 / 101.
+    assert ekf.x[7:10] == pytest.approx(origin_before, abs=1e-4)
+    relative = ekf.p[0, 0] + ekf.p[7, 7] - 2 * ekf.p[0, 7]
+    assert relative == pytest.approx(1e-4 / 101, rel=0.05)
+
+
+def test_a_maps_origin_drifts_with_the_distance_travelled_as_seen_from_the_robot():
+    """map_variance_per_m (x, y) and map_yaw_variance_per_m (yaw): a random walk of the map
+    where the robot is. After 10 m along x at 1 m/s, in 1 m steps: x and yaw of the robot in
+    the map are uncertain by 10 x each rate; y also by the yaw drift added 0 to 9 m behind the
+    robot (the map ahead of a heading error is turned, as an odometry's path is): 1e-7 x
+    (0² + ... + 9²) = 2.85e-5. Turned about the far origin instead, the 10 m lever arm would
+    apply to all of it."""
+    ekf = EkfFusion((_map_input(map_variance_per_m=1e-6, map_yaw_variance_per_m=1e-7),), QUIET)
+    ekf.update('scan_match', Reading(T0, map_ns=T0))
+    ekf.x[3] = 1.0                                      # vx: 1 m/s, exactly known (QUIET)
+    for k in range(1, 11):
+        ekf.predict(T0 + k * 10**9)
+    assert ekf.pose == pytest.approx((10.0, 0.0, 0.0), abs=1e-9)
+    _, j_pose, j_origin = relative_jacobian(tuple(ekf.x[7:10]), ekf.pose)
+    h = np.zeros((3, ekf.p.shape[0]))
+    h[:, :3], h[:, 7:10] = j_pose, j_origin
+    seen = h @ ekf.p @ h.T
+    assert np.diag(seen) == pytest.approx([1e-5, 1e-5 + 2.85e-5, 1e-6], rel=1e-6)
+    # In the origin's frame the lever arms are 1 to 10 m: 1e-7 x (1² + ... + 10²) = 3.85e-5.
+    assert ekf.p[8, 8] == pytest.approx(1e-5 + 3.85e-5, rel=1e-6)
+
+
+def test_a_new_map_replaces_the_old_one():
+    """A match in a map the filter has not seen (the matcher restarted it) places that map's
+    origin from the match (not fused); the next match in it is fused."""
+    ekf = EkfFusion((_map_input(),), QUIET)
+    ekf.update('scan_match', Reading(T0, map_ns=T0))
+    assert ekf.update('scan_match', Reading(T0 + 10 * MS, (0.0, 0.0, 0.0), np.eye(3) * 1e-4,
+                                            map_ns=T0)).fused
+    outcome = ekf.update('scan_match', Reading(T0 + 20 * MS, (5.0, 0.0, 0.0), np.eye(3) * 1e-4,
+                                               map_ns=T0 + 20 * MS))
+    assert not outcome.fused and 'adopted' in outcome.note
+    assert ekf.pose == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
+    assert ekf.update('scan_match', Reading(T0 + 30 * MS, (5.0, 0.0, 0.0), np.eye(3) * 1e-4,
+                                            map_ns=T0 + 20 * MS)).fused

@@ -8,6 +8,8 @@ import pytest
 from sensing_nodes.core.evaluation.fusion import (
     heading_increment_consistency,
     keyframe_match_consistency,
+    map_match_consistency,
+    pooled,
     stop_corrections,
 )
 
@@ -76,3 +78,46 @@ def test_stop_corrections_drift_before_and_after_a_stop():
     assert stop['bias_change_rad_s'] == pytest.approx(1e-4)
     assert stop['bias_std_before_rad_s'] == pytest.approx(math.sqrt(1e-9))
     assert stop['bias_std_after_rad_s'] == pytest.approx(2e-5)
+
+
+def test_map_matches_distance_heading_z_and_drift_with_distance():
+    """Matches in a map started at T0 (its origin, left out) on a straight 1 m/s run: errors of
+    +-sigma alternate (mean squared distance 1, heading z 1, consecutive correlation -1), then a
+    slowly growing x error of 1e-4 m per metre shows as a positive drift per metre in x, none in
+    yaw."""
+    t = T0 + np.arange(2001, dtype=np.int64) * 10 ** 7                       # 100 Hz, 20 s
+    truth = np.column_stack([(t - T0) * 1e-9, np.zeros(t.size), np.zeros(t.size)])
+    sigma = 1e-3
+    stamps = T0 + np.arange(0, 200, dtype=np.int64) * 10 ** 8                # 10 Hz
+    along = (stamps - T0) * 1e-9
+    sign = (-1.0) ** np.arange(200)
+    pose = np.column_stack([along + sigma * sign, sigma * sign, sigma * sign])
+    cov = np.tile(np.diag([sigma ** 2] * 3), (200, 1, 1))
+    out = map_match_consistency(t, truth, stamps, np.full(200, T0), pose, cov)
+    assert out['mean_distance2'] == pytest.approx(3.0)
+    assert out['heading_z_rms'] == pytest.approx(1.0)
+    assert out['heading_error_correlation'] == pytest.approx(-1.0)
+    pose[:, 0] += 1e-4 * along
+    out = map_match_consistency(t, truth, stamps, np.full(200, T0), pose, cov)
+    assert out['drift_xy_m2_per_m'] > 0.0
+    assert out['drift_yaw_rad2_per_m'] == pytest.approx(0.0, abs=1e-15)
+
+
+def test_pooled_figures_weigh_every_sample():
+    """Two runs of 100 and 300 samples with RMS 1 and 2 pool to sqrt((100 + 1200) / 400); the
+    shares by their samples; the fused against the best single input's pooled RMS."""
+    def run(rms, share, samples):
+        return {'ekf': {'rms_position_m': rms, 'rms_heading_deg': rms, 'samples': samples,
+                        'position_within_3': share, 'position_beyond_1': share,
+                        'heading_within_3': share, 'heading_beyond_1': share},
+                'scan': {'rms_position_m': 2 * rms, 'rms_heading_deg': 4 * rms,
+                         'samples': samples},
+                'wheel': {'rms_position_m': 3 * rms, 'rms_heading_deg': 3 * rms,
+                          'samples': samples},
+                'gyro': {'rms_heading_deg': 5 * rms, 'samples': samples}}
+    out = pooled([run(1.0, 1.0, 100), run(2.0, 0.0, 300)])
+    assert out['ekf']['rms_position_m'] == pytest.approx(math.sqrt(1300 / 400))
+    assert out['ekf']['position_within_3'] == pytest.approx(0.25)
+    assert out['ekf']['samples'] == 400
+    assert out['ekf']['ratio_position'] == pytest.approx(0.5)        # scan: twice the fused
+    assert out['ekf']['ratio_heading'] == pytest.approx(1.0 / 3.0)   # wheels: three times

@@ -1,12 +1,15 @@
 """sensing_fusion_eval: the fusion's accuracy on the simulated robot, without ROS (docs/fusion.md's
 figures): for each seed of each simulator configuration, the package's wheel odometry, gyro
-integrator and keyframe scan matcher over core-simulated sensors (core/sim/inputs.py), then the
-fusion session as the node runs it (the EKF and the seed's complementary filter; every output,
-publish_rate_hz 0), scored against the ground truth (core/evaluation/fusion.py): RMS and final
-errors (m, deg), consistency shares, heading-step chatter, and each input's own errors.
+integrator and scan matcher (icp_matcher's default, the local map; --matcher-mode keyframe for
+the lesson's) over core-simulated sensors (core/sim/inputs.py), then the fusion session as the
+node runs it (the EKF and the seed's complementary filter; every output, publish_rate_hz 0),
+scored against the ground truth (core/evaluation/fusion.py): RMS and final errors (m, deg),
+consistency shares, heading-step chatter and each input's own errors, per seed and pooled over
+the seeds of each configuration (RMS over every sample of every run; the fused RMS against the
+best single input's; the consistency shares over every sample).
 
     sensing_fusion_eval [--seeds 8] [--configs default,strong_errors] [--params-file FILE]
-                        [--inputs] [--json OUT]
+                        [--matcher-mode local_map] [--inputs] [--json OUT]
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from sensing_nodes.core.evaluation.fusion import (
     heading_increment_consistency,
     input_errors,
     keyframe_match_consistency,
+    map_match_consistency,
+    pooled,
     run_complementary,
     run_ekf,
     stop_corrections,
@@ -55,13 +60,16 @@ def input_figures(inputs: FusionInputs, ekf: SessionConfig) -> dict:
     """How the gyro's heading increments and the scan matches meet the noise models the EKF
     gives them, and what gyro_integrator's bias re-estimates at stops did to its heading."""
     imu = ekf.input_map[IMU]
+    in_map = inputs.scan_map_t.size and inputs.scan_map_t[0] >= 0
     return {
         # As the filter reads them: delay-compensated (InputConfig.heading_delay_s).
         'gyro_increments': heading_increment_consistency(
             inputs.truth_t, inputs.truth_pose, inputs.gyro_t,
             inputs.gyro_yaw + inputs.gyro_rate * imu.heading_delay_s,
             imu.noise.yaw_variance_per_s),
-        'scan_matches': keyframe_match_consistency(
+        'scan_matches': map_match_consistency(
+            inputs.truth_t, inputs.truth_pose, inputs.scan_map_t, inputs.scan_map_id,
+            inputs.scan_map_pose, inputs.scan_map_cov) if in_map else keyframe_match_consistency(
             inputs.truth_t, inputs.truth_pose, inputs.scan_keyframe_t, inputs.scan_t,
             inputs.scan_relative, inputs.scan_relative_cov),
         'stop_corrections': stop_corrections(
@@ -95,6 +103,19 @@ def _print_row(row: dict) -> None:
                   f"{stop['bias_std_after_rad_s']:.1e})", flush=True)
 
 
+def _print_pooled(name: str, figures: dict) -> None:
+    e = figures['ekf']
+    best = {k: figures[k] for k in ('wheel', 'scan', 'gyro') if k in figures}
+    print(f"{name} pooled over {e['samples']} fused samples: RMS position ekf "
+          f"{e['rms_position_m']:.5f} m ({e['ratio_position']:.2f}x the best input; wheel "
+          f"{best['wheel']['rms_position_m']:.5f}, scan {best['scan']['rms_position_m']:.5f}) "
+          f"| RMS heading ekf {e['rms_heading_deg']:.4f} deg ({e['ratio_heading']:.2f}x; gyro "
+          f"{best['gyro']['rms_heading_deg']:.4f}, scan {best['scan']['rms_heading_deg']:.4f}, "
+          f"wheel {best['wheel']['rms_heading_deg']:.4f}) | within 3 / beyond 1: position "
+          f"{e['position_within_3']:.3f} / {e['position_beyond_1']:.3f}, heading "
+          f"{e['heading_within_3']:.3f} / {e['heading_beyond_1']:.3f}", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog='sensing_fusion_eval', description=__doc__.split('\n\n')[0],
@@ -106,6 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--params-file', action='append', default=[],
                         help="complementary_fusion parameters over its config/ file's "
                              '(repeatable; the EKF with them, and the complementary filter)')
+    parser.add_argument('--matcher-mode', default='local_map', choices=('local_map', 'keyframe'),
+                        help="icp_matcher's mode for the scan matches (default: its default)")
     parser.add_argument('--json', help='write every figure here')
     parser.add_argument('--inputs', action='store_true',
                         help="also print how the gyro's heading increments and the scan "
@@ -118,20 +141,24 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, OSError) as error:
         print(f'sensing_fusion_eval: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
-    rows = []
+    rows, summary = [], {}
     for name in args.configs.split(','):
         params = None if name == 'default' else params_from_dict(
             load_params_file(config_file(f'bags_{name}.yaml')))
+        runs = []
         for seed in range(args.seeds):
-            inputs = simulated_inputs(seed, params)
+            inputs = simulated_inputs(seed, params, matcher_mode=args.matcher_mode)
             row = {'config': name, 'seed': seed, **score(inputs, ekf, complementary)}
             if args.inputs:
                 row.update(input_figures(inputs, ekf))
             rows.append(row)
+            runs.append(row)
             _print_row(row)
+        summary[name] = pooled(runs)
+        _print_pooled(name, summary[name])
     if args.json:
         with open(args.json, 'w') as f:
-            json.dump(rows, f, indent=1)
+            json.dump({'runs': rows, 'pooled': summary}, f, indent=1)
     return 0
 
 

@@ -171,6 +171,7 @@ def track_errors(truth_t, truth_pose, t, poses, covariances=None,
         'final_position_m': float(position[-1]),
         'rms_heading_deg': float(np.degrees(np.sqrt(np.mean(heading ** 2)))),
         'final_heading_deg': float(np.degrees(abs(heading[-1]))),
+        'samples': int(heading.size),
     }
     if covariances is not None:
         cov = covariances[keep]
@@ -205,6 +206,39 @@ def track_errors(truth_t, truth_pose, t, poses, covariances=None,
     return out
 
 
+POOLED_SHARES = ('position_within_3', 'position_beyond_1', 'heading_within_3',
+                 'heading_beyond_1')
+
+
+def pooled(runs: list[dict[str, dict[str, float]]]) -> dict[str, dict[str, float]]:
+    """Figures pooled over runs (each {estimate: track_errors(...)}, e.g. 'ekf', 'scan',
+    'wheel', 'gyro'): RMS position (m) and heading (deg) over every sample of every run, the
+    consistency shares over every sample, and the fused RMS against the best single input's
+    (position: wheel, scan; heading: gyro, scan, wheel) as `ratio_*`."""
+    out: dict[str, dict[str, float]] = {}
+    for name in runs[0]:
+        figures = [run[name] for run in runs if isinstance(run.get(name), dict)
+                   and 'samples' in run[name]]
+        if not figures:
+            continue
+        count = sum(f['samples'] for f in figures)
+        entry = {'samples': count}
+        for key in ('rms_position_m', 'rms_heading_deg'):
+            if key in figures[0]:
+                entry[key] = math.sqrt(sum(f['samples'] * f[key] ** 2 for f in figures) / count)
+        for key in POOLED_SHARES:
+            if key in figures[0]:
+                entry[key] = sum(f['samples'] * f[key] for f in figures) / count
+        out[name] = entry
+    if 'ekf' in out:
+        best_position = min(out[k]['rms_position_m'] for k in ('wheel', 'scan') if k in out)
+        best_heading = min(out[k]['rms_heading_deg'] for k in ('gyro', 'scan', 'wheel')
+                           if k in out)
+        out['ekf']['ratio_position'] = out['ekf']['rms_position_m'] / best_position
+        out['ekf']['ratio_heading'] = out['ekf']['rms_heading_deg'] / best_heading
+    return out
+
+
 def input_errors(inputs: FusionInputs) -> dict[str, dict[str, float]]:
     """Errors of each input on its own: wheel odometry, scan matching (pose), gyro (heading)."""
     truth_t, truth_pose = inputs.truth_t, inputs.truth_pose
@@ -213,7 +247,7 @@ def input_errors(inputs: FusionInputs) -> dict[str, dict[str, float]]:
     return {
         'wheel': track_errors(truth_t, truth_pose, inputs.wheel_t, inputs.wheel_pose),
         'scan': track_errors(truth_t, truth_pose, inputs.scan_t, inputs.scan_pose),
-        'gyro': {k: v for k, v in g.items() if 'heading' in k},
+        'gyro': {k: v for k, v in g.items() if 'heading' in k or k == 'samples'},
     }
 
 

@@ -40,7 +40,7 @@ from sensing_nodes.core.fusion.increments import (
     compounded_increment_covariance,
     increment_covariance,
 )
-from sensing_nodes.core.fusion.inputs import InputConfig, Reading
+from sensing_nodes.core.fusion.inputs import RANK, InputConfig, Reading
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.geometry.se2 import Pose2
 
@@ -443,7 +443,10 @@ class EkfFusion:
         """Fuse the held differential readings, oldest first; the outcome of a gated one."""
         gated = None
         while self._pending:
-            name = min(self._pending, key=lambda n: self._pending[n].stamp_ns)
+            # Oldest first; at equal stamps in RANK's order (the wheels' increment before the
+            # IMU's: the wheels' pin the heading where they see no motion, and an integrator's
+            # own corrections while standing still then meet the gate).
+            name = min(self._pending, key=lambda n: (self._pending[n].stamp_ns, RANK.get(n, 0)))
             cfg = self.inputs[name]
             reading = _with_heading_delay(cfg, self._pending.pop(name))
             self.predict(reading.stamp_ns)

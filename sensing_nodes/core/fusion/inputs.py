@@ -21,7 +21,7 @@ WHEEL, IMU, SCAN = 'wheel_odom', 'imu', 'scan_match'
 INPUTS = (WHEEL, IMU, SCAN)
 # Processing rank at equal stamps: dead reckoning up to a stamp is in before the scan match
 # at that stamp is fused.
-RANK = {IMU: 0, WHEEL: 1, SCAN: 2}
+RANK = {WHEEL: 0, IMU: 1, SCAN: 2}
 # What the IMU input reads of sensor_msgs/Imu: gyro_integrator's heading, the IMU's own
 # orientation, or its raw rate (the bias estimated in the EKF).
 IMU_SOURCES = ('integrated', 'orientation', 'rate')

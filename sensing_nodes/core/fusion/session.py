@@ -214,30 +214,42 @@ class FusionSession:
     # -- fusion ----------------------------------------------------------------------------------
     def _process(self, ready: list[tuple[int, tuple[str, object]]]) -> list[FusedOutput]:
         out: list[FusedOutput] = []
-        for stamp, (name, reading) in ready:
+        # The state is read once every reading of a stamp is in (a wheel message and an IMU
+        # message stamped alike: the output at that stamp has both, instead of the heading
+        # predicted over the IMU's last period), and only where one of them gives an output.
+        wanted = match = False
+        for index, (stamp, (name, reading)) in enumerate(ready):
             if reading is RESTART:
                 self.fusion.restart(name)
-                continue
-            if not self._started and self._before_every_input(stamp):
+            elif not self._started and self._before_every_input(stamp):
                 self.counts['before_every_input'] += 1
+            else:
+                self.records[name].processed_at(stamp)
+                self.fusion.update(name, reading)
+                # The IMU alone publishes only when no input gives a position.
+                wanted = wanted or name != IMU or self._imu_publishes
+                match = match or name == SCAN
+            if index + 1 < len(ready) and ready[index + 1][0] == stamp:
                 continue
-            self.records[name].processed_at(stamp)
-            self.fusion.update(name, reading)
-            if name == IMU and not self._imu_publishes:
-                continue  # heading only: published with the next position update
-            state = self.fusion.state     # read as at every rate: the filter runs the same
-            if state is None:
-                continue
-            # The first output in each period of the rate goes out (due() takes the period), and
-            # every scan match's: the absolute correction, at once and at its own stamp (a
-            # consumer, or sensing_demo's pacing, waits for the output at each scan's stamp).
-            if not self._rate.due(stamp) and name != SCAN:
-                continue
-            self.outputs.processed_at(stamp)
-            out.append((stamp, state))
-            if self._on_output is not None:
-                self._on_output(stamp, state)
+            if wanted:
+                self._output(stamp, match, out)
+            wanted = match = False
         return out
+
+    def _output(self, stamp: int, match: bool, out: list[FusedOutput]) -> None:
+        """The state after the readings at `stamp`, when the rate lets it out."""
+        state = self.fusion.state     # read as at every rate: the filter runs the same
+        if state is None:
+            return
+        # The first output in each period of the rate goes out (due() takes the period), and
+        # every scan match's: the absolute correction, at once and at its own stamp (a
+        # consumer, or sensing_demo's pacing, waits for the output at each scan's stamp).
+        if not self._rate.due(stamp) and not match:
+            return
+        self.outputs.processed_at(stamp)
+        out.append((stamp, state))
+        if self._on_output is not None:
+            self._on_output(stamp, state)
 
     def _before_every_input(self, stamp: int) -> bool:
         """True for a reading older than the first of some enabled input (not fused); the
