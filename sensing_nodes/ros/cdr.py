@@ -19,7 +19,9 @@ the wire, checked against rclpy's serialiser in test/test_cdr.py.
 
 from __future__ import annotations
 
+import collections
 import functools
+import itertools
 import struct
 from typing import Any, Callable, Sequence
 
@@ -47,15 +49,24 @@ _ZEROS_36 = (0.0,) * 36
 def cdr_decoder(msg_class: type) -> Callable[[bytes], Any]:
     """A function decoding serialized (CDR) bytes of msg_class into a message with its fields.
 
-    Big- and little-endian CDR are decoded by rosbags; bytes after the last field (Fast-CDR's
-    padding before an empty sequence of doubles) are ignored, as rclpy does. Anything rosbags
-    does not take goes through rclpy's own deserializer.
+    Little-endian CDR (what DDS and the bags here carry) is decoded by a decoder generated for
+    the type (`_DecoderSource`), into read-only messages (tuples with named fields); whatever it
+    does not take (big-endian CDR, bytes it finds malformed) goes to rosbags' decoder, then to
+    rclpy's own deserializer, which decides (and says why). Bytes after the last field (Fast-CDR's
+    padding before an empty sequence of doubles) are ignored, as rclpy does.
     """
-    msgdef = TYPESTORE.get_msgdef(type_name(msg_class))
+    msgtype = type_name(msg_class)
+    msgdef = TYPESTORE.get_msgdef(msgtype)
     cls = msgdef.cls
+    fast = _fast_decoder(msgtype)
     decoders = {0: msgdef.deserialize_cdr_be, 1: msgdef.deserialize_cdr_le}
 
     def decode(raw: bytes) -> Any:
+        if fast is not None and len(raw) >= 4 and raw[0] == 0 and raw[1] == 1:
+            try:
+                return fast(raw)
+            except Exception:   # noqa: BLE001 - malformed here: rosbags and rclpy decide
+                pass
         decode_body = decoders.get(raw[1]) if len(raw) >= 4 and raw[0] == 0 else None
         if decode_body is not None:
             try:
@@ -65,6 +76,231 @@ def cdr_decoder(msg_class: type) -> Callable[[bytes], Any]:
         return deserialize_message(raw, msg_class)
 
     return decode
+
+
+class _Malformed(Exception):
+    """Bytes the generated decoder does not vouch for (rosbags' decoder decides)."""
+
+
+_MESSAGE_CLASSES: dict[str, type] = {}
+_FAST_DECODERS: dict[str, Callable[[bytes], Any] | None] = {}
+
+
+def message_tuple_class(msgtype: str) -> type:
+    """The read-only message class of a 'pkg/msg/Name' type the generated decoders build: a
+    named tuple of its fields (attribute access as on rclpy's and rosbags' messages, built in C,
+    no Python __init__ per sub-message), with __msgtype__ as rosbags' classes have."""
+    cls = _MESSAGE_CLASSES.get(msgtype)
+    if cls is None:
+        fields = [name for name, _ in TYPESTORE.get_msgdef(msgtype).fields]
+        cls = collections.namedtuple(msgtype.rsplit('/', 1)[-1], fields)
+        cls.__msgtype__ = msgtype
+        _MESSAGE_CLASSES[msgtype] = cls
+    return cls
+
+
+def _fast_decoder(msgtype: str) -> Callable[[bytes], Any] | None:
+    """The generated little-endian decoder of a type (None for a type it does not cover)."""
+    if msgtype not in _FAST_DECODERS:
+        try:
+            _FAST_DECODERS[msgtype] = _DecoderSource.build(msgtype)
+        except _Malformed:
+            _FAST_DECODERS[msgtype] = None
+    return _FAST_DECODERS[msgtype]
+
+
+# struct format and numpy dtype of each CDR primitive, as rosbags reads them (rosbags.serde:
+# 'byte' is signed, 'char' unsigned).
+_PRIMITIVES = {'bool': ('?', 'bool_'), 'byte': ('b', 'int8'), 'char': ('B', 'uint8'),
+               'int8': ('b', 'int8'), 'uint8': ('B', 'uint8'), 'int16': ('h', 'int16'),
+               'uint16': ('H', 'uint16'), 'int32': ('i', 'int32'), 'uint32': ('I', 'uint32'),
+               'int64': ('q', 'int64'), 'uint64': ('Q', 'uint64'), 'float32': ('f', 'float32'),
+               'float64': ('d', 'float64')}
+
+
+class _DecoderSource:
+    """The Python source of one type's little-endian CDR decoder, generated from its rosbags
+    definition: every field at its natural alignment from the body's start (what rosbags'
+    generated decoder does, field by field), consecutive fixed-size fields (a Header's stamp, a
+    pose, covariances) read by one struct.unpack_from with the padding between them known in
+    advance, fixed numeric arrays and numeric sequences as read-only numpy arrays over the
+    bytes (as rosbags gives them), strings and sequence lengths checked as rosbags checks them
+    (_Malformed otherwise). `pos` is the offset in the whole message, the body starting at 4;
+    (mod, rem): pos - 4 is rem modulo mod where known."""
+
+    def __init__(self, scope: dict, element: int | None = None) -> None:
+        self.scope = scope
+        self.names = scope['_names']
+        head = ('def decode(raw):', ' size = len(raw)', ' pos = 4') if element is None else \
+            ('def decode(raw, pos, size):',)
+        self.lines = list(head)
+        self.mod, self.rem = (8, 0) if element is None else (element, 0)
+        self._run: list[str] = []        # struct format of the pending fixed-size fields
+        self._run_size = 0
+        self._run_var = ''
+        self._arrays: list[tuple[str, str, int, int]] = []   # (name, dtype, count, offset)
+
+    @classmethod
+    def build(cls, msgtype: str) -> Callable[[bytes], Any]:
+        scope = {'_new': tuple.__new__, 'u32': _LENGTH.unpack_from,
+                 'frombuffer': np.frombuffer, '_Malformed': _Malformed,
+                 '_names': itertools.count()}
+        source = cls(scope)
+        expression = source.message(msgtype)
+        return source.compile(f'return {expression}', msgtype)
+
+    def compile(self, result: str, msgtype: str) -> Callable:
+        self.flush()
+        source = '\n'.join([*self.lines, f' {result}'])
+        name = f'decode{next(self.names)}'
+        local: dict = {}
+        exec(compile(source, f'<CDR decoder of {msgtype}>', 'exec'), self.scope, local)
+        self.scope[name] = local['decode']
+        return local['decode']
+
+    def _name(self, prefix: str) -> str:
+        return f'{prefix}{next(self.names)}'
+
+    def message(self, msgtype: str) -> str:
+        """Lines reading a message's fields; the expression that builds it."""
+        parts = [self.field(desc) for _, desc in TYPESTORE.get_msgdef(msgtype).fields]
+        cls_name = self._name('M')
+        self.scope[cls_name] = message_tuple_class(msgtype)
+        return f'_new({cls_name}, ({", ".join(parts)}{"," if len(parts) == 1 else ""}))'
+
+    def field(self, desc) -> str:
+        """Lines reading one field; the expression of its value."""
+        from rosbags.interfaces import Nodetype
+
+        if desc[0] == Nodetype.NAME:
+            return self.message(desc[1])
+        if desc[0] == Nodetype.BASE:
+            kind = desc[1][0]
+            return self.string() if kind == 'string' else self.scalar(kind)
+        sub = desc[1][0]
+        if desc[0] == Nodetype.ARRAY:
+            length = desc[1][1]
+            if sub[0] == Nodetype.BASE and sub[1][0] != 'string':
+                return self.array(sub[1][0], length)
+            return '[' + ', '.join(self.field(sub) for _ in range(length)) + ']'
+        return self.sequence(sub)
+
+    # -- fixed-size fields, gathered into runs ----------------------------------------------
+    def _fixed(self, kind: str, count: int) -> tuple[str, int]:
+        """Append a fixed-size field (count primitives) to the run; its format and offset."""
+        if kind not in _PRIMITIVES:
+            raise _Malformed(kind)            # float128: rosbags reads it
+        code, _ = _PRIMITIVES[kind]
+        size = struct.calcsize(code)
+        if size > self.mod:                   # alignment not known here: a new run
+            self.flush()
+            self.lines.append(f' pos = ((pos + {size - 5}) & -{size}) + 4')
+            self.mod, self.rem = size, 0
+        pad = -self.rem % size
+        if pad:
+            self._run.append(f'{pad}x')
+        offset = self._run_size + pad
+        self._run_size = offset + size * count
+        self.rem = (self.rem + pad + size * count) % self.mod
+        if not self._run_var:
+            self._run_var = self._name('v')
+        return code, offset
+
+    def scalar(self, kind: str) -> str:
+        code, _ = self._fixed(kind, 1)
+        index = sum(1 for part in self._run if not part.endswith('x'))
+        self._run.append(code)
+        return f'{self._run_var}[{index}]'
+
+    def array(self, kind: str, length: int) -> str:
+        _, offset = self._fixed(kind, length)
+        size = struct.calcsize(_PRIMITIVES[kind][0]) * length
+        self._run.append(f'{size}x')          # checked by unpack_from, read by frombuffer
+        name = self._name('a')
+        self._arrays.append((name, _PRIMITIVES[kind][1], length, offset))
+        return name
+
+    def flush(self) -> None:
+        """Lines reading the pending run; pos moves past it."""
+        if not self._run_var:
+            return
+        reader = self._name('S')
+        self.scope[reader] = struct.Struct('<' + ''.join(self._run)).unpack_from
+        self.lines.append(f' {self._run_var} = {reader}(raw, pos)')
+        for name, dtype, count, offset in self._arrays:
+            self.lines.append(f' {name} = frombuffer(raw, "{dtype}", {count}, pos + {offset})')
+        self.lines.append(f' pos += {self._run_size}')
+        self._run, self._run_size, self._run_var, self._arrays = [], 0, '', []
+
+    # -- variable-size fields --------------------------------------------------------------
+    def _count(self) -> str:
+        """A string's or sequence's uint32 length, read with the run; the run ends there."""
+        expression = self.scalar('uint32')
+        self.flush()
+        name = self._name('n')
+        self.lines.append(f' {name} = {expression}')
+        return name
+
+    def string(self, indent: str = ' ', length: str | None = None) -> str:
+        """Lines reading a string (after its length): UTF-8, terminator checked."""
+        length = length or self._count()
+        name = self._name('s')
+        self.lines.extend([
+            f'{indent}end = pos + {length}',
+            f'{indent}if {length} < 1 or end > size or raw[end - 1]:',
+            f'{indent} raise _Malformed',
+            f'{indent}{name} = str(raw[pos:end - 1], "utf-8")',
+            f'{indent}pos = end'])
+        self.mod, self.rem = 1, 0
+        return name
+
+    def sequence(self, sub) -> str:
+        from rosbags.interfaces import Nodetype
+
+        count = self._count()
+        name = self._name('q')
+        if sub[0] == Nodetype.BASE and sub[1][0] == 'string':
+            self.lines.extend([f' if pos + {count} * 5 > size:', '  raise _Malformed',
+                               f' {name} = []', f' for _ in range({count}):',
+                               '  pos = ((pos - 1) & -4) + 4',
+                               '  n = u32(raw, pos)[0]', '  pos += 4'])
+            element = self.string('  ', 'n')
+            self.lines.append(f'  {name}.append({element})')
+        elif sub[0] == Nodetype.BASE:
+            kind = sub[1][0]
+            if kind not in _PRIMITIVES:
+                raise _Malformed(kind)
+            code, dtype = _PRIMITIVES[kind]
+            size = struct.calcsize(code)
+            self.lines.append(f' if pos + {count} * {size} > size:')
+            self.lines.append('  raise _Malformed')
+            if size > 4:     # the length left pos 4-aligned; an empty sequence is not aligned
+                self.lines.append(f' if {count}:')
+                self.lines.append(f'  pos = ((pos + {size - 5}) & -{size}) + 4')
+            self.lines.extend([f' {name} = frombuffer(raw, "{dtype}", {count}, pos)',
+                               f' pos += {count} * {size}'])
+            self.mod, self.rem = min(4, size), 0
+        else:
+            element = _DecoderSource(self.scope, _first_alignment(sub[1]))
+            function = element.compile(f'return {element.message(sub[1])}, pos', sub[1])
+            call = self._name('f')
+            self.scope[call] = function
+            first = _first_alignment(sub[1])
+            self.lines.extend([f' if pos + {count} > size:', '  raise _Malformed',
+                               f' {name} = []', f' for _ in range({count}):',
+                               f'  pos = ((pos + {first - 5}) & -{first}) + 4',
+                               f'  element, pos = {call}(raw, pos, size)',
+                               f'  {name}.append(element)'])
+        self.mod, self.rem = (self.mod, self.rem) if sub[0] == Nodetype.BASE and \
+            sub[1][0] != 'string' else (1, 0)
+        return name
+
+
+def _first_alignment(msgtype: str) -> int:
+    """Alignment of a message's first field (where an element of a sequence of it starts)."""
+    from rosbags.serde.utils import align
+
+    return align(TYPESTORE.get_msgdef(msgtype).fields[0][1], TYPESTORE)
 
 
 def create_decoded_subscription(node: Node, msg_class: type, topic: str,
@@ -153,6 +389,96 @@ def transform_cdr(stamp_ns: int, parent: str, child: str, transform: Transform) 
         *(float(v) for v in transform.translation), *(float(v) for v in transform.rotation))
 
 
-# -- stamps in CDR bytes (the recorder, the replay and the pipeline read them without decoding) --
-# Every serialised message starts with a 4-byte encapsulation header; its second byte is 1 for
-# little endian. A Header (or a Time) first: its stamp is the two 32-bit words after it. A
+class _CdrBody:
+    """A little-endian CDR message written field by field: each value at its natural alignment
+    from the body's start, padding zero (canonical CDR, as bags/storage.canonical_cdr makes
+    rclpy's bytes). For the outputs made of sequences and strings (markers, point clouds), at
+    a few per scan: tens of microseconds where building rclpy messages and serialising them
+    cost hundreds."""
+
+    def __init__(self) -> None:
+        self.parts = [_CDR_LE]
+        self.size = 0              # bytes of the body so far (alignment is relative to it)
+
+    def values(self, code: str, *values) -> _CdrBody:
+        """Values of one struct code ('i', 'I', 'd', 'f', '?', 'B'), or one value per code of
+        codes of one size ('iI': a Time), aligned to that size."""
+        pad = -self.size % struct.calcsize(code[0])
+        data = struct.pack(f'<{pad}x{len(values)}{code}' if len(code) == 1 else f'<{pad}x{code}',
+                           *values)
+        self.parts.append(data)
+        self.size += len(data)
+        return self
+
+    def string(self, text: str) -> _CdrBody:
+        data = text.encode() + b'\x00'
+        self.values('I', len(data))
+        self.parts.append(data)
+        self.size += len(data)
+        return self
+
+    def header(self, stamp_ns: int, frame_id: str) -> _CdrBody:
+        return self.values('iI', *divmod(int(stamp_ns), 1_000_000_000)).string(frame_id)
+
+    def sequence(self, code: str, values) -> _CdrBody:
+        """A sequence of one primitive: its length, then (if any) the values, aligned."""
+        self.values('I', len(values))
+        return self.values(code, *values) if len(values) else self
+
+    def raw(self, data: bytes) -> _CdrBody:
+        """A uint8[] sequence."""
+        self.values('I', len(data))
+        self.parts.append(data)
+        self.size += len(data)
+        return self
+
+    def bytes(self) -> bytes:
+        return b''.join(self.parts)
+
+
+# Marker.type and Marker.action values (visualization_msgs/Marker).
+_LINE_LIST, _ADD, _DELETEALL = 5, 0, 3
+
+
+def _marker(body: _CdrBody, stamp_ns: int, frame_id: str, ns: str, kind: int, action: int,
+            scale_x: float, rgba: tuple[float, float, float, float],
+            points: Sequence[float]) -> None:
+    """One visualization_msgs/Marker (id 0, identity pose, no lifetime, no texture, mesh or
+    text) with `points` as (x, y, z) triples flattened."""
+    body.header(stamp_ns, frame_id).string(ns).values('iii', 0, kind, action)
+    body.values('d', 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, scale_x, 0.0, 0.0)   # pose, scale
+    body.values('f', *rgba).values('iI', 0, 0).values('?', False)          # colour, lifetime
+    body.values('I', len(points) // 3)
+    if points:
+        body.values('d', *points)
+    body.values('I', 0).string('')                        # colors, texture_resource
+    body.header(0, '').string('').raw(b'')                # texture (CompressedImage)
+    body.values('I', 0).string('').string('')             # uv_coordinates, text, mesh_resource
+    body.string('').raw(b'').values('?', False)           # mesh_file, mesh_use_embedded_...
+
+
+def line_list_markers_cdr(stamp_ns: int, frame_id: str, ns: str, width_m: float,
+                          rgba: tuple[float, float, float, float],
+                          segments: Sequence[tuple[float, float, float, float]]) -> bytes:
+    """visualization_msgs/MarkerArray as CDR bytes: a DELETEALL marker (clears what an earlier
+    array showed), then, if there are segments, one LINE_LIST marker (id 0 in `ns`, width_m
+    wide (m), colour rgba) with each segment (x0, y0, x1, y1) (m, z = 0) as a pair of points."""
+    body = _CdrBody().values('I', 2 if segments else 1)
+    _marker(body, stamp_ns, frame_id, ns, 0, _DELETEALL, 0.0, (0.0, 0.0, 0.0, 0.0), ())
+    if segments:
+        points = [v for x0, y0, x1, y1 in segments for v in (x0, y0, 0.0, x1, y1, 0.0)]
+        _marker(body, stamp_ns, frame_id, ns, _LINE_LIST, _ADD, width_m, rgba, points)
+    return body.bytes()
+
+
+def point_cloud2_cdr(stamp_ns: int, frame_id: str, fields: Sequence[tuple[str, int, int]],
+                     point_step: int, width: int, data: bytes) -> bytes:
+    """sensor_msgs/PointCloud2 as CDR bytes: one row (height 1) of `width` points of
+    point_step bytes each (little endian, dense), with `fields` as (name, offset, datatype),
+    count 1 each."""
+    body = _CdrBody().header(stamp_ns, frame_id).values('II', 1, width)
+    body.values('I', len(fields))
+    for name, offset, datatype in fields:
+        body.string(name).values('I', offset).values('B', datatype).values('I', 1)
+    body.values('?', False).values('II', point_step, point_step * width).raw(data)
+    return body.values('?', True).bytes()
