@@ -392,18 +392,26 @@ def transform_cdr(stamp_ns: int, parent: str, child: str, transform: Transform) 
 class _CdrBody:
     """A little-endian CDR message written field by field: each value at its natural alignment
     from the body's start, padding zero (canonical CDR, as bags/storage.canonical_cdr makes
-    rclpy's bytes). For the outputs made of sequences and strings (markers, point clouds), at
-    a few per scan: tens of microseconds where building rclpy messages and serialising them
-    cost hundreds."""
+    rclpy's bytes). Used once per layout for the outputs made of sequences and strings
+    (markers, point clouds: `_line_list_layout`, `_point_cloud_layout`), whose messages then
+    differ only in a few fields at offsets `mark` noted."""
 
     def __init__(self) -> None:
         self.parts = [_CDR_LE]
         self.size = 0              # bytes of the body so far (alignment is relative to it)
+        self.marks: list[int] = []
+
+    def mark(self) -> _CdrBody:
+        """Note where the next value goes (its offset in the message), once it is aligned."""
+        self.marks.append(4 + self.size)
+        return self
 
     def values(self, code: str, *values) -> _CdrBody:
         """Values of one struct code ('i', 'I', 'd', 'f', '?', 'B'), or one value per code of
         codes of one size ('iI': a Time), aligned to that size."""
         pad = -self.size % struct.calcsize(code[0])
+        if self.marks and self.marks[-1] == 4 + self.size:
+            self.marks[-1] += pad
         data = struct.pack(f'<{pad}x{len(values)}{code}' if len(code) == 1 else f'<{pad}x{code}',
                            *values)
         self.parts.append(data)
@@ -420,11 +428,6 @@ class _CdrBody:
     def header(self, stamp_ns: int, frame_id: str) -> _CdrBody:
         return self.values('iI', *divmod(int(stamp_ns), 1_000_000_000)).string(frame_id)
 
-    def sequence(self, code: str, values) -> _CdrBody:
-        """A sequence of one primitive: its length, then (if any) the values, aligned."""
-        self.values('I', len(values))
-        return self.values(code, *values) if len(values) else self
-
     def raw(self, data: bytes) -> _CdrBody:
         """A uint8[] sequence."""
         self.values('I', len(data))
@@ -438,23 +441,45 @@ class _CdrBody:
 
 # Marker.type and Marker.action values (visualization_msgs/Marker).
 _LINE_LIST, _ADD, _DELETEALL = 5, 0, 3
+_TIME = struct.Struct('<iI')
 
 
-def _marker(body: _CdrBody, stamp_ns: int, frame_id: str, ns: str, kind: int, action: int,
-            scale_x: float, rgba: tuple[float, float, float, float],
-            points: Sequence[float]) -> None:
+def _marker(body: _CdrBody, frame_id: str, ns: str, kind: int, action: int, scale_x: float,
+            rgba: tuple[float, float, float, float], points: bool) -> None:
     """One visualization_msgs/Marker (id 0, identity pose, no lifetime, no texture, mesh or
-    text) with `points` as (x, y, z) triples flattened."""
-    body.header(stamp_ns, frame_id).string(ns).values('iii', 0, kind, action)
+    text); its stamp and (with points) its points' count are marked, the points left out."""
+    body.mark().header(0, frame_id).string(ns).values('iii', 0, kind, action)
     body.values('d', 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, scale_x, 0.0, 0.0)   # pose, scale
     body.values('f', *rgba).values('iI', 0, 0).values('?', False)          # colour, lifetime
-    body.values('I', len(points) // 3)
     if points:
-        body.values('d', *points)
+        body.mark().values('I', 0)
+        pad = -body.size % 8                              # the points (x, y, z), 8-aligned
+        body.parts.append(bytes(pad))
+        body.size += pad
+        body.mark()
+    else:
+        body.values('I', 0)
     body.values('I', 0).string('')                        # colors, texture_resource
     body.header(0, '').string('').raw(b'')                # texture (CompressedImage)
     body.values('I', 0).string('').string('')             # uv_coordinates, text, mesh_resource
     body.string('').raw(b'').values('?', False)           # mesh_file, mesh_use_embedded_...
+
+
+@functools.lru_cache(maxsize=16)
+def _line_list_layout(frame_id: str, ns: str, width_m: float,
+                      rgba: tuple[float, float, float, float], empty: bool):
+    """The MarkerArray of line_list_markers_cdr for stamp 0: (the bytes before and after the
+    LINE_LIST's points (with `empty`: the whole array of the DELETEALL marker alone), the
+    offsets of the stamps and of the points' count)."""
+    body = _CdrBody().values('I', 1 if empty else 2)
+    _marker(body, frame_id, ns, 0, _DELETEALL, 0.0, (0.0, 0.0, 0.0, 0.0), False)
+    if not empty:
+        _marker(body, frame_id, ns, _LINE_LIST, _ADD, width_m, rgba, True)
+    data = body.bytes()
+    if empty:
+        return data, b'', body.marks
+    points_at = body.marks.pop()
+    return data[:points_at], data[points_at:], body.marks
 
 
 def line_list_markers_cdr(stamp_ns: int, frame_id: str, ns: str, width_m: float,
@@ -462,13 +487,35 @@ def line_list_markers_cdr(stamp_ns: int, frame_id: str, ns: str, width_m: float,
                           segments: Sequence[tuple[float, float, float, float]]) -> bytes:
     """visualization_msgs/MarkerArray as CDR bytes: a DELETEALL marker (clears what an earlier
     array showed), then, if there are segments, one LINE_LIST marker (id 0 in `ns`, width_m
-    wide (m), colour rgba) with each segment (x0, y0, x1, y1) (m, z = 0) as a pair of points."""
-    body = _CdrBody().values('I', 2 if segments else 1)
-    _marker(body, stamp_ns, frame_id, ns, 0, _DELETEALL, 0.0, (0.0, 0.0, 0.0, 0.0), ())
-    if segments:
-        points = [v for x0, y0, x1, y1 in segments for v in (x0, y0, 0.0, x1, y1, 0.0)]
-        _marker(body, stamp_ns, frame_id, ns, _LINE_LIST, _ADD, width_m, rgba, points)
-    return body.bytes()
+    wide (m), colour rgba) with each segment (x0, y0, x1, y1) (m, z = 0) as a pair of points.
+    The layout is built once per frame, namespace and style; a message patches in its stamps
+    and appends its points."""
+    head, tail, marks = _line_list_layout(frame_id, ns, width_m, tuple(rgba), not segments)
+    out = bytearray(head)
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    if not segments:
+        _TIME.pack_into(out, marks[0], sec, nanosec)
+        return bytes(out)
+    _TIME.pack_into(out, marks[0], sec, nanosec)
+    _TIME.pack_into(out, marks[1], sec, nanosec)
+    _LENGTH.pack_into(out, marks[2], 2 * len(segments))
+    out += struct.pack(f'<{6 * len(segments)}d', *[
+        v for x0, y0, x1, y1 in segments for v in (x0, y0, 0.0, x1, y1, 0.0)])
+    out += tail
+    return bytes(out)
+
+
+@functools.lru_cache(maxsize=16)
+def _point_cloud_layout(frame_id: str, fields: tuple[tuple[str, int, int], ...],
+                        point_step: int):
+    """point_cloud2_cdr's message for stamp 0 and no points: its bytes up to the data and the
+    offsets of the stamp, width, row_step and data length."""
+    body = _CdrBody().mark().header(0, frame_id).values('I', 1).mark().values('I', 0)
+    body.values('I', len(fields))
+    for name, offset, datatype in fields:
+        body.string(name).values('I', offset).values('B', datatype).values('I', 1)
+    body.values('?', False).values('I', point_step).mark().values('I', 0).mark().values('I', 0)
+    return body.bytes(), body.marks
 
 
 def point_cloud2_cdr(stamp_ns: int, frame_id: str, fields: Sequence[tuple[str, int, int]],
@@ -476,9 +523,13 @@ def point_cloud2_cdr(stamp_ns: int, frame_id: str, fields: Sequence[tuple[str, i
     """sensor_msgs/PointCloud2 as CDR bytes: one row (height 1) of `width` points of
     point_step bytes each (little endian, dense), with `fields` as (name, offset, datatype),
     count 1 each."""
-    body = _CdrBody().header(stamp_ns, frame_id).values('II', 1, width)
-    body.values('I', len(fields))
-    for name, offset, datatype in fields:
-        body.string(name).values('I', offset).values('B', datatype).values('I', 1)
-    body.values('?', False).values('II', point_step, point_step * width).raw(data)
-    return body.values('?', True).bytes()
+    head, (stamp_at, width_at, row_step_at, length_at) = _point_cloud_layout(
+        frame_id, tuple(fields), point_step)
+    out = bytearray(head)
+    _TIME.pack_into(out, stamp_at, *divmod(int(stamp_ns), 1_000_000_000))
+    _LENGTH.pack_into(out, width_at, width)
+    _LENGTH.pack_into(out, row_step_at, point_step * width)
+    _LENGTH.pack_into(out, length_at, len(data))
+    out += data
+    out.append(1)                 # is_dense
+    return bytes(out)
