@@ -34,14 +34,9 @@ from sensing_nodes.bags.storage import TYPESTORE, type_name
 from sensing_nodes.core.geometry import quaternion
 from sensing_nodes.core.geometry.se2 import Pose2
 from sensing_nodes.core.geometry.transform import Transform
-from sensing_nodes.ros.conversions import PLANAR_IN_36
 
 _CDR_LE = b'\x00\x01\x00\x00'   # encapsulation: plain CDR, little endian, no options
-_STAMP = struct.Struct('<iI')
 _LENGTH = struct.Struct('<I')
-_IMU_DOUBLES = struct.Struct('<37d')      # orientation, covariance, rate, cov., accel., cov.
-_ODOMETRY_DOUBLES = struct.Struct('<85d')  # pose (7), covariance (36), twist (6), cov. (36)
-_TRANSFORM_DOUBLES = struct.Struct('<7d')  # translation, rotation (x, y, z, w)
 _ONE = _LENGTH.pack(1)
 _ZEROS_36 = (0.0,) * 36
 
@@ -328,18 +323,14 @@ def create_decoded_subscription(node: Node, msg_class: type, topic: str,
     return node.create_subscription(msg_class, topic, on_raw, qos, raw=True)
 
 
-def _stamped_prefix(stamp_ns: int, strings: tuple[str, ...], lead: bytes = b'') -> bytes:
-    """Encapsulation, `lead` (4-byte fields before the header: a sequence's length), header
-    stamp and the strings that follow it (frame ids), padded so the float64 fields after them
-    start 8-aligned (CDR aligns relative to the encapsulation end)."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    return _CDR_LE + lead + _STAMP.pack(sec, nanosec) + _strings(strings, len(lead) + 8)
-
-
 @functools.lru_cache(maxsize=64)
-def _strings(strings: tuple[str, ...], size: int) -> bytes:
-    """CDR strings starting `size` bytes into the body, then padding to an 8-byte boundary (the
-    same few frame ids in every message of a node: built once)."""
+def _stamped_layout(strings: tuple[str, ...], lead: bytes, doubles: int):
+    """(pack, head, tail) of a message that is `lead` (4-byte fields before the header: a
+    sequence's length), a header stamp, strings (frame ids) and `doubles` float64 fields:
+    pack(head, sec, nanosec, tail, *doubles) gives its CDR bytes. head is the encapsulation and
+    lead, tail the strings padded so the float64 fields start 8-aligned (CDR aligns relative to
+    the encapsulation's end); the same few frame ids in every message of a node: built once."""
+    size = len(lead) + 8
     parts = []
     for text in strings:
         data = text.encode() + b'\x00'
@@ -347,7 +338,8 @@ def _strings(strings: tuple[str, ...], size: int) -> bytes:
         parts += [b'\x00' * pad, _LENGTH.pack(len(data)), data]
         size += pad + 4 + len(data)
     parts.append(b'\x00' * (-size % 8))
-    return b''.join(parts)
+    head, tail = _CDR_LE + lead, b''.join(parts)
+    return struct.Struct(f'<{len(head)}siI{len(tail)}s{doubles}d').pack, head, tail
 
 
 def imu_cdr(stamp_ns: int, frame_id: str, orientation: Sequence[float],
@@ -356,17 +348,22 @@ def imu_cdr(stamp_ns: int, frame_id: str, orientation: Sequence[float],
             linear_acceleration_covariance: Sequence[float]) -> bytes:
     """sensor_msgs/Imu as CDR bytes: quaternion (x, y, z, w), rates (rad/s), accelerations
     (m/s^2) and their 9-element row-major covariances."""
-    return _stamped_prefix(stamp_ns, (frame_id,)) + _IMU_DOUBLES.pack(
-        *orientation, *orientation_covariance, *angular_velocity, *angular_velocity_covariance,
-        *linear_acceleration, *linear_acceleration_covariance)
+    pack, head, tail = _stamped_layout((frame_id,), b'', 37)
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return pack(head, sec, nanosec, tail, *orientation, *orientation_covariance,
+                *angular_velocity, *angular_velocity_covariance, *linear_acceleration,
+                *linear_acceleration_covariance)
 
 
-def _planar_36(cov3) -> list[float]:
-    """3x3 covariance over (x, y, yaw) -> 36 values of a 6x6 ROS covariance (rest zero)."""
-    out = list(_ZEROS_36)
-    for index, value in zip(PLANAR_IN_36, np.asarray(cov3, dtype=float).ravel().tolist()):
-        out[index] = value
-    return out
+_ZEROS_18 = (0.0,) * 18
+
+
+def _planar_36(cov3) -> tuple[float, ...]:
+    """3x3 covariance over (x, y, yaw) -> 36 values of a 6x6 ROS covariance (rest zero), its
+    entries at conversions.PLANAR_IN_36 (test_cdr compares with make_odometry)."""
+    xx, xy, xt, yx, yy, yt, tx, ty, tt = np.asarray(cov3, dtype=float).ravel().tolist()
+    return (xx, xy, 0.0, 0.0, 0.0, xt, yx, yy, 0.0, 0.0, 0.0, yt, *_ZEROS_18,
+            tx, ty, 0.0, 0.0, 0.0, tt)
 
 
 def odometry_cdr(stamp_ns: int, frame_id: str, child_frame_id: str, pose: Pose2,
@@ -375,18 +372,22 @@ def odometry_cdr(stamp_ns: int, frame_id: str, child_frame_id: str, pose: Pose2,
     """nav_msgs/Odometry as CDR bytes, the same message as conversions.make_odometry with the
     same arguments: planar pose (x, y, yaw) in frame_id with its 3x3 covariance, twist (vx, vy,
     wz) in child_frame_id with its 3x3 covariance (None: zero)."""
-    return _stamped_prefix(stamp_ns, (frame_id, child_frame_id)) + _ODOMETRY_DOUBLES.pack(
-        float(pose[0]), float(pose[1]), 0.0, *quaternion.from_yaw(float(pose[2])),
-        *_planar_36(pose_covariance),
-        float(twist[0]), float(twist[1]), 0.0, 0.0, 0.0, float(twist[2]),
-        *(_ZEROS_36 if twist_covariance is None else _planar_36(twist_covariance)))
+    pack, head, tail = _stamped_layout((frame_id, child_frame_id), b'', 85)
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return pack(head, sec, nanosec, tail,
+                float(pose[0]), float(pose[1]), 0.0, *quaternion.from_yaw(float(pose[2])),
+                *_planar_36(pose_covariance),
+                float(twist[0]), float(twist[1]), 0.0, 0.0, 0.0, float(twist[2]),
+                *(_ZEROS_36 if twist_covariance is None else _planar_36(twist_covariance)))
 
 
 def transform_cdr(stamp_ns: int, parent: str, child: str, transform: Transform) -> bytes:
     """tf2_msgs/TFMessage of one transform as CDR bytes, the same message as
     tf.transform_message with the same arguments: the child frame's pose in the parent frame."""
-    return _stamped_prefix(stamp_ns, (parent, child), _ONE) + _TRANSFORM_DOUBLES.pack(
-        *(float(v) for v in transform.translation), *(float(v) for v in transform.rotation))
+    pack, head, tail = _stamped_layout((parent, child), _ONE, 7)
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return pack(head, sec, nanosec, tail, *(float(v) for v in transform.translation),
+                *(float(v) for v in transform.rotation))
 
 
 class _CdrBody:
