@@ -35,6 +35,7 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message
+from rosbags.typesys.base import normalize_fieldname
 
 from sensing_nodes.bags.storage import TYPESTORE, type_name
 from sensing_nodes.core.geometry import quaternion
@@ -57,10 +58,7 @@ def cdr_decoder(msg_class: type) -> Callable[[bytes], Any]:
     padding before an empty sequence of doubles) are ignored, as rclpy does.
     """
     msgtype = type_name(msg_class)
-    msgdef = TYPESTORE.get_msgdef(msgtype)
-    cls = msgdef.cls
     fast = _fast_decoder(msgtype)
-    decoders = {0: msgdef.deserialize_cdr_be, 1: msgdef.deserialize_cdr_le}
 
     def decode(raw: bytes) -> Any:
         if fast is not None and len(raw) >= 4 and raw[0] == 0 and raw[1] == 1:
@@ -68,15 +66,24 @@ def cdr_decoder(msg_class: type) -> Callable[[bytes], Any]:
                 return fast(raw)
             except Exception:   # noqa: BLE001 - malformed here: rosbags and rclpy decide
                 pass
-        decode_body = decoders.get(raw[1]) if len(raw) >= 4 and raw[0] == 0 else None
-        if decode_body is not None:
+        if len(raw) >= 4 and raw[0] == 0 and raw[1] in (0, 1):
+            # rosbags' message definition (13 generated functions for the type and each type
+            # in it: 0.28 MB for Imu and Odometry) only for bytes that need it.
+            msgdef = TYPESTORE.get_msgdef(msgtype)
+            decode_body = msgdef.deserialize_cdr_le if raw[1] else msgdef.deserialize_cdr_be
             try:
-                return decode_body(memoryview(raw)[4:], 0, cls, TYPESTORE)[0]
+                return decode_body(memoryview(raw)[4:], 0, msgdef.cls, TYPESTORE)[0]
             except Exception:   # noqa: BLE001 - rclpy's deserializer decides (and says why)
                 pass
         return deserialize_message(raw, msg_class)
 
     return decode
+
+
+def _fields(msgtype: str) -> list[tuple[str, Any]]:
+    """(name, rosbags field description) of a type's fields, names as rosbags' message classes
+    have them, read from the typestore's definitions without generating its serializers."""
+    return [(normalize_fieldname(name), desc) for name, desc in TYPESTORE.fielddefs[msgtype][1]]
 
 
 class _Malformed(Exception):
@@ -93,7 +100,7 @@ def message_tuple_class(msgtype: str) -> type:
     no Python __init__ per sub-message), with __msgtype__ as rosbags' classes have."""
     cls = _MESSAGE_CLASSES.get(msgtype)
     if cls is None:
-        fields = [name for name, _ in TYPESTORE.get_msgdef(msgtype).fields]
+        fields = [name for name, _ in _fields(msgtype)]
         cls = collections.namedtuple(msgtype.rsplit('/', 1)[-1], fields)
         cls.__msgtype__ = msgtype
         _MESSAGE_CLASSES[msgtype] = cls
@@ -164,7 +171,7 @@ class _DecoderSource:
 
     def message(self, msgtype: str) -> str:
         """Lines reading a message's fields; the expression that builds it."""
-        parts = [self.field(desc) for _, desc in TYPESTORE.get_msgdef(msgtype).fields]
+        parts = [self.field(desc) for _, desc in _fields(msgtype)]
         cls_name = self._name('M')
         self.scope[cls_name] = message_tuple_class(msgtype)
         return f'_new({cls_name}, ({", ".join(parts)}{"," if len(parts) == 1 else ""}))'
@@ -298,10 +305,21 @@ class _DecoderSource:
 
 
 def _first_alignment(msgtype: str) -> int:
-    """Alignment of a message's first field (where an element of a sequence of it starts)."""
-    from rosbags.serde.utils import align
+    """Alignment of a message's first field (where an element of a sequence of it starts), as
+    rosbags.serde.utils.align gives it."""
+    from rosbags.interfaces import Nodetype
+    from rosbags.serde.utils import SIZEMAP
 
-    return align(TYPESTORE.get_msgdef(msgtype).fields[0][1], TYPESTORE)
+    desc = _fields(msgtype)[0][1]
+    while True:
+        if desc[0] == Nodetype.NAME:
+            desc = _fields(desc[1])[0][1]
+        elif desc[0] == Nodetype.ARRAY:
+            desc = desc[1][0]
+        elif desc[0] == Nodetype.SEQUENCE or desc[1][0] == 'string':
+            return 4
+        else:
+            return SIZEMAP[desc[1][0]]
 
 
 def create_decoded_subscription(node: Node, msg_class: type, topic: str,
