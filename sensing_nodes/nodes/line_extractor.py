@@ -9,6 +9,7 @@ docs/nodes/line_extractor.md.
 from __future__ import annotations
 
 import math
+import struct
 import sys
 
 import numpy as np
@@ -52,18 +53,22 @@ MARKER_NS = 'lines'
 TABLE_COLUMNS = tuple((name, TABLE_DTYPE.fields[name][1], datatype)
                       for name, datatype, _ in TABLE_FIELDS)   # (name, offset, datatype)
 MARKER_RGBA = (1.0, 0.45, 0.0, 1.0)
+# One table row packed as TABLE_DTYPE lays it out (no padding, little endian): a struct per row
+# costs a tenth of filling a numpy structured row.
+_TABLE_ROW = struct.Struct('<' + ''.join(np.dtype(t).char for _, _, t in TABLE_FIELDS))
+assert _TABLE_ROW.size == TABLE_DTYPE.itemsize
 
 
 def lines_table_cdr(lines: list[Line], stamp_ns: int, frame_id: str) -> bytes:
     """The lines as a PointCloud2 (CDR bytes) with one point per line and the TABLE_FIELDS
     columns, stamped and framed as the scan."""
-    rows = np.zeros(len(lines), dtype=TABLE_DTYPE)
-    for i, line in enumerate(lines):
+    rows = []
+    for line in lines:
         (rr, ra), (_, aa) = line.covariance.tolist()
-        rows[i] = (line.r, line.alpha, rr, ra, aa, line.start[0], line.start[1], line.end[0],
-                   line.end[1], line.first, line.last, line.point_count)
+        rows.append(_TABLE_ROW.pack(line.r, line.alpha, rr, ra, aa, *line.start, *line.end,
+                                    line.first, line.last, line.point_count))
     return point_cloud2_cdr(stamp_ns, frame_id, TABLE_COLUMNS, TABLE_DTYPE.itemsize, len(lines),
-                            rows.tobytes())
+                            b''.join(rows))
 
 
 def lines_markers_cdr(lines: list[Line], stamp_ns: int, frame_id: str, width_m: float) -> bytes:
