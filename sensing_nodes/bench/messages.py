@@ -111,7 +111,8 @@ def processors(bag) -> dict:
     wheel_odom: list = []
     for node in ('wheel_odometry', 'gyro_integrator', 'line_extractor'):
         fed = rows if node != 'gyro_integrator' else list(heapq.merge(
-            rows, wheel_odom, key=lambda row: row[1]))
+            [row for row in rows if row[0] != '/wheel/odom'], wheel_odom,
+            key=lambda row: row[1]))   # the wheel processor's, not a recorded /wheel/odom
         seconds, count, outputs = _time_node(node, fed)
         if node == 'wheel_odometry':
             wheel_odom = [row for row in outputs if row[0] == '/wheel/odom']
