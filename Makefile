@@ -23,9 +23,11 @@ $(READY): requirements.txt setup.py setup.cfg package.xml $(wildcard interfaces/
 demo: $(READY)
 	$(BIN)/sensing_demo
 
+# Two pytest-xdist workers, each on a DDS domain of its own (test/conftest.py), a test file to a
+# worker (module fixtures are built once): most tests wait on processes and DDS, not the CPU.
 test: $(READY)
 	$(BIN)/ruff check .
-	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(BIN)/python -m pytest -q
+	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 lint: $(READY)
 	$(BIN)/ruff check .

@@ -38,10 +38,9 @@ NOMINAL = {
 
 
 def make_bag(path: Path, duration_s: float, seed: int = 1, **overrides) -> sim.SimParams:
-    # Every beam at the scan's stamp, as the bounds below were measured: the calibration's scan
-    # matching does not deskew a sweep (with sensor_sim's default 0.1 s sweep, one run: the
-    # separation 1.0 % and the laser yaw 2.0 deg off).
-    overrides.setdefault('scan_sweep_fraction', 0.0)
+    # sensor_sim's default scanner sweeps (each beam at its own time): the calibration deskews
+    # each scan by the nominal odometry (without it, one run: the separation 1.0 % and the
+    # laser yaw 2.0 deg off).
     params = sim.SimParams(**overrides)
     record(path, duration_s, params, NodeSettings(seed=seed),
            load_world(config_file('default_world.yaml')))
@@ -331,3 +330,27 @@ def test_odom_delay_on_the_carmen_logs(tmp_path, capsys, log):
     expected = {'aces': 0.044, 'freiburg-101': -0.155}[log]
     assert report['odom_delay_s'] == pytest.approx(expected, abs=0.02)
     assert not report['two_sided']
+
+
+def test_a_swept_scan_is_deskewed_to_its_stamp_by_the_encoders():
+    """A robot turning on the spot at 1 rad/s, its laser 0.1 m ahead: a wall point seen by beams
+    taken 0..0.1 s after the stamp is moved to where the laser saw it at the stamp (worked: the
+    laser's pose at each beam's time from the exact turn)."""
+    from sensing_nodes.core.evaluation.calibration import Geometry, deskew_scans
+    from sensing_nodes.core.geometry.se2 import compose, inverse, transform_points
+
+    geometry = Geometry(0.05, 0.05, 0.30, 0.10, 0.0, 0.0)
+    w = 1.0                                    # rad/s, on the spot: wheels at -+ w b / 2 r
+    joint_t = np.arange(0, 201) * 5_000_000    # 200 Hz for 1 s
+    wheel_rate = w * geometry.wheel_separation_m / 2 / geometry.left_radius_m
+    joint_pos = np.column_stack([-wheel_rate * joint_t * 1e-9, wheel_rate * joint_t * 1e-9])
+    stamp, times = 300_000_000, np.linspace(0.0, 0.1, 11)
+    world = np.array([[2.0, 0.5]] * times.size)
+    seen = np.array([transform_points(inverse(compose((0.0, 0.0, w * (0.3 + s)),
+                                                      geometry.laser_pose)), world[:1])[0]
+                     for s in times])
+    at_stamp = transform_points(inverse(compose((0.0, 0.0, w * 0.3), geometry.laser_pose)),
+                                world[:1])[0]
+    out = deskew_scans(joint_t, joint_pos, np.array([stamp]), [seen], [times], geometry)[0]
+    assert np.abs(seen - at_stamp).max() > 0.1          # the sweep moved the point
+    np.testing.assert_allclose(out, np.tile(at_stamp, (times.size, 1)), atol=1e-9)

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from harness import REPO, run_to_exit
 
-from sensing_nodes.bags.storage import BagReader, read_messages, topic_counts
+from sensing_nodes.bags.storage import BagReader, canonical_cdr, read_messages, topic_counts
 from sensing_nodes.graph.compare import compare_outputs, output_messages
 
 BAGS = REPO / 'bags'
@@ -67,6 +67,12 @@ def test_shipped_bag_outputs_equal_the_lockstep_replay(tmp_path, name):
         assert counts[topic] == original[topic]
     assert counts['/scan_match/keyframe_odom'][1] == original['/scan'][1]
     assert '/diagnostics' not in counts
+    # The outputs are stored as the nodes packed them, without the writer's canonical_cdr:
+    # they must be canonical CDR already.
+    reader = BagReader(out)
+    for topic, _, raw in reader.raw():
+        if topic in OUTPUTS | {'/tf', '/scan_match/keyframe_odom'}:
+            assert canonical_cdr(raw, reader.topics[topic].msgtype) == bytes(raw), topic
 
 
 def test_subset_of_nodes_takes_the_recorded_upstream_outputs(tmp_path):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import shutil
 from collections import defaultdict
 from dataclasses import dataclass, field
+from operator import itemgetter
 from pathlib import Path
 
 from sensing_nodes.bags.stamps import first_field_type, shifted_stamp
@@ -111,9 +112,12 @@ def warm_up_bag(bag: InputBag, inputs: set[str], warmup_s: float) -> InputBag:
 
 def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types: dict[str, str],
                      outputs: set[str], compress: bool = False,
-                     offered: dict[str, list] | None = None) -> dict[str, int]:
+                     offered: dict[str, list] | None = None,
+                     canonical_outputs: bool = False) -> dict[str, int]:
     """The input bag's topics (all but the graph's outputs) plus what the graph published, each
-    with the QoS it was offered with (`offered`: topic -> profiles; else the input bag's)."""
+    with the QoS it was offered with (`offered`: topic -> profiles; else the input bag's).
+    canonical_outputs: the outputs are canonical CDR already (sensing_pipeline's), stored as
+    they are."""
     from sensing_nodes.bags.storage import BagWriter
 
     offered = offered or {}
@@ -129,8 +133,9 @@ def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types
         merged = [(s, 0, t, raw) for t, s, raw in bag.messages if t not in outputs]
         merged += [(s, 1, t, raw) for t in sorted(result.outputs) for s, raw in result.outputs[t]]
         # Outputs after the input of the same stamp; each topic keeps its arrival order.
-        merged.sort(key=lambda row: (row[0], row[1]))
-        out.write_raw_many((topic, raw, stamp) for stamp, _, topic, raw in merged)
+        merged.sort(key=itemgetter(0, 1))
+        out.write_raw_many(((topic, raw, stamp) for stamp, _, topic, raw in merged),
+                           frozenset(result.outputs) if canonical_outputs else frozenset())
         return dict(out.counts)
 
 

@@ -41,7 +41,8 @@ class SensorBagError(Exception):
 @dataclass
 class ScanStream:
     """LaserScans: stamps (S,) ns, ranges (S, B) float (REP 117 values kept), beam angles (B,)
-    rad in the laser frame, range limits (m), frame id."""
+    rad in the laser frame, range limits (m), frame id, and the time between beams (s,
+    LaserScan.time_increment of the first scan; 0: every beam taken at the stamp)."""
 
     topic: str
     t: NDArray[np.int64]
@@ -50,6 +51,13 @@ class ScanStream:
     range_min: float
     range_max: float
     frame_id: str
+    time_increment_s: float = 0.0
+
+    def beam_times(self, beam_index: NDArray[np.intp]) -> NDArray[np.float64] | None:
+        """When each beam was taken (s after the stamp), or None when all at the stamp."""
+        if not self.time_increment_s > 0.0:
+            return None
+        return np.asarray(beam_index, dtype=float) * self.time_increment_s
 
 
 @dataclass
@@ -204,7 +212,8 @@ class _StreamRows:
     def _scan(self, t: int, msg) -> bool:
         """Ranges of scans with the first one's beam layout; another layout is skipped."""
         meta = (float(msg.angle_min), float(msg.angle_increment), len(msg.ranges),
-                float(msg.range_min), float(msg.range_max), msg.header.frame_id)
+                float(msg.range_min), float(msg.range_max), msg.header.frame_id,
+                float(msg.time_increment))
         if self.scan_meta is None:
             self.scan_meta = meta
         if meta[:3] != self.scan_meta[:3]:
@@ -227,9 +236,9 @@ class _StreamRows:
                 by_kind['joints'], self.names, t, pos
         if rows['scan']:
             t, ranges = _sorted(rows['scan'], 1)
-            amin, inc, n, rmin, rmax, frame = self.scan_meta
+            amin, inc, n, rmin, rmax, frame, time_increment = self.scan_meta
             data.scans = ScanStream(by_kind['scan'], t, ranges, amin + inc * np.arange(n),
-                                    rmin, rmax, frame)
+                                    rmin, rmax, frame, time_increment)
         if rows['imu']:
             t, gyro, accel = _sorted(rows['imu'], 2)
             bad = ~(np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1))

@@ -27,7 +27,14 @@ from typing import Any
 
 import yaml
 from rclpy.serialization import deserialize_message, serialize_message
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import (
+    CompressionFormat,
+    CompressionMode,
+    Reader,
+    StoragePlugin,
+    Writer,
+    WriterError,
+)
 from rosbags.typesys import Stores, get_typestore
 
 from sensing_nodes.bags.recovery import (
@@ -42,6 +49,11 @@ from sensing_nodes.bags.recovery import (
 _DEFERRED_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 _SIGNAL_BATCH = 5000   # messages written with the signals held off (a few ms)
 CHUNK_S = 1.0          # bag time an MCAP chunk spans at most: what a crash can lose
+# rosbags' MCAP writer (pinned in requirements.txt): a Message record (opcode, record length,
+# channel id, sequence, log time, publish time, then the data) and the chunk size past which it
+# closes a chunk; BagWriter._append writes what its write() writes.
+_MESSAGE_RECORD = struct.Struct('<BQHIQQ')
+_MCAP_CHUNK_BYTES = 2**20
 FSYNC_INTERVAL_S = 1.0  # wall time between two fsyncs at most: what a power cut can lose more
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -334,21 +346,62 @@ class BagWriter:
         with add_topic; it is stored in canonical CDR."""
         self.write_raw_many(((topic, data, stamp_ns),))
 
-    def write_raw_many(self, rows: Iterable[tuple[str, bytes, int]]) -> None:
-        """write_raw of each (topic, CDR bytes, bag time ns), in order."""
+    def write_raw_many(self, rows: Iterable[tuple[str, bytes, int]],
+                       canonical_topics: frozenset[str] | set[str] = frozenset()) -> None:
+        """write_raw of each (topic, CDR bytes, bag time ns), in order. Messages of
+        `canonical_topics` are already canonical CDR (ros/cdr.py's encoders write nothing else;
+        sensing_pipeline canonicalises what rclpy serialised) and are stored as they are."""
         rows = iter(rows)
         while True:
             batch = list(itertools.islice(rows, _SIGNAL_BATCH))
             if not batch:
                 return
             with _signals_held():
-                for topic, data, stamp_ns in batch:
-                    connection = self._connections[topic]
-                    self._writer.write(connection, int(stamp_ns),
-                                       canonical_cdr(data, connection.msgtype))
-                    self.counts[topic] += 1
-                    if self._chunk_ns is not None:
-                        self._chunk_after(int(stamp_ns))
+                self._append(batch, canonical_topics)
+
+    def _append(self, batch: list[tuple[str, bytes, int]], canonical_topics) -> None:
+        """Store messages as rosbags' Writer.write and its MCAP storage's write do, message by
+        message (the same records, indexes, statistics and chunk closes: test_storage compares
+        the files byte for byte), without their per-call checks and record buffers: their
+        ~4 us per message were most of sensing_pipeline's writing. The connections are this
+        writer's own and compression is per chunk (never per message), which the checks were
+        for."""
+        writer, connections, counts = self._writer, self._connections, self.counts
+        storage = writer.storage
+        if storage is None:
+            raise WriterError('Bag was not opened.')
+        written, stats, record = writer.counts, storage.channel_stats, _MESSAGE_RECORD.pack
+        chunk = storage.chunk
+        for topic, data, stamp_ns in batch:
+            connection = connections[topic]
+            if topic not in canonical_topics:
+                data = canonical_cdr(data, connection.msgtype)
+            stamp, cid = int(stamp_ns), connection.id
+            if stamp < writer.min_timestamp:
+                writer.min_timestamp = stamp
+            if stamp > writer.max_timestamp:
+                writer.max_timestamp = stamp
+            if stamp < storage.message_start_time:
+                storage.message_start_time = stamp
+            if stamp > storage.message_end_time:
+                storage.message_end_time = stamp
+            stats[cid] += 1
+            if stamp < chunk.message_start_time:
+                chunk.message_start_time = stamp
+            if stamp > chunk.message_end_time:
+                chunk.message_end_time = stamp
+            bio = chunk.bio
+            chunk.msgs[cid].append((stamp, bio.tell()))
+            bio.write(record(0x05, 22 + len(data), cid, 0, stamp, stamp))
+            bio.write(data)
+            if bio.tell() > _MCAP_CHUNK_BYTES:
+                storage.close_chunk()
+                chunk = storage.chunk
+            written[cid] += 1
+            counts[topic] += 1
+            if self._chunk_ns is not None:
+                self._chunk_after(stamp)
+                chunk = storage.chunk
 
     def _chunk_after(self, stamp_ns: int) -> None:
         """Close the open chunk once its messages span chunk_s of bag time."""

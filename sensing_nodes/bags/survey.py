@@ -188,7 +188,8 @@ class _Collector:
     def _scan(self, topic: str, t: int, msg) -> None:
         layout = (float(msg.angle_min), float(msg.angle_increment), len(msg.ranges))
         meta = self.meta.setdefault(topic + '#scan', layout + (
-            float(msg.range_min), float(msg.range_max), msg.header.frame_id))
+            float(msg.range_min), float(msg.range_max), msg.header.frame_id,
+            float(msg.time_increment)))
         if layout != meta[:3]:
             self.survey.notes.append(f'{topic}: a scan at {t} ns has another beam layout: '
                                      'left out')
@@ -225,9 +226,10 @@ class _Collector:
                 s.joints[topic] = JointStream(topic, self.meta[topic + '#names'], t,
                                               np.array([r[1] for r in rows], dtype=float))
             elif kind == 'scan':
-                amin, inc, n, rmin, rmax, frame = self.meta[topic + '#scan']
+                amin, inc, n, rmin, rmax, frame, time_increment = self.meta[topic + '#scan']
                 s.scans[topic] = ScanStream(topic, t, np.array([r[1] for r in rows]),
-                                            amin + inc * np.arange(n), rmin, rmax, frame)
+                                            amin + inc * np.arange(n), rmin, rmax, frame,
+                                            time_increment)
             elif kind == 'imu':
                 cols = [np.array([r[i] for r in rows], dtype=float) for i in range(1, 7)]
                 s.imus[topic] = ImuStream(topic, self.meta[topic][0], t, *cols)

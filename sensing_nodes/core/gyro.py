@@ -17,7 +17,8 @@ from __future__ import annotations
 import enum
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from operator import add, mul, sub
 from typing import Sequence
 
 import numpy as np
@@ -112,7 +113,7 @@ class ImuUpdate(SampleOutcome):
     still: bool = False
 
 
-@dataclass
+@dataclass(slots=True)
 class _Sample:
     stamp_ns: int
     gyro: tuple[float, float, float]
@@ -144,14 +145,15 @@ class _Window:
             self._ref = values
             self._s1 = [0.0] * 6
             self._s2 = [0.0] * 6
-        shifted = sample.shifted = [v - r for v, r in zip(values, self._ref)]
-        self._s1 = [a + d for a, d in zip(self._s1, shifted)]
-        self._s2 = [a + d * d for a, d in zip(self._s2, shifted)]
+        # Element-wise through map (C loops: this runs per IMU sample), the same operations.
+        shifted = sample.shifted = list(map(sub, values, self._ref))
+        self._s1 = list(map(add, self._s1, shifted))
+        self._s2 = list(map(add, self._s2, map(mul, shifted, shifted)))
         samples.append(sample)
         while len(samples) > 1 and sample.stamp_ns - samples[1].stamp_ns >= self.window_ns:
             old = samples.popleft().shifted
-            self._s1 = [a - d for a, d in zip(self._s1, old)]
-            self._s2 = [a - d * d for a, d in zip(self._s2, old)]
+            self._s1 = list(map(sub, self._s1, old))
+            self._s2 = list(map(sub, self._s2, map(mul, old, old)))
 
     def full(self) -> bool:
         return bool(self.samples) and (
@@ -182,12 +184,12 @@ class GyroIntegrator:
     """
     config: GyroConfig
     yaw: float = 0.0
-    bias: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    bias: tuple[float, float, float] = (0.0, 0.0, 0.0)     # x, y, z (rad/s)
     p_yaw: float = 0.0
     p_cross: float = 0.0
     p_bias: float = -1.0
     stamp_ns: int | None = None
-    rate: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    rate: tuple[float, float, float] = (0.0, 0.0, 0.0)     # bias-corrected x, y, z (rad/s)
     still: bool = False
     calibration_requested: bool = False
     bias_updates: int = 0
@@ -201,7 +203,7 @@ class GyroIntegrator:
     def __post_init__(self) -> None:
         if self.p_bias < 0:
             self.p_bias = self.config.initial_bias_sigma_rad_s ** 2
-            self.bias[2] = self.config.initial_bias_z_rad_s
+            self.bias = (self.bias[0], self.bias[1], float(self.config.initial_bias_z_rad_s))
         self._window = _Window(self.config.stillness_window_s)
 
     # -- wheel odometry gate -------------------------------------------------------------------
@@ -292,8 +294,8 @@ class GyroIntegrator:
         sample.yaw, sample.p_yaw, sample.p_cross = self.yaw, self.p_yaw, self.p_cross
         self.stamp_ns = stamp_ns
         self._prev_gyro = g
-        bx, by, bz = self.bias.tolist()
-        self.rate = np.array((g[0] - bx, g[1] - by, g[2] - bz))
+        bx, by, bz = self.bias
+        self.rate = (g[0] - bx, g[1] - by, g[2] - bz)
         return ImuUpdate(True, step, note=note, still=self.still)
 
     @property
@@ -340,10 +342,10 @@ class GyroIntegrator:
         m = len(fresh)
         zx, zy, zz = np.mean(fresh, axis=0).tolist() if m > 1 else fresh[0]
         r = self.config.noise_density ** 2 / max(dt, 1e-6) / m
-        bx, by, bz = self.bias.tolist()
+        bx, by, bz = self.bias
         self.yaw, self.p_yaw, self.p_cross, self.p_bias, bx, by, bz = _zero_velocity_update(
             self.yaw, self.p_yaw, self.p_cross, self.p_bias, bx, by, bz, zx, zy, zz, r)
-        self.bias = np.array((bx, by, bz))
+        self.bias = (bx, by, bz)
         self._used_until_ns = stamp_ns
         self.bias_updates += m
         # A requested calibration is done once a whole still window has been measured.

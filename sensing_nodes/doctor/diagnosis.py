@@ -278,13 +278,17 @@ def _joint_arrays(d: Diagnosis) -> tuple[np.ndarray, np.ndarray]:
     return t, pos
 
 
-def _scan_points(d: Diagnosis) -> tuple[np.ndarray, list[np.ndarray]]:
+def _scan_points(d: Diagnosis) -> tuple[np.ndarray, list[np.ndarray], list | None]:
+    """Scan stamps (sorted, unique), each scan's points (laser frame) and, for a sweeping
+    scanner (time_increment set), when each point was taken (s after the stamp)."""
     from sensing_nodes.core.geometry.scan import scan_to_points
 
     t, idx = sorted_unique(d.scan.t, np.arange(d.scan.t.size))
-    points = [scan_to_points(d.scan.ranges[i], d.scan.angles, d.scan.range_min,
-                             d.scan.range_max)[0] for i in idx]
-    return t, points
+    converted = [scan_to_points(d.scan.ranges[i], d.scan.angles, d.scan.range_min,
+                                d.scan.range_max) for i in idx]
+    times = None if d.scan.beam_times(np.zeros(1, np.intp)) is None else \
+        [d.scan.beam_times(beams) for _, beams in converted]
+    return t, [points for points, _ in converted], times
 
 
 def wheel_section(d: Diagnosis) -> None:
@@ -295,11 +299,12 @@ def wheel_section(d: Diagnosis) -> None:
         return
     joint_t, joints = _joint_arrays(d)
     if d.scan is not None and np.ptp(joints, axis=0).max() > 1e-6:
-        scan_t, points = _scan_points(d)
+        scan_t, points, beam_times = _scan_points(d)
         nominal = d.declared.geometry
         try:
             for _ in range(2):
-                intervals = cal.make_intervals(joint_t, joints, scan_t, points, nominal)
+                intervals = cal.make_intervals(joint_t, joints, scan_t, points, nominal,
+                                               beam_times=beam_times)
                 result = cal.calibrate(intervals, nominal)
                 found = result.geometry()
                 if abs(found.wheel_separation_m / nominal.wheel_separation_m - 1) < 0.03 and \
@@ -347,20 +352,28 @@ def scan_section(d: Diagnosis) -> None:
     from the wheels or the odometry): the external reference of the other checks."""
     if d.scan is None:
         return
-    scan_t, points = _scan_points(d)
+    scan_t, points, beam_times = _scan_points(d)
     g = d.geometry
     matcher = KeyframeScanMatcher(ScanMatcherSettings(
         laser_pose=(g.laser_x_m, g.laser_y_m, g.laser_yaw_rad), max_gap_s=scan_gap_s(d)))
     guide = d.pose_tracks.get('wheels') or next(
         (d.pose_tracks[o.topic] for o in d.odoms if o.topic in d.pose_tracks), None)
     guess = pose_at(*guide, scan_t) if guide is not None else None
+    # A sweeping scanner: each scan deskewed to its stamp by the guide's motion over the sweep.
+    sweep_ns = 0 if beam_times is None else round(max(
+        (float(b.max()) for b in beam_times if b.size), default=0.0) * 1e9)
+    sweep_end = pose_at(*guide, scan_t + sweep_ns) if guide is not None and sweep_ns else None
     poses, variances, status = [], [], {}
     for i, (stamp, pts) in enumerate(zip(scan_t, points)):
-        motion = None
+        motion = sweep = None
         if guess is not None and i and np.isfinite(guess[i]).all() and \
                 np.isfinite(guess[i - 1]).all():
             motion = se2.between(tuple(guess[i - 1]), tuple(guess[i]))
-        step = matcher.process(int(stamp), pts, motion)
+        if sweep_end is not None and np.isfinite(guess[i]).all() and \
+                np.isfinite(sweep_end[i]).all():
+            sweep = se2.between(tuple(guess[i]), tuple(sweep_end[i]))
+        step = matcher.process(int(stamp), pts, motion,
+                               beam_times[i] if beam_times is not None else None, sweep)
         status[step.status] = status.get(step.status, 0) + 1
         poses.append(step.pose)
         # The match's own variance against its keyframe (NaN where nothing was matched).

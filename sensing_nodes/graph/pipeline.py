@@ -187,8 +187,13 @@ class _Driver:
 
     def receive(self, topic: str, raw: bytes, stamp_ns: int) -> None:
         """CDR bytes on a topic to each of its handlers, decoded once per kind of decoding."""
+        handlers = self.wiring.handlers[topic]
+        if len(handlers) == 1:
+            handler, kind = handlers[0]
+            self.deliver(handler(self.wiring.decoders[topic, kind](raw)), stamp_ns)
+            return
         decoded: dict[bool, Any] = {}
-        for handler, kind in self.wiring.handlers[topic]:
+        for handler, kind in handlers:
             msg = decoded.get(kind)
             if msg is None:
                 msg = decoded[kind] = self.wiring.decoders[topic, kind](raw)
@@ -196,9 +201,9 @@ class _Driver:
 
     def deliver(self, produced, stamp_ns: int) -> None:
         """Depth first: an output reaches its consumers before the next output, as a lockstep
-        replay waits for one input's outputs (and lets them land) first."""
-        from rclpy.serialization import serialize_message
-
+        replay waits for one input's outputs (and lets them land) first. Outputs are recorded
+        in canonical CDR: the nodes' own packing (ros/cdr.py) writes nothing else, an rclpy
+        message is serialised and made canonical here (as the bag writer would)."""
         recorded, wiring = self.result.outputs, self.wiring
         for topic, msg in produced:
             if isinstance(msg, bytes):     # packed by the node itself (ros/cdr.py)
@@ -206,7 +211,12 @@ class _Driver:
                 if topic in wiring.handlers:
                     self.receive(topic, msg, stamp_ns)
                 continue
-            raw = serialize_message(msg)   # now: a node may refill its message in place
+            from rclpy.serialization import serialize_message
+
+            from sensing_nodes.bags.storage import canonical_cdr
+
+            # now: a node may refill its message in place
+            raw = canonical_cdr(serialize_message(msg), wiring.output_types[topic])
             recorded[topic].append((wiring.stamp_of[topic](raw, stamp_ns), raw))
             for handler, _ in wiring.handlers.get(topic, ()):
                 self.deliver(handler(msg), stamp_ns)
@@ -243,7 +253,7 @@ def _write(out: Path, bag, result, wiring: _Wiring, compress: bool) -> None:
     staging.mkdir(parents=True)
     try:
         write_output_bag(staging / out.name, bag, result, wiring.output_types, replaced, compress,
-                         {t: [o.qos] for t, o in wiring.outputs.items()})
+                         {t: [o.qos] for t, o in wiring.outputs.items()}, canonical_outputs=True)
         (staging / out.name).rename(out)
     finally:
         shutil.rmtree(staging, ignore_errors=True)

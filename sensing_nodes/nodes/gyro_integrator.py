@@ -210,7 +210,7 @@ class GyroIntegratorProcessor:
         rate_var = gi.rate_variance()
         out = imu_cdr(
             stamp, self._output_frame, quaternion.from_yaw(gi.heading),
-            _HEADING_ONLY + (gi.heading_variance,), gi.rate.tolist(),
+            _HEADING_ONLY + (gi.heading_variance,), gi.rate,
             (rate_var, 0.0, 0.0, 0.0, rate_var, 0.0, 0.0, 0.0, rate_var),
             (float(accel[0]), float(accel[1]), float(accel[2])),
             raw.linear_acceleration_covariance.tolist())

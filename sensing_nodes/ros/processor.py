@@ -15,7 +15,9 @@ from rclpy.qos import QoSProfile
 
 from sensing_nodes.ros.cdr import create_decoded_subscription
 
-Outputs = list[tuple[str, Any]]   # (topic, rclpy message or its CDR bytes), in publication order
+# (topic, rclpy message or its CDR bytes), in publication order; bytes a processor returns are
+# canonical CDR (ros/cdr.py's encoders), which sensing_pipeline stores as they are.
+Outputs = list[tuple[str, Any]]
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'allan', 'graph_cpu', 'pipeline', 'fusion',
-         'bags', 'doctor']
+         'bags', 'messages', 'doctor']
 
 
 def demo_figures(quick: bool, extra: tuple[str, ...] = ()) -> dict:

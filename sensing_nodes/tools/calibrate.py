@@ -270,8 +270,12 @@ def run(args: argparse.Namespace) -> int:
     if np.ptp(joints, axis=0).max() < 1e-6:
         raise SensorBagError(f'{args.bag}: the wheels never turn: no motion to calibrate from')
     scans = data.scans
-    points = [scan_to_points(r, scans.angles, scans.range_min, scans.range_max)[0]
-              for r in scans.ranges]
+    converted = [scan_to_points(r, scans.angles, scans.range_min, scans.range_max)
+                 for r in scans.ranges]
+    points = [p for p, _ in converted]
+    # A sweeping scanner (time_increment set): each scan deskewed by the nominal odometry.
+    beam_times = None if not scans.time_increment_s > 0.0 else \
+        [scans.beam_times(beams) for _, beams in converted]
     _print_inputs(args, data, columns, nominal)
     options = cal.IntervalOptions(distance_m=args.interval_distance,
                                   angle_rad=math.radians(args.interval_angle))
@@ -281,7 +285,7 @@ def run(args: argparse.Namespace) -> int:
             progress(f'scan matching interval {done}/{total}')
 
     intervals = cal.make_intervals(data.joint_t, joints, scans.t, points, nominal, options,
-                                   match_progress)
+                                   match_progress, beam_times)
     result = cal.calibrate(intervals, nominal)
     gyro = None
     if data.imu_t is not None:

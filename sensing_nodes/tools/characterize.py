@@ -29,7 +29,6 @@ from sensing_nodes.bags.sensor_streams import (
     stderr_progress,
 )
 from sensing_nodes.core.evaluation import characterization as ch
-from sensing_nodes.core.geometry.se2 import wrap_angle
 from sensing_nodes.core.lines import extract_lines
 from sensing_nodes.paths import config_file
 
@@ -184,6 +183,8 @@ def characterize_imu(data: SensorData, png_dir: Path | None) -> bool:
 
 
 def _truth_ranges(data: SensorData, world_file: Path, laser, every: int):
+    """(measured, ray-cast true ranges) of every `every`-th scan, each beam cast from where the
+    laser was when it was taken (a sweeping scanner: time_increment; else at the stamp)."""
     from sensing_nodes.core.sim.world import load_world, raycast
 
     world = load_world(world_file)
@@ -191,17 +192,19 @@ def _truth_ranges(data: SensorData, world_file: Path, laser, every: int):
     base = data.truth_t[0]
     tt = (data.truth_t - base).astype(float)
     yaw_u = np.unwrap(data.truth_pose[:, 2])
+    offsets = scans.beam_times(np.arange(scans.angles.size))
+    offsets = np.zeros(scans.angles.size) if offsets is None else offsets * 1e9
     measured, true = [], []
     for i in range(0, len(scans.t), every):
-        ts = float(scans.t[i] - base)
-        if ts < tt[0] or ts > tt[-1]:
+        ts = float(scans.t[i] - base) + offsets
+        if ts[0] < tt[0] or ts[-1] > tt[-1]:
             continue
         x, y, yaw = (np.interp(ts, tt, c) for c in (data.truth_pose[:, 0], data.truth_pose[:, 1],
                                                       yaw_u))
-        c, s = math.cos(yaw), math.sin(yaw)
-        origin = (x + c * laser[0] - s * laser[1], y + s * laser[0] + c * laser[1])
-        true.append(raycast(world.segments, origin, float(wrap_angle(yaw + laser[2]))
-                            + scans.angles))
+        c, s = np.cos(yaw), np.sin(yaw)
+        origins = np.column_stack((x + c * laser[0] - s * laser[1],
+                                   y + s * laser[0] + c * laser[1]))
+        true.append(raycast(world.segments, origins, yaw + laser[2] + scans.angles))
         measured.append(scans.ranges[i])
     return np.array(measured), np.array(true)
 

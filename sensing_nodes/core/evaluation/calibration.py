@@ -302,6 +302,37 @@ def _encoder_steps(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64], t
     return np.diff(angles, axis=0)
 
 
+def sweep_motion(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64], stamp_ns: int,
+                 sweep_s: float, geometry: Geometry) -> Pose2:
+    """base_link's motion (m, rad) over a scan's sweep, from its stamp to sweep_s later, as the
+    encoders show it through `geometry` (the stamp's base frame)."""
+    return nominal_motion(_encoder_steps(joint_t, joint_pos, int(stamp_ns),
+                                         int(stamp_ns + round(sweep_s * 1e9))), geometry)
+
+
+def deskew_scans(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64],
+                 scan_t: NDArray[np.int64], scan_points: Sequence[NDArray[np.float64]],
+                 beam_times: Sequence[NDArray[np.float64]], geometry: Geometry
+                 ) -> list[NDArray[np.float64]]:
+    """Each scan's points (laser frame, m) moved to where the laser was at the scan's stamp,
+    beam_times[i] (s after the stamp) giving when each point was taken and the encoders the
+    base's motion over the sweep (its mean twist, through `geometry`'s wheels and laser mount).
+    Scans outside the encoder recording are kept as they are."""
+    from sensing_nodes.core.deskew import deskew
+
+    out = []
+    for stamp, points, times in zip(scan_t, scan_points, beam_times):
+        sweep = float(times.max()) if times.size else 0.0
+        end = int(stamp) + round(sweep * 1e9)
+        if sweep <= 0.0 or stamp < joint_t[0] or end > joint_t[-1]:
+            out.append(points)
+            continue
+        dx, dy, dyaw = sweep_motion(joint_t, joint_pos, int(stamp), sweep, geometry)
+        out.append(deskew(points, (dx / sweep, dy / sweep, dyaw / sweep), times,
+                          geometry.laser_pose))
+    return out
+
+
 def _packed(t0s: list, t1s: list, motions: list, covs: list, step_list: list, stills: list,
             rejected: dict[str, int]) -> Intervals:
     """The matched intervals' lists as one Intervals (encoder steps concatenated)."""
@@ -319,16 +350,21 @@ def _packed(t0s: list, t1s: list, motions: list, covs: list, step_list: list, st
 def make_intervals(joint_t: NDArray[np.int64], joint_pos: NDArray[np.float64],
                    scan_t: NDArray[np.int64], scan_points: Sequence[NDArray[np.float64]],
                    nominal: Geometry, options: IntervalOptions = IntervalOptions(),
-                   progress: Callable[[int, int], None] | None = None) -> Intervals:
+                   progress: Callable[[int, int], None] | None = None,
+                   beam_times: Sequence[NDArray[np.float64]] | None = None) -> Intervals:
     """Cut the bag into intervals between scans and scan-match each (see IntervalOptions).
 
     joint_t (J,) ns sorted, joint_pos (J, 2) rad [left, right]; scan_t (S,) ns sorted with
-    scan_points[i] (N_i, 2) in the laser frame. The ICP starts from the nominal odometry seen
-    through the nominal mount. progress(done, total) is called now and then.
+    scan_points[i] (N_i, 2) in the laser frame, taken beam_times[i] (s after the stamp) when
+    the scanner sweeps (deskewed by the nominal odometry first; None: every beam at the
+    stamp). The ICP starts from the nominal odometry seen through the nominal mount.
+    progress(done, total) is called now and then.
     """
     joint_t = np.asarray(joint_t, dtype=np.int64)
     joint_pos = np.asarray(joint_pos, dtype=float)
     scan_t = np.asarray(scan_t, dtype=np.int64)
+    if beam_times is not None:
+        scan_points = deskew_scans(joint_t, joint_pos, scan_t, scan_points, beam_times, nominal)
     inside = (scan_t >= joint_t[0]) & (scan_t <= joint_t[-1])
     scan_idx = np.flatnonzero(inside)
     if scan_idx.size < 2:
