@@ -12,9 +12,14 @@ from pathlib import Path
 from typing import Any, Callable
 
 import rclpy
+from hypothesis import Phase
 
 BIN = Path(sys.executable).parent
 REPO = Path(__file__).resolve().parents[1]
+
+# Hypothesis over DDS: shrinking re-runs a node for each candidate (minutes per failure), so a
+# failing example is reported as generated.
+NO_SHRINK = (Phase.explicit, Phase.generate)
 
 
 def _ros_value(value: Any) -> str:

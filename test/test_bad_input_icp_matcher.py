@@ -13,6 +13,7 @@ import math
 import numpy as np
 import pytest
 from harness import (
+    NO_SHRINK,
     Collector,
     NodeProcess,
     assert_every_kind_warned,
@@ -207,7 +208,7 @@ def run_example(s: Stream, specs, speed, yaw_rate) -> None:
 
 @pytest.mark.parametrize('kind', sorted(KINDS))
 def test_malformed_scans_keep_the_matcher_alive_and_correct(stream, kind):
-    @settings(max_examples=2, deadline=None, derandomize=True, database=None,
+    @settings(max_examples=2, deadline=None, derandomize=True, database=None, phases=NO_SHRINK,
               suppress_health_check=list(HealthCheck))
     @given(forced=bad_spec(kind), others=st.lists(bad_spec(), max_size=2),
            where=st.integers(0, 2), speed=st.floats(0.05, 0.4), yaw_rate=st.floats(-0.5, 0.5))

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import yaml
 from harness import (
+    NO_SHRINK,
     Collector,
     NodeProcess,
     assert_every_kind_warned,
@@ -230,7 +231,7 @@ def run_example(s: Stream, specs, poses) -> None:
 
 @pytest.mark.parametrize('kind', sorted(KINDS))
 def test_malformed_scans_keep_the_node_alive_and_correct(stream, kind):
-    @settings(max_examples=2, deadline=None, derandomize=True, database=None,
+    @settings(max_examples=2, deadline=None, derandomize=True, database=None, phases=NO_SHRINK,
               suppress_health_check=list(HealthCheck))
     @given(forced=bad_spec(kind), others=st.lists(bad_spec(), max_size=2),
            where=st.integers(0, 2), poses=st.lists(POSES, min_size=1, max_size=2))

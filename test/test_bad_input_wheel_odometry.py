@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 from harness import (
+    NO_SHRINK,
     Collector,
     NodeProcess,
     assert_every_kind_warned,
@@ -186,7 +187,7 @@ def run_example(s: Stream, specs, speeds) -> None:
 
 @pytest.mark.parametrize('kind', sorted(KINDS))
 def test_malformed_joint_states_keep_the_node_alive_and_correct(stream, kind):
-    @settings(max_examples=3, deadline=None, derandomize=True, database=None,
+    @settings(max_examples=3, deadline=None, derandomize=True, database=None, phases=NO_SHRINK,
               suppress_health_check=list(HealthCheck))
     @given(forced=bad_spec(kind), others=st.lists(bad_spec(), max_size=3),
            where=st.integers(0, 3), speeds=st.tuples(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5)))
