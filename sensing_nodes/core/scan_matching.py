@@ -154,6 +154,16 @@ def mount_transform(relative_base: Pose2, laser_pose: Pose2) -> Pose2:
     return compose(compose(inverse(laser_pose), relative_base), laser_pose)
 
 
+def predicted_step(odometry_motion: Pose2 | None, twist: Pose2,
+                   dt_s: float) -> tuple[Pose2, str]:
+    """base_link's predicted motion since the previous scan (its base frame; m, rad) and where
+    it came from: the odometry's when it is given and finite, else the constant-velocity
+    model's (the matcher's own twist over dt_s)."""
+    if odometry_motion is not None and all(math.isfinite(v) for v in odometry_motion):
+        return odometry_motion, 'odometry'
+    return (twist[0] * dt_s, twist[1] * dt_s, twist[2] * dt_s), 'constant_velocity'
+
+
 def limit_step(step: Pose2, dt_s: float, max_speed_m_s: float,
                max_yaw_rate_rad_s: float) -> tuple[Pose2, bool]:
     """A motion (base frame, m, rad) over dt_s held to the physical limits: translation and
@@ -264,10 +274,7 @@ class KeyframeScanMatcher:
         """process() for a scan that follows the previous one within max_gap_s."""
         s = self.settings
         dt = (stamp_ns - self.stamp_ns) * 1e-9
-        source = 'odometry'
-        if predicted_motion is None or not all(math.isfinite(v) for v in predicted_motion):
-            source = 'constant_velocity'
-            predicted_motion = (self.twist[0] * dt, self.twist[1] * dt, self.twist[2] * dt)
+        predicted_motion, source = predicted_step(predicted_motion, self.twist, dt)
         predicted = compose(self.pose, predicted_motion)
         guess_base = between(self.keyframe_pose, predicted)
         guess_laser = mount_transform(guess_base, s.laser_pose)
@@ -463,10 +470,7 @@ class LocalMapScanMatcher:
         sweep (mid_pose); the published pose is base_link's at the stamp."""
         s = self.settings
         dt = (stamp_ns - self.stamp_ns) * 1e-9
-        source = 'odometry'
-        if predicted_motion is None or not all(math.isfinite(v) for v in predicted_motion):
-            source = 'constant_velocity'
-            predicted_motion = (self.twist[0] * dt, self.twist[1] * dt, self.twist[2] * dt)
+        predicted_motion, source = predicted_step(predicted_motion, self.twist, dt)
         predicted_motion, limited = limit_step(predicted_motion, dt, s.max_speed_m_s,
                                                s.max_yaw_rate_rad_s)
         if limited:
