@@ -11,14 +11,11 @@ report.json and the load average: compare figures from one run only.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-from sensing_nodes.bench.pipeline import child_cpu_s, executable, record_sim_bag
+from sensing_nodes.bench.pipeline import executable, record_sim_bag, timed_child
 
 
 def run(quick: bool = False) -> dict:
@@ -27,22 +24,19 @@ def run(quick: bool = False) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         bag, out = Path(tmp) / 'bag', Path(tmp) / 'out'
         record_sim_bag(bag, duration_s)
-        load_start = os.getloadavg()[0]
-        cpu0, wall0 = child_cpu_s(), time.monotonic()
-        result = subprocess.run([executable('sensing_doctor'), str(bag), '--out', str(out),
-                                 '--quiet'], capture_output=True, text=True)
-        cpu, wall = child_cpu_s() - cpu0, time.monotonic() - wall0
-        if result.returncode not in (0, 1):
-            return {'error': (result.stderr.strip().splitlines() or ['failed'])[-1]}
+        run_ = timed_child([executable('sensing_doctor'), str(bag), '--out', str(out),
+                            '--quiet'])
+        if run_.result.returncode not in (0, 1):
+            return {'error': (run_.result.stderr.strip().splitlines() or ['failed'])[-1]}
         report = json.loads((out / 'report.json').read_text())
     return {
         'doctor_bag_seconds': duration_s,
-        'doctor_wall_seconds': round(wall, 2),
-        'doctor_cpu_seconds': round(cpu, 2),
-        'doctor_exit_status': result.returncode,
+        'doctor_wall_seconds': round(run_.wall_s, 2),
+        'doctor_cpu_seconds': round(run_.cpu_s, 2),
+        'doctor_exit_status': run_.result.returncode,
         'doctor_section_wall_seconds': {k: round(v, 2) for k, v in report['timings_s'].items()},
-        'doctor_load_average_1min_start': round(load_start, 2),
-        'doctor_load_average_1min_end': round(os.getloadavg()[0], 2),
+        'doctor_load_average_1min_start': round(run_.load_start, 2),
+        'doctor_load_average_1min_end': round(run_.load_end, 2),
     }
 
 

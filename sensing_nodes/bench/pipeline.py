@@ -15,6 +15,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 
@@ -35,27 +36,45 @@ def child_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
+@dataclass
+class TimedRun:
+    """A child process run to its end: its result, CPU and wall seconds, and the 1-minute load
+    average when it started and ended."""
+
+    result: subprocess.CompletedProcess
+    cpu_s: float
+    wall_s: float
+    load_start: float
+    load_end: float
+
+
+def timed_child(command: list[str]) -> TimedRun:
+    """Run `command` to its end, measuring its CPU (children's rusage) and wall time."""
+    load_start = os.getloadavg()[0]
+    cpu0, wall0 = child_cpu_s(), time.monotonic()
+    result = subprocess.run(command, capture_output=True, text=True)
+    cpu, wall = child_cpu_s() - cpu0, time.monotonic() - wall0
+    return TimedRun(result, cpu, wall, load_start, os.getloadavg()[0])
+
+
 def run(quick: bool = False) -> dict:
     """Record the bag, run the pipeline over it, return its speed figures."""
     duration_s = 60.0 if quick else 300.0
     with tempfile.TemporaryDirectory() as tmp:
         bag, out = Path(tmp) / 'bag', Path(tmp) / 'out'
         record_sim_bag(bag, duration_s)
-        load_start = os.getloadavg()[0]
-        cpu0, wall0 = child_cpu_s(), time.monotonic()
-        result = subprocess.run([executable('sensing_pipeline'), str(bag), str(out),
-                                 '--no-progress'], capture_output=True, text=True)
-        cpu, wall = child_cpu_s() - cpu0, time.monotonic() - wall0
-        if result.returncode != 0:
-            return {'error': (result.stderr.strip().splitlines() or ['failed'])[-1]}
+        run_ = timed_child([executable('sensing_pipeline'), str(bag), str(out),
+                            '--no-progress'])
+        if run_.result.returncode != 0:
+            return {'error': (run_.result.stderr.strip().splitlines() or ['failed'])[-1]}
     return {
         'pipeline_bag_seconds': duration_s,
-        'pipeline_cpu_seconds': round(cpu, 2),
-        'pipeline_wall_seconds': round(wall, 2),
-        'pipeline_x_real_time_cpu': round(duration_s / cpu, 2),
-        'pipeline_x_real_time_wall': round(duration_s / wall, 2),
-        'pipeline_load_average_1min_start': round(load_start, 2),
-        'pipeline_load_average_1min_end': round(os.getloadavg()[0], 2),
+        'pipeline_cpu_seconds': round(run_.cpu_s, 2),
+        'pipeline_wall_seconds': round(run_.wall_s, 2),
+        'pipeline_x_real_time_cpu': round(duration_s / run_.cpu_s, 2),
+        'pipeline_x_real_time_wall': round(duration_s / run_.wall_s, 2),
+        'pipeline_load_average_1min_start': round(run_.load_start, 2),
+        'pipeline_load_average_1min_end': round(run_.load_end, 2),
     }
 
 
