@@ -87,6 +87,8 @@ def _gyro_rates(run, quick: bool) -> dict:
     return {'gyro_per_message_samples_per_s': _best_rate(len(samples), per_message, 2)}
 
 
+# long: a self-contained DDS probe (its rclpy imports, publisher, subscriber and pacing loop),
+# run once per bench area; split, its pieces would only be called from here.
 def _dds_check(executable: str, seconds: float, rate_hz: float) -> dict:
     """Run the node as a process, publish rate_hz input paced by wall time, count outputs.
 

@@ -93,6 +93,8 @@ def _load_average() -> float:
     return float(Path('/proc/loadavg').read_text().split()[0])
 
 
+# long: one measurement's sequence (start, wait for the graph, sample /proc for the window,
+# stop, collect), kept in order so the window's bounds are visible.
 def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: float,
             rate: float = 1.0, start_timeout_s: float = 60.0, one_process: bool = False,
             executor: str | None = None, with_sim: bool = True,
@@ -213,6 +215,7 @@ class _RelayNode:
         return node
 
 
+# long: a self-contained DDS probe (its rclpy imports, relay node, pacing and CPU sampling).
 def relay_floor(rate_hz: float, window_s: float, answer_every: int = 1) -> dict:
     """CPU per message of a relay process (_RelayNode): what DDS, rclpy and the executor cost
     for one message in and one out, the floor under any node that answers every input; with

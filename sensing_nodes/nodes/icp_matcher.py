@@ -334,6 +334,8 @@ class IcpMatcherProcessor:
         self.diagnostics.count('mount_changes')
         self.diagnostics.values['laser_mount'] = '%.4f %.4f %.4f' % laser_pose
 
+    # long: a scan's path through the node (mount, conversion, validation, guess, match,
+    # diagnostics, outputs) in order: each step reads what the previous one set.
     def on_scan(self, msg: LaserScan) -> Outputs:
         stamp = stamp_to_ns(msg.header.stamp)
         diag = self.diagnostics

@@ -101,6 +101,7 @@ def make_bags(folder: str | Path, names: list[str] | None = None, progress: bool
 
 
 # -- command line ---------------------------------------------------------------------------
+# long: argparse declarations, one per option, and their validation.
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog='sensing_replay', description=__doc__.split('\n\n')[0])
     parser.add_argument(

@@ -492,6 +492,8 @@ class SensorSim:
         half = 0.5 * self.params.true_wheel_separation_m
         return np.column_stack((distance - half * heading, distance + half * heading))
 
+    # long: one block of the simulation in the order the samples depend on each other (motion,
+    # wheels, IMU, scans, clock), vectorised over the block.
     def advance(self) -> SimBlock:
         """Simulate the next block of ticks and return the samples that fall in it."""
         p, first = self.params, self.tick == 0
