@@ -637,13 +637,20 @@ def _nearest(target: Target, points: NDArray[np.complex128],
             distance_sq[uncertain] = np.square(every.take(nearest
                                                           + _row_starts(*every.shape)))
         else:
-            distance, found = target.tree.query(np.column_stack((query.real, query.imag)),
-                                                k=1, distance_upper_bound=gate)
-            inside = distance < gate
-            where = uncertain[inside]
-            index[where] = found[inside]
-            distance_sq[where] = np.square(distance[inside])
+            _tree_nearest(target, query, uncertain, gate, index, distance_sq)
     return distance_sq < gate_sq, index
+
+
+def _tree_nearest(target: Target, query: NDArray[np.complex128], rows: NDArray[np.intp],
+                  gate: float, index: NDArray[np.intp], distance_sq: NDArray[np.float64]) -> None:
+    """The k-d tree's answer for the queries (x + iy) at `rows` of index and distance_sq,
+    written where a target point lies within gate (the rest keep what they had)."""
+    distance, found = target.tree.query(np.column_stack((query.real, query.imag)), k=1,
+                                        distance_upper_bound=gate)
+    inside = distance < gate
+    where = rows[inside]
+    index[where] = found[inside]
+    distance_sq[where] = np.square(distance[inside])
 
 
 def _grid_nearest(target: Target, points: NDArray[np.complex128],
@@ -683,13 +690,7 @@ def _grid_nearest(target: Target, points: NDArray[np.complex128],
         certain[~inside] = 0.0
         uncertain = np.flatnonzero(np.minimum(distance_sq, gate_sq) > certain * certain)
         if uncertain.size and target.points.shape[0]:
-            query = points.take(uncertain)
-            distance, found = target.tree.query(np.column_stack((query.real, query.imag)),
-                                                k=1, distance_upper_bound=gate)
-            inside_gate = distance < gate
-            where = uncertain[inside_gate]
-            index[where] = found[inside_gate]
-            distance_sq[where] = np.square(distance[inside_gate])
+            _tree_nearest(target, points.take(uncertain), uncertain, gate, index, distance_sq)
     return distance_sq < gate_sq, index
 
 

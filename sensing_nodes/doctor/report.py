@@ -36,6 +36,19 @@ def _anchored(track: tuple[np.ndarray, np.ndarray], anchor: tuple[np.ndarray, np
     return express_in_reference_frame(origin, p)
 
 
+def _finish(d: Diagnosis, name: str, fig, ax, xlabel: str, ylabel: str, title: str) -> None:
+    """Label and grid a plot, keep it as d.plots[name] (inline PNG) and close it."""
+    import matplotlib.pyplot as plt
+
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3, which='both')
+    ax.set_title(title)
+    fig.tight_layout()
+    d.plots[name] = _png(fig)
+    plt.close(fig)
+
+
 def make_plots(d: Diagnosis) -> None:
     """Trajectories of every input and the fused output, yaw rates, Allan deviation."""
     import matplotlib
@@ -51,14 +64,9 @@ def make_plots(d: Diagnosis) -> None:
             if p is not None:
                 ax.plot(p[:, 0], p[:, 1], lw=2.0 if name == 'fused' else 1.0, label=name)
         ax.set_aspect('equal', adjustable='datalim')
-        ax.set_xlabel('x (m)')
-        ax.set_ylabel('y (m)')
-        ax.grid(alpha=0.3)
         ax.legend(loc='best', fontsize=8)
-        ax.set_title('Each input and the fused output, anchored at the fused output\'s start')
-        fig.tight_layout()
-        d.plots['trajectories'] = _png(fig)
-        plt.close(fig)
+        _finish(d, 'trajectories', fig, ax, 'x (m)', 'y (m)',
+                'Each input and the fused output, anchored at the fused output\'s start')
     if len(d.tracks) > 1:
         fig, ax = plt.subplots(figsize=(9, 3.5))
         for name, (t, yaw) in d.tracks.items():
@@ -68,25 +76,16 @@ def make_plots(d: Diagnosis) -> None:
             y = np.interp(edges - t[0], t - t[0], yaw)
             ax.plot((edges[1:] - d.survey.times[next(iter(d.survey.times))].record_ns[0]) * 1e-9,
                     np.degrees(np.diff(y) / 0.1), lw=0.8, label=name)
-        ax.set_xlabel('bag time (s)')
-        ax.set_ylabel('yaw rate (deg/s)')
-        ax.grid(alpha=0.3)
         ax.legend(loc='best', fontsize=8)
-        ax.set_title('Yaw rate of each source (0.1 s means): time offsets show as shifts')
-        fig.tight_layout()
-        d.plots['yaw rates'] = _png(fig)
-        plt.close(fig)
+        _finish(d, 'yaw rates', fig, ax, 'bag time (s)', 'yaw rate (deg/s)',
+                'Yaw rate of each source (0.1 s means): time offsets show as shifts')
     noise = next((c for c in d.checks if c.name == 'gyro_noise' and c.verdict != SKIPPED), None)
     if noise is not None:
         fig, ax = plt.subplots(figsize=(6, 4))
         ax.loglog(noise.details['allan_tau_s'], noise.details['allan_dev_rad_s'], 'o-', ms=3)
-        ax.set_xlabel('cluster time tau (s)')
-        ax.set_ylabel('Allan deviation (rad/s)')
-        ax.grid(alpha=0.3, which='both')
-        ax.set_title(f'Gyro z (base_link) Allan deviation while still: {noise.subject}')
-        fig.tight_layout()
-        d.plots['gyro Allan deviation'] = _png(fig)
-        plt.close(fig)
+        _finish(d, 'gyro Allan deviation', fig, ax, 'cluster time tau (s)',
+                'Allan deviation (rad/s)',
+                f'Gyro z (base_link) Allan deviation while still: {noise.subject}')
 
 
 def report_json(d: Diagnosis, status: int) -> dict[str, Any]:
