@@ -27,7 +27,7 @@ demo: $(READY)
 # worker (module fixtures are built once): most tests wait on processes and DDS, not the CPU.
 test: $(READY)
 	$(BIN)/ruff check .
-	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(BIN)/python -m pytest -q -n 2 --dist loadfile
+	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 lint: $(READY)
 	$(BIN)/ruff check .
