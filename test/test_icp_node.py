@@ -90,7 +90,10 @@ def run_sequence(probe, pubs, node, count, blank=(), odometry=True, mount=MOUNT)
                       and (odom_pub.get_subscription_count() > 0 or not odometry), 20), \
         node.output()
     first = scan_msg(0, rng=rng, mount=mount)
-    for j in range(3):
+    # The odometry runs 1.4 scan intervals ahead of each scan: the node takes /odom and /scan
+    # from two readers, and under load a round's odometry can be taken after its scan; the
+    # previous round's then still covers the scan (within odom_max_extrapolation_s).
+    for j in range(8):
         odom_pub.publish(odom_msg(T0 + j * SCAN_DT // 5, j / 5))
     deadline = time.monotonic() + 20
     while not out.messages and time.monotonic() < deadline:
@@ -99,7 +102,7 @@ def run_sequence(probe, pubs, node, count, blank=(), odometry=True, mount=MOUNT)
     assert out.messages, 'the node never answered:\n' + node.output()
     for k in range(1, count):
         for j in range(5):
-            sub = (k - 1) + (j + 1) / 5 + 0.4     # odometry runs up to 0.4 scans ahead
+            sub = (k - 1) + (j + 1) / 5 + 1.4     # up to 1.4 scans ahead (above)
             odom_pub.publish(odom_msg(T0 + int(sub * SCAN_DT), sub))
         spin_until(probe, lambda: False, 0.01)
         scan_pub.publish(scan_msg(k, blank=k in blank, rng=rng, mount=mount))
