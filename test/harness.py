@@ -121,6 +121,11 @@ class Collector:
         self._node = node
         self._sub = node.create_subscription(msg_type, topic, self.messages.append, qos)
 
+    def matched(self) -> bool:
+        """Whether a writer of the topic has matched this reader (the node's output can reach
+        it)."""
+        return self._sub.get_publisher_count() > 0
+
     def wait_for(self, count: int, timeout: float) -> list[Any]:
         spin_until(self._node, lambda: len(self.messages) >= count, timeout)
         return self.messages
@@ -140,13 +145,18 @@ def publish_paced(node, publisher, messages, pause_s: float = 0.002) -> None:
 
 
 def publish_until(node, publisher, msg, answered: Callable[[], bool],
-                  timeout: float = 20.0) -> bool:
+                  timeout: float = 20.0, outputs: Collector | None = None) -> bool:
     """Publish msg every 0.2 s until answered() holds: best effort loses whatever is sent before
-    the reader has matched this writer. Extra copies arrive as duplicate stamps."""
+    the reader has matched this writer. Extra copies arrive as duplicate stamps, which a node
+    skips without answering, so with `outputs` (the Collector of the answer) the first copy
+    waits until the node's writer has matched that reader too."""
     if not spin_until(node, lambda: publisher.get_subscription_count() > 0, timeout):
         return False
-    # We see the node's reader; give its writers a moment to see our readers too (discovery is
-    # not symmetric in time), or the answer to a message sent once can be lost.
+    if outputs is not None:
+        if not spin_until(node, outputs.matched, timeout):
+            return False
+    # Discovery is not symmetric in time: give the node's writers a moment to see our readers
+    # too (with `outputs`, to finish matching on their side), or an answer can be lost.
     spin_until(node, lambda: False, 0.5)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

@@ -121,10 +121,9 @@ def stream(probe):
     publisher = probe.create_publisher(Imu, '/imu/data_raw', SENSOR_QOS)
     out = Collector(probe, Imu, '/imu/data', ESTIMATE_QOS)
     with NodeProcess('gyro_integrator') as node:
-        assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 30), node.output()
         s = Stream(probe, node, publisher, out)
         assert publish_until(probe, publisher, imu(s.t, [0.0, 0.0, s.rate]),
-                             lambda: len(out.messages) > 0), node.output()
+                             lambda: len(out.messages) > 0, outputs=out), node.output()
         yield s
     out.close()
     probe.destroy_publisher(publisher)

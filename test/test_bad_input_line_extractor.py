@@ -191,7 +191,8 @@ def stream(probe):
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 30), node.output()
         s = Stream(probe, node, publisher, out)
         first = scan(s.t, room_ranges(-3.0, 0.0, 0.0, 0))
-        assert publish_until(probe, publisher, first, lambda: len(out.messages) > 0), node.output()
+        assert publish_until(probe, publisher, first, lambda: len(out.messages) > 0,
+                             outputs=out), node.output()
         yield s
     out.close()
     probe.destroy_publisher(publisher)

@@ -137,7 +137,8 @@ def stream(probe):
         assert spin_until(probe, lambda: out._sub.get_publisher_count() > 0, 30), node.output()
         s = Stream(probe, node, publisher, out)
         first = joint_state(s.t, JOINTS, s.positions)
-        assert publish_until(probe, publisher, first, lambda: len(out.messages) > 0), node.output()
+        assert publish_until(probe, publisher, first, lambda: len(out.messages) > 0,
+                             outputs=out), node.output()
         yield s
     out.close()
     probe.destroy_publisher(publisher)

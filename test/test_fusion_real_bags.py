@@ -131,7 +131,7 @@ def test_gyro_integrator_node_with_an_upside_down_mount(probe, mount_from):
         first = raw(0)
         # (the mount from /tf_static applies once it has arrived: the output then is in base_link)
         assert publish_until(probe, pub, first, lambda: any(
-            m.header.frame_id == 'base_link' for m in out.messages)), node.output()
+            m.header.frame_id == 'base_link' for m in out.messages), outputs=out), node.output()
         for k in range(1, 500):
             pub.publish(raw(k))
             time.sleep(0.001)

@@ -64,7 +64,8 @@ def prime(probe, pub, out, msg, node):
     """Publish the first message until its output comes back (harness.publish_until)."""
     stamp = stamp_to_ns(msg.header.stamp)
     answered = publish_until(
-        probe, pub, msg, lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in out.messages))
+        probe, pub, msg, lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in out.messages),
+        outputs=out)
     assert answered, 'the node never answered:\n' + node.output()
 
 
