@@ -19,20 +19,15 @@ from sensing_nodes.core.geometry.se2 import between, compose, transform_points, 
 from sensing_nodes.core.local_map import LocalMap, LocalMapSettings
 from sensing_nodes.core.scan_matching import (
     LocalMapScanMatcher,
-    OdometryBuffer,
     limit_step,
-    odometry_guidance,
 )
 from sensing_nodes.core.sim.inputs import (
-    JOINTS,
     match_scans,
     matcher_settings,
-    scan_points,
-    wheel_config,
+    scan_inputs,
 )
 from sensing_nodes.core.sim.simulator import SimParams, make_route, simulate
 from sensing_nodes.core.sim.world import load_world, raycast
-from sensing_nodes.core.wheel_odometry import WheelOdometry
 from sensing_nodes.paths import config_file
 
 ROOM = load_world(config_file('default_world.yaml'))
@@ -175,37 +170,24 @@ def test_deskewing_cuts_the_heading_error_of_fast_turns():
 # --- never runs away -------------------------------------------------------------------------
 
 def _feed(run, bad, kind, odometry, settings):
-    """The matcher over a run with the scans whose index is in `bad` replaced by failing ones;
-    returns stamps, steps and the truth at the stamps."""
+    """The matcher over a run with the scans whose index is in `bad` replaced by failing ones
+    (no beam times, so no sweep motion); returns stamps, steps and the truth at the stamps."""
     rng = np.random.default_rng(7)
     matcher = LocalMapScanMatcher(settings)
-    wheels = WheelOdometry(wheel_config(run.params))
-    buffer = OdometryBuffer(max_age_s=10.0, max_extrapolation_s=0.1)
-    events = sorted(([(int(t), 0, i) for i, t in enumerate(run.joint_t)] if odometry else [])
-                    + [(int(t), 2, i) for i, t in enumerate(run.scan_publish_t)])
-    stamps, steps, last = [], [], None
-    for t, what, i in events:
-        if what == 0:
-            if wheels.update(t, list(JOINTS), run.joint_position[i], run.joint_velocity[i],
-                             JOINTS).publish:
-                buffer.add(t, wheels.pose)
-            continue
-        stamp = int(run.scan_t[i])
-        points, times = scan_points(run, i)
+    stamps, steps = [], []
+    for i, (stamp, points, predicted, times, sweep) in enumerate(scan_inputs(run)):
         if i in bad:
             truth = run.truth_at(stamp)
             laser = compose(tuple(truth), settings.laser_pose)
-            points, times = {
+            points, times, sweep = {
                 'empty': np.zeros((0, 2)),
                 'random': rng.uniform(-4, 4, (300, 2)),
                 'other_room': room_scan((laser[0] + 30.0, 0.0, laser[2]), CORRIDOR),
-            }[kind], None
-        predicted, sweep = odometry_guidance(buffer, last, stamp, times) if odometry \
-            else (None, None)
-        step = matcher.process(stamp, points, predicted, times, sweep)
-        last = stamp
+            }[kind], None, None
+        if not odometry:
+            predicted = sweep = None
         stamps.append(stamp)
-        steps.append(step)
+        steps.append(matcher.process(stamp, points, predicted, times, sweep))
     return np.array(stamps), steps, run.truth_at(np.array(stamps))
 
 
