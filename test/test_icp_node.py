@@ -238,6 +238,10 @@ def test_bad_scans_and_backwards_time_keep_the_node_running(probe, pubs):
         backwards_sweep.time_increment = -1.0         # not deskewed, said, the scan used
         replay = scan_msg(2, rng=rng)                 # a looping bag: time goes backwards
         collector = Collector(probe, Odometry, '/scan_match/odom', ESTIMATE_QOS)
+        # A new reader: the node's writer must match it before the scans go out (one-sided
+        # discovery lost the first answer once).
+        assert spin_until(probe, collector.matched, 20), node.output()
+        spin_until(probe, lambda: False, 0.5)
         for msg in (broken, backwards_sweep, replay):
             scan_pub.publish(msg)
             spin_until(probe, lambda: False, 0.3)
