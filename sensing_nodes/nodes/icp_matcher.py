@@ -139,8 +139,8 @@ class IcpMatcherNode(Node):
                               'local map: at most this many cells (the furthest dropped)',
                               minimum=1, maximum=10_000_000))
         anchor_distance = declare(self, 'anchor_distance_m', 5.0,
-                                  'local map: /scan_match/keyframe_odom relative to an anchor '
-                                  'renewed after the robot moved this far from it (m)',
+                                  "local map: /scan_match/odom's covariance is built from an "
+                                  'anchor renewed after the robot moved this far from it (m)',
                                   minimum=0.0, maximum=1000.0)
         insert_distance = declare(self, 'insert_distance_m', 0.10,
                                   'local map: insert a matched scan after moving this far (m)',

@@ -131,12 +131,16 @@ def keyframe_frame_id(stamp_ns: int | None) -> str:
     return NO_KEYFRAME if stamp_ns is None else f'{KEYFRAME_PREFIX}{int(stamp_ns)}'
 
 
-def keyframe_stamp(frame_id: str) -> int | None:
-    """The keyframe stamp (ns) a frame id 'keyframe/<ns>' names; None for anything else."""
-    if not frame_id.startswith(KEYFRAME_PREFIX) or frame_id == NO_KEYFRAME:
-        return None
-    digits = frame_id[len(KEYFRAME_PREFIX):]
+def _named_stamp(frame_id: str, prefix: str) -> int | None:
+    """The stamp (ns) a frame id '<prefix><ns>' names; None for anything else."""
+    digits = frame_id[len(prefix):] if frame_id.startswith(prefix) else ''
     return int(digits) if digits.isdigit() else None
+
+
+def keyframe_stamp(frame_id: str) -> int | None:
+    """The keyframe stamp (ns) a frame id 'keyframe/<ns>' names; None for anything else
+    ('keyframe/none' included)."""
+    return _named_stamp(frame_id, KEYFRAME_PREFIX)
 
 
 # icp_matcher's local map (/scan_match/keyframe_odom in local_map mode, docs/fusion.md): the
@@ -151,8 +155,7 @@ def map_frame_id(stamp_ns: int) -> str:
 
 def map_stamp(frame_id: str) -> int | None:
     """The map stamp (ns) a frame id 'map/<ns>' names; None for anything else."""
-    digits = frame_id[len(MAP_PREFIX):] if frame_id.startswith(MAP_PREFIX) else ''
-    return int(digits) if digits.isdigit() else None
+    return _named_stamp(frame_id, MAP_PREFIX)
 
 
 def make_transform_stamped(stamp_ns: int, parent: str, child: str,

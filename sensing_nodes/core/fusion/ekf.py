@@ -123,6 +123,13 @@ def _selection(mask: tuple[bool, ...]) -> tuple[NDArray, tuple[NDArray, NDArray]
     return rows, np.ix_(rows, rows)
 
 
+
+def _behind_match(match: Pose2, noise: NDArray) -> tuple[NDArray, NDArray]:
+    """For the frame a match is taken in (pose ⊕ match⁻¹): adjoint(match), which turns errors
+    into that frame's body-frame error, and the match's coordinate noise in its body frame."""
+    to_body = body_to_odom(match[2]).T
+    return adjoint(match), to_body @ noise @ to_body.T
+
 @dataclass
 class _Clone:
     """A slot of the state holding the pose at `stamp_ns` (None: empty), and for a
@@ -162,10 +169,11 @@ class EkfFusion:
         self._keyframe_slots = [self._slots[cfg.name] for cfg in inputs if cfg.keyframes]
         # A local map's offset random-walks with the distance travelled: (slot, x and y
         # variance per metre, yaw variance per metre).
-        self._map_drift = [(self._slots[cfg.name], cfg.map_variance_per_m,
-                            cfg.map_yaw_variance_per_m) for cfg in inputs
-                           if cfg.keyframes and (cfg.map_variance_per_m
-                                                 or cfg.map_yaw_variance_per_m)]
+        self._map_drift = [(self._slots[cfg.name],
+                            np.array([cfg.map_variance_per_m, cfg.map_variance_per_m,
+                                      cfg.map_yaw_variance_per_m]))
+                           for cfg in inputs if cfg.keyframes and (cfg.map_variance_per_m
+                                                                   or cfg.map_yaw_variance_per_m)]
         # Per input, the rows of its pose and twist measurements that its mask selects (None:
         # all three), as index arrays made once.
         self._rows = {cfg.name: (_selection(cfg.mask[:3]), _selection(cfg.mask[3:]))
@@ -328,7 +336,7 @@ class EkfFusion:
         p[:3, :] = f @ p[:BASE, :]
         p[:, :3] = p[:, :BASE] @ f.T
         p[self._diagonal] += self._q_diagonal * dt
-        if self._map_drift:
+        if self._map_drift and (vx or vy):
             self._drift_maps(math.hypot(vx, vy) * dt)
         if self._step_cross is not None:
             self._step_cross[:3] = f @ self._step_cross[:BASE]
@@ -340,13 +348,13 @@ class EkfFusion:
         origin's body-frame error (rel ⊕ w = (Ad(rel)·w) ⊕ rel, rel = between(origin, pose)):
         a heading drift turns the map about the robot, not about its far origin."""
         x = self.x.tolist()
-        for slot, xy, yaw in self._map_drift:
-            if not slot.map or distance <= 0.0:
+        for slot, variance_per_m in self._map_drift:
+            if not slot.map:
                 continue
             at = slot.offset
             rel = se2.between((x[at], x[at + 1], x[at + 2]), (x[X], x[Y], x[YAW]))
             a = adjoint(rel)
-            self.p[at:at + 3, at:at + 3] += (a * (np.array([xy, xy, yaw]) * distance)) @ a.T
+            self.p[at:at + 3, at:at + 3] += (a * (variance_per_m * distance)) @ a.T
 
     def _correct(self, residual: NDArray, h: NDArray, r: NDArray, gate_chi2: float) -> Outcome:
         """EKF update with innovation `residual` (angle rows already wrapped), Jacobian h over
@@ -590,11 +598,10 @@ class EkfFusion:
             # Its origin was not fused (dropped as late, or before the filter started).
             # pose ⊕ match⁻¹, uncertain by the match's noise (e_o = adjoint(match) e_m, e_m
             # in the match's body frame).
-            j = adjoint(reading.pose)
-            to_body = body_to_odom(reading.pose[2]).T
+            j, match_noise = _behind_match(reading.pose, noise)
             self._place_map(slot, reading.map_ns,
                             se2.compose(self.pose, se2.inverse(reading.pose)),
-                            j @ to_body @ noise @ to_body.T @ j.T)
+                            j @ match_noise @ j.T)
             return Outcome(note="map adopted: its origin placed by this match")
         return self._relative_update(cfg, slot, reading.pose, noise)
 
@@ -628,9 +635,7 @@ class EkfFusion:
         only the motion between later matches and it is fused."""
         # keyframe ⊕ e_k = pose ⊕ e_p ⊕ (match ⊕ e_m)⁻¹  gives  e_k = adjoint(match)(e_p - e_m),
         # with e_m the match's coordinate noise turned into its body frame.
-        j = adjoint(match)
-        to_body = body_to_odom(match[2]).T
-        match_noise = to_body @ noise @ to_body.T
+        j, match_noise = _behind_match(match, noise)
         self._empty(slot)
         at = slot.offset
         keyframe = se2.compose(self.pose, se2.inverse(match))

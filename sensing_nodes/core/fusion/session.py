@@ -57,9 +57,10 @@ class FusionSession:
 
     A message's life: `arrive(name, stamp)` (counted; time going backwards resets the timeline),
     then `add(name, reading)` or `reject(name, problem)`; `feed` does both for a reading in
-    hand. Each returns the outputs it released. Every reading is filtered and the state read
-    after each wheel or scan-match reading (each IMU reading when the IMU is the only input);
-    with publish_rate_hz 0 every such state is an output; else each scan match's, and of the
+    hand. Each returns the outputs it released. Every reading is filtered; the state is read
+    once per stamp, after every reading of that stamp, where one of them is a wheel or
+    scan-match reading (an IMU reading when the IMU is the only input); with publish_rate_hz 0
+    every such state is an output; else each one with a scan match, and of the
     others the first in each period of 1/publish_rate_hz of stamp time (core/timing.py's
     StampRate), each with its stamp. Counts go to `counts` (the node's diagnostics counter),
     things to tell the user to `notices` (the caller drains them).
