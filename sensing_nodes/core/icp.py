@@ -263,6 +263,7 @@ class MatchResult:
     dropped_points: int = 0
     condition: float = math.inf            # smallest/largest eigenvalue ratio of the normal matrix
     history: list[float] = field(default_factory=list)   # mean error per iteration
+    residual_variance: float = math.nan     # the residuals' variance behind the covariance (m²)
 
     @property
     def pose(self) -> tuple[float, float, float]:
@@ -1063,7 +1064,8 @@ def _final_result(state: _Loop, options: IcpOptions, radius: float, source_count
         x=x, y=y, yaw=yaw, covariance=covariance, iterations=state.iterations,
         converged=state.converged, error=state.error, reason=reason, degenerate=degenerate,
         degenerate_direction=direction, inliers=state.inliers, source_points=source_count,
-        dropped_points=dropped, condition=condition, history=state.history)
+        dropped_points=dropped, condition=condition, history=state.history,
+        residual_variance=variance)
 
 
 def _covariance(info, variance, radius, degeneracy_ratio):

@@ -100,6 +100,13 @@ class ScanMatcherSettings:
     reacquire_after: int = 1
     reacquire_window_m: float = 1.0
     reacquire_window_rad: float = math.pi
+    # A match keeps part of its prediction's error (the correspondences are chosen from the
+    # guess; in weakly constrained directions it stays near it), which its residuals do not
+    # show: its covariance is the registration's plus (this x the recent RMS deviation between
+    # prediction and match)² in x and y, over the scan's median range² in yaw. 0.05 puts the
+    # matcher's claimed sigma at 0.7-1.4x its own error on five of the seven CARMEN logs
+    # (docs/real-data.md) and halves the simulated strong_errors route's overconfidence.
+    prediction_error_share: float = 0.05
 
 
 @dataclass
@@ -599,6 +606,7 @@ class LocalMapScanMatcher:
         result = icp.match(points, self.map.target(), guess, options=options)
         if not result.converged:
             return result, f'not converged: {result.reason}'
+        result = self._with_prediction_error(result, points)
         if self.alignment_errors:
             # Never below the ICP's own floor on residuals: noiseless scans align to ~0.
             typical = max(self.alignment_errors.median, s.icp_options.min_residual_std)
@@ -613,6 +621,19 @@ class LocalMapScanMatcher:
                 return result, (f'match {math.hypot(jump[0], jump[1]):.2f} m / '
                                 f'{math.degrees(abs(jump[2])):.1f} deg from the prediction')
         return result, ''
+
+    def _with_prediction_error(self, result: icp.MatchResult,
+                               points: NDArray[np.float64]) -> icp.MatchResult:
+        """The match with the share of its prediction's error it keeps in its covariance
+        (prediction_error_share x the recent RMS model error: x, y in m; yaw over the scan's
+        median range)."""
+        share = self.settings.prediction_error_share
+        if share <= 0.0 or not self.model_errors:
+            return result
+        variance = (share * self.model_errors.rms) ** 2
+        reach = max(self._reach(points), 1.0)
+        covariance = result.covariance + np.diag([variance, variance, variance / reach ** 2])
+        return replace(result, covariance=covariance)
 
     @staticmethod
     def _reach(points: NDArray[np.float64]) -> float:
