@@ -121,6 +121,24 @@ def _ekf_parameters() -> dict[str, Parameter]:
                                           'gyro bias random walk (rad/s/sqrt(s))', 0.0),
         'ekf.initial_bias_std': Parameter(defaults.initial_bias_std,
                                           'gyro bias std before any input (rad/s)', 0.0),
+        'ekf.fault_isolation': Parameter(
+            defaults.fault_isolation, 'a refused scan match is checked against the state '
+            'replayed without each other input since the last fused match: an input the match '
+            'and the motion model both contradict is blamed and its readings dropped instead'),
+        'ekf.reacquire_after_s': Parameter(
+            defaults.reacquire_after_s, 'a scan input refused this long (stamp time) is taken '
+            'back: its map or keyframe placed anew from the current match (s)', 0.0, 3600.0),
+        'ekf.reacquire_after_matches': Parameter(
+            float(defaults.reacquire_after_matches), '... and refused at least this many '
+            'matches in a row', 1.0, 1e6),
+        'ekf.adaptive_noise': Parameter(
+            defaults.adaptive_noise, "scale each input's noise by what its innovations show "
+            '(bounded, windowed; the scales on /diagnostics)'),
+        'ekf.adaptive_window': Parameter(
+            float(defaults.adaptive_window), 'readings the adaptive noise scale follows', 2.0,
+            1e6),
+        'ekf.adaptive_max_scale': Parameter(
+            defaults.adaptive_max_scale, 'largest adaptive noise scale', 1.0, 1e6),
     })
     return table
 
@@ -229,6 +247,10 @@ def session_config(params: Mapping[str, Any]) -> SessionConfig:
     file or with dotted names as the node declares them (absent ones: their defaults); the
     node's validation (ConfigError names the parameter)."""
     flat = flatten(params)
+    retired = sorted(name for name in flat if name.endswith('.gate_chi2'))
+    _require(not retired, retired[0] if retired else '', 'is gone: every input has a gate, set '
+             'by its gate_probability (the chi-square quantile of its rows; 0.999 by '
+             'default)', flat.get(retired[0]) if retired else None)
     method = _value(flat, 'method', PARAMETERS['method'])
     _require(method in METHODS, 'method', "must be 'ekf' or 'complementary'", method)
     table = parameters_of(method)
@@ -248,7 +270,10 @@ def session_config(params: Mapping[str, Any]) -> SessionConfig:
         inputs = _ekf_inputs(v, enabled, imu_source)
         ekf = EkfSettings(**{key: v[f'ekf.{key}'] for key in (
             'accel_noise_density', 'angular_accel_noise_density', 'bias_random_walk',
-            'initial_bias_std')})
+            'initial_bias_std', 'fault_isolation', 'reacquire_after_s', 'adaptive_noise',
+            'adaptive_max_scale')},
+            reacquire_after_matches=int(v['ekf.reacquire_after_matches']),
+            adaptive_window=int(v['ekf.adaptive_window']))
     complementary = FusionSettings(
         use_wheel=v['use_wheel_odom'], use_gyro=v['use_imu'],
         use_scan_position=v['use_scan_match_position'],

@@ -30,12 +30,14 @@ threshold) before it is fused.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core.fusion.filter import FusedState
+from sensing_nodes.core.fusion.integrity import InputHealth, gate_threshold, tail_probability
 from sensing_nodes.core.fusion.increments import (
     compounded_increment_covariance,
     increment_covariance,
@@ -49,6 +51,14 @@ X, Y, YAW, VX, VY, WZ, BG = range(BASE)
 # Smallest variance a measurement component may claim: an exactly known increment would make
 # the innovation covariance singular.
 MIN_VARIANCE = 1e-12
+# The share of a dead-reckoning increment's variance that is its own noise from one increment
+# to the next; the rest is drift (EkfFusion._differential). Translation only: the heading
+# increments of wheels are noisy from one to the next (encoder steps, slip in turns), and a
+# gyro's are white.
+SHORT_TERM_SHARE = 0.01
+_SHORT_TERM = np.array([[SHORT_TERM_SHARE, SHORT_TERM_SHARE, 1.0],
+                        [SHORT_TERM_SHARE, SHORT_TERM_SHARE, 1.0],
+                        [1.0, 1.0, 1.0]])
 _DIAG3 = (np.arange(3), np.arange(3))        # the diagonal of a 3x3 (fancy index, made once)
 
 
@@ -60,9 +70,36 @@ class EkfSettings:
     pose_noise_density: float = 1e-4       # m/sqrt(s) and rad/sqrt(s) on the pose itself
     accel_noise_density: float = 1.0       # m/s^2/sqrt(Hz): how fast vx, vy may change
     angular_accel_noise_density: float = 2.0   # rad/s^2/sqrt(Hz)
+    # The velocities' uncertainty grows as the densities above say up to these standard
+    # deviations, not beyond (the robot's speeds are bounded). Unbounded, a silence of the
+    # inputs left the yaw rate so uncertain that a wrong increment after it was taken as a
+    # 9 rad/s turn (CARMEN seattle), and every right one after it refused. (Their means are not
+    # pulled towards zero: with noisy increments, as the CARMEN logs' odometry, that lost a
+    # third of the motion between scans.)
+    speed_std_m_s: float = 1.0
+    yaw_rate_std_rad_s: float = 1.5
     bias_random_walk: float = 1e-5         # rad/s/sqrt(s)
     initial_velocity_std: float = 1.0      # m/s, rad/s
     initial_bias_std: float = 0.01         # rad/s
+    # A refused scan match is checked against the state replayed without each other input
+    # since the last fused match: an input whose readings the match and the motion model both
+    # contradict is blamed instead (EkfFusion._isolate).
+    fault_isolation: bool = True
+    # A scan input refused for this long (stamp time, and at least reacquire_after_matches
+    # matches in a row) is taken back: the state's pose is doubted as far as it disagrees with
+    # the current match, which is then fused (the pose moves to the matcher's).
+    reacquire_after_s: float = 1.0
+    reacquire_after_matches: int = 3
+    # Readings kept since the last fused match for fault isolation, at most.
+    isolation_log: int = 20000
+    # The dead reckoning's noise (every input but the scan matches) scaled by what the scan
+    # matches' innovations show of it: the scale follows the mean of the last adaptive_window
+    # matches' squared Mahalanobis distances per row (each capped at ten times the gate),
+    # within [1, adaptive_max_scale], published on /diagnostics. The matches' own covariance
+    # is taken as honest (the matcher calibrates it).
+    adaptive_noise: bool = False
+    adaptive_window: int = 50
+    adaptive_max_scale: float = 100.0
 
 
 @dataclass(frozen=True)
@@ -75,6 +112,8 @@ class Outcome:
     gated: bool = False
     distance2: float = 0.0
     note: str = ''
+    blamed: str = ''      # the input blamed for the disagreement (the reading then fused)
+    dof: int = 0          # rows of the tested innovation
 
 
 _HELD = Outcome(fused=True, note='increment held until the next output')
@@ -144,6 +183,24 @@ class _Clone:
     map: bool = False
 
 
+@dataclass
+class _Saved:
+    """Everything EkfFusion.update changes, copied (fault isolation's checkpoint)."""
+
+    x: NDArray[np.float64]
+    p: NDArray[np.float64]
+    stamp_ns: int | None
+    slots: list[tuple]
+    pending: dict
+    last_seen: dict
+    origin: dict
+    initialized: bool
+    refusals: dict
+    updates: int
+    step_cross: NDArray[np.float64] | None
+    step_variance: float
+
+
 class EkfFusion:
     """Stamp-ordered EKF over the inputs in `inputs`; feed readings with update(name, reading)
     in stamp order and read `state`.
@@ -178,7 +235,11 @@ class EkfFusion:
         # all three), as index arrays made once.
         self._rows = {cfg.name: (_selection(cfg.mask[:3]), _selection(cfg.mask[3:]))
                       for cfg in inputs}
+        # Per input, its gate's threshold per number of measured rows (1 to 3).
+        self._gates = {cfg.name: {dof: gate_threshold(cfg.gate_probability, dof)
+                                  for dof in (1, 2, 3)} for cfg in inputs}
         self._diagonal = (np.arange(BASE), np.arange(BASE))
+        self._velocity_diagonal = (np.arange(VX, WZ + 1), np.arange(VX, WZ + 1))
         # The rows of F (predict) that differ from the identity's: x, y and yaw.
         self._f = np.zeros((3, BASE))
         self._f[YAW, YAW] = 1.0
@@ -186,10 +247,14 @@ class EkfFusion:
         # last heading_step_variance() (n,), and that heading's variance; None: not followed.
         self._step_cross: NDArray[np.float64] | None = None
         self._step_variance = 0.0
-        self._q_diagonal = np.array([self.settings.pose_noise_density ** 2] * 3
-                                    + [self.settings.accel_noise_density ** 2] * 2
-                                    + [self.settings.angular_accel_noise_density ** 2,
-                                       self.settings.bias_random_walk ** 2])
+        st = self.settings
+        self._q_diagonal = np.array([st.pose_noise_density ** 2] * 3
+                                    + [st.accel_noise_density ** 2] * 2
+                                    + [st.angular_accel_noise_density ** 2,
+                                       st.bias_random_walk ** 2])
+        # The velocities' largest variances (their growth stops there).
+        self._velocity_variance = np.array([st.speed_std_m_s ** 2] * 2
+                                           + [st.yaw_rate_std_rad_s ** 2])
         self.reset()
 
     # -- state management --------------------------------------------------------------------
@@ -211,10 +276,22 @@ class EkfFusion:
         self._last_seen: dict[str, int] = {}     # stamp of each input's newest reading
         self._origin: dict[str, Pose2] = {}      # relative mode: source pose -> fused pose
         self._initialized = False                # an absolute reading has set the state
+        self._refusals: dict[str, int] = {}      # each dead-reckoning input's refusals in a row
         self.updates = 0
-        self.gated: dict[str, int] = {}          # readings refused by the Mahalanobis gate
+        self.health = {name: InputHealth() for name in self.inputs}
+        # Each input's noise scale (adaptive_noise: the dead reckoning's, from the matches).
+        self.noise_scale = {name: 1.0 for name in self.inputs}
+        self._ratios: deque[float] = deque(maxlen=self.settings.adaptive_window)
+        # The state after the last fused scan match and every reading since (fault isolation).
+        self._checkpoint: tuple[_Saved, list[tuple[str, Reading]]] | None = None
+        self._replaying = False
         if self._step_cross is not None:
             self.follow_heading_steps()              # a new start: no step across it
+
+    @property
+    def gated(self) -> dict[str, int]:
+        """Readings refused by each input's gate (inputs with none left out)."""
+        return {name: h.refused for name, h in self.health.items() if h.refused}
 
     def set_pose(self, pose: Pose2, covariance: NDArray[np.float64]) -> None:
         """Put the robot at pose with the given covariance; velocities and bias are kept, every
@@ -233,6 +310,7 @@ class EkfFusion:
         if name in self._slots:
             self._empty(self._slots[name])
         self._origin.pop(name, None)
+        self._checkpoint = None
 
     # -- evaluation: the fused heading's steps (fusion_eval's chatter measure) -----------------
     def follow_heading_steps(self) -> None:
@@ -335,7 +413,11 @@ class EkfFusion:
         p = self.p
         p[:3, :] = f @ p[:BASE, :]
         p[:, :3] = p[:, :BASE] @ f.T
-        p[self._diagonal] += self._q_diagonal * dt
+        q = self._q_diagonal * dt
+        # The velocities' growth stops at their largest variances (q >= 0: P stays PSD).
+        room = 1.0 - p[self._velocity_diagonal] / self._velocity_variance
+        q[VX:WZ + 1] *= np.clip(room, 0.0, 1.0)
+        p[self._diagonal] += q
         if self._map_drift and (vx or vy):
             self._drift_maps(math.hypot(vx, vy) * dt)
         if self._step_cross is not None:
@@ -356,10 +438,16 @@ class EkfFusion:
             a = adjoint(rel)
             self.p[at:at + 3, at:at + 3] += (a * (variance_per_m * distance)) @ a.T
 
-    def _correct(self, residual: NDArray, h: NDArray, r: NDArray, gate_chi2: float) -> Outcome:
+    def _correct(self, residual: NDArray, h: NDArray, r: NDArray, cfg: InputConfig,
+                 dry: bool = False, spread: NDArray | None = None) -> Outcome:
         """EKF update with innovation `residual` (angle rows already wrapped), Jacobian h over
-        the whole state and noise r; refused when the squared Mahalanobis distance exceeds
-        gate_chi2."""
+        the whole state and noise r; refused when the squared Mahalanobis distance exceeds the
+        input's gate (the chi-square quantile of its gate_probability for these rows),
+        measured with `spread` added to the innovation covariance where given. dry: only the
+        distance (without the spread), nothing changed."""
+        scale = self.noise_scale[cfg.name]
+        if scale != 1.0:
+            r = r * scale
         ph = self.p @ h.T
         s = h @ ph + r
         try:
@@ -367,10 +455,26 @@ class EkfFusion:
         except np.linalg.LinAlgError:
             return Outcome(note='singular innovation covariance')
         d2 = float(residual @ s_inv @ residual)
-        if not math.isfinite(d2) or d2 > gate_chi2:
-            return Outcome(gated=True, distance2=d2,
-                           note=f'squared Mahalanobis distance {d2:.1f} > {gate_chi2:g}')
+        dof = residual.size
+        gate = self._gates[cfg.name][dof]
+        if dry:
+            return Outcome(gated=not d2 <= gate, distance2=d2, dof=dof, note='tested only')
+        if spread is not None:
+            d2 = float(residual @ np.linalg.solve(s + spread, residual))
+        if self.settings.adaptive_noise and cfg.keyframes and not self._replaying:
+            self._adapt(min(d2, 10.0 * gate) / dof)
+        if not d2 <= gate:
+            return Outcome(gated=True, distance2=d2, dof=dof,
+                           note=f'squared Mahalanobis distance {d2:.1f} > {gate:.1f} (gate at '
+                                f'{cfg.gate_probability:g} for {dof} rows)')
         k = ph @ s_inv
+        if cfg.keyframes:
+            # A scan match corrects where the robot is, not how fast it moves: taken as
+            # velocity, a correction right after a propagation became a velocity of the
+            # correction over that short step (CARMEN aces: a 37 deg correction 0.16 s after
+            # the last odometry made a 6 rad/s turn, and the next odometry was refused). The
+            # velocities come from the dead reckoning.
+            k[VX:WZ + 1] = 0.0
         self._keep_keyframes(k)
         self._inject(k @ residual)
         # P - K H P - (K H P)' + K S K': the covariance of any gain, not only the optimal one.
@@ -379,7 +483,23 @@ class EkfFusion:
         if self._step_cross is not None:
             self._step_cross -= k @ (h @ self._step_cross)     # (I - KH)·c, any gain
         self.updates += 1
-        return Outcome(fused=True, distance2=d2)
+        return Outcome(fused=True, distance2=d2, dof=dof)
+
+    def _adapt(self, ratio: float) -> None:
+        """Move the dead reckoning's noise scale towards what the matches' innovations show:
+        by the window's mean distance per row (1 when consistent) to the power 1/window per
+        match."""
+        window = self._ratios
+        window.append(ratio)
+        mean = sum(window) / len(window)
+        if mean <= 0.0:
+            return
+        st = self.settings
+        for name, cfg in self.inputs.items():
+            if not cfg.keyframes:
+                self.noise_scale[name] = min(max(
+                    self.noise_scale[name] * mean ** (1.0 / st.adaptive_window), 1.0),
+                    st.adaptive_max_scale)
 
     def _keep_keyframes(self, gain: NDArray[np.float64]) -> None:
         """A keyframe's clone is not revised: it is the pose published at the keyframe's scan,
@@ -427,8 +547,25 @@ class EkfFusion:
 
     def update(self, name: str, reading: Reading) -> Outcome:
         """Fuse one reading of input `name` (stamps must not go backwards: FusionSession
-        orders them)."""
+        orders them); every input's reading meets its gate, a refused scan match goes through
+        fault isolation (_isolate) and, refused long enough, re-acquisition (_reacquire)."""
         cfg = self.inputs[name]
+        if cfg.keyframes:
+            return self._scan_update(cfg, reading)
+        if self._checkpoint is not None:
+            log = self._checkpoint[1]
+            if len(log) < self.settings.isolation_log:
+                log.append((name, reading))
+            else:
+                self._checkpoint = None           # too long since the last match to replay
+        outcome = self._update(cfg, reading)
+        if outcome is not _HELD:
+            self._record(name, outcome, reading.stamp_ns)
+        return outcome
+
+    def _update(self, cfg: InputConfig, reading: Reading) -> Outcome:
+        """update() without the bookkeeping (fault isolation replays readings through it)."""
+        name = cfg.name
         previous_stamp = self._last_seen.get(name)
         self._last_seen[name] = reading.stamp_ns
         if self._coalesced(cfg):
@@ -459,10 +596,18 @@ class EkfFusion:
             return Outcome(note="nothing in this reading is in the input's mask")
         gated = [o for o in outcomes if o.gated]
         if gated:
-            self.gated[name] = self.gated.get(name, 0) + 1
             return gated[0]
         fused = [o for o in outcomes if o.fused]
         return fused[0] if fused else outcomes[0]
+
+    def _record(self, name: str, outcome: Outcome, stamp_ns: int) -> None:
+        """The input's health after a reading's outcome (not while replaying)."""
+        if self._replaying:
+            return
+        if outcome.gated:
+            self.health[name].refused_at(stamp_ns, outcome.note)
+        elif outcome.fused:
+            self.health[name].accepted(stamp_ns)
 
     def _flush(self) -> Outcome | None:
         """Fuse the held differential readings, oldest first; the outcome of a gated one."""
@@ -476,10 +621,157 @@ class EkfFusion:
             reading = _with_heading_delay(cfg, self._pending.pop(name))
             self.predict(reading.stamp_ns)
             outcome = self._differential(cfg, reading)
+            self._record(name, outcome, reading.stamp_ns)
             if outcome.gated:
                 gated = outcome
-                self.gated[name] = self.gated.get(name, 0) + 1
         return gated
+
+    # -- integrity: fault isolation and re-acquisition of the scan input ------------------------
+    def _scan_update(self, cfg: InputConfig, reading: Reading) -> Outcome:
+        """A scan match (or a map's or keyframe's start) through its gate; refused, the
+        readings of the other inputs since the last fused match are checked (_isolate), and a
+        source refused long enough is taken back (_reacquire)."""
+        outcome = self._update(cfg, reading)
+        if outcome.gated and self.settings.fault_isolation and self._checkpoint is not None:
+            outcome = self._isolate(cfg, reading, outcome)
+        health = self.health[cfg.name]
+        if outcome.gated:
+            health.refused_at(reading.stamp_ns, outcome.note)
+            if health.streak >= self.settings.reacquire_after_matches and \
+                    reading.stamp_ns - health.streak_start_ns \
+                    >= self.settings.reacquire_after_s * 1e9:
+                outcome = self._reacquire(cfg, reading, health.streak)
+                health.reanchored += 1
+                health.streak, health.streak_start_ns = 0, None
+        elif outcome.fused:
+            health.accepted(reading.stamp_ns)
+        if not outcome.gated:
+            self._checkpoint = (self._save(), [])
+        return outcome
+
+    def _isolate(self, cfg: InputConfig, reading: Reading, refused: Outcome) -> Outcome:
+        """A scan match the state refused, tested against the state replayed from the last
+        fused match without each other input in turn. An input is blamed when, without it, the
+        match passes its gate and that input's latest reading is less consistent with the
+        replayed state (the motion model and the other inputs) than the match is: its readings
+        since the last match are dropped, the match is fused. Otherwise the refusal stands."""
+        saved, log = self._checkpoint
+        after = self._save()
+        best: tuple[float, str, _Saved, int] | None = None
+        for name in {n for n, _ in log}:
+            last = max(i for i, (n, _) in enumerate(log) if n == name)
+            self._restore(saved)
+            self._replaying = True
+            try:
+                tested = None
+                for i, (n, r) in enumerate(log):
+                    if n != name:
+                        self._update(self.inputs[n], r)
+                    elif i == last:
+                        tested = self._restart_from(self.inputs[n], r)
+                match = self._dry(cfg, reading)
+            finally:
+                self._replaying = False
+            if tested is None or match is None:
+                continue
+            gate = self._gates[cfg.name][match[1]]
+            p_input, p_match = tail_probability(*tested), tail_probability(*match)
+            if match[0] <= gate and p_input < p_match and (best is None or p_input < best[0]):
+                best = (p_input, name, self._save(), sum(n == name for n, _ in log))
+        if best is None:
+            self._restore(after)
+            return refused
+        _, name, replayed, count = best
+        self._restore(replayed)
+        outcome = self._update(cfg, reading)
+        if not outcome.fused:              # cannot happen: the dry test passed
+            self._restore(after)
+            return refused
+        problem = (f'{count} readings since the last fused scan match disagreed with the match '
+                   'and the motion model: dropped')
+        self.health[name].blamed_for(count, reading.stamp_ns, problem)
+        return replace(outcome, blamed=name, note=f'{name} blamed: {problem}')
+
+    def _restart_from(self, cfg: InputConfig, reading: Reading) -> tuple[float, int] | None:
+        """Fault isolation: how far the input's latest reading (its increment since its clone,
+        or its twist) lies from the replayed state (squared Mahalanobis distance, rows), and
+        the input restarted from it (its next increment starts there); None when it measures
+        nothing testable."""
+        reading = _with_heading_delay(cfg, reading)
+        self._flush()
+        self.predict(reading.stamp_ns)
+        tested = None
+        slot = self._slots.get(cfg.name)
+        if slot is not None and slot.reading is not None and reading.pose is not None:
+            tested = self._differential(cfg, reading, dry=True)
+        elif reading.twist is not None and any(cfg.mask[3:]):
+            tested = self._twist(cfg, reading, dry=True)
+        if slot is not None:
+            self._clone(slot, reading=reading)
+        self._last_seen[cfg.name] = reading.stamp_ns
+        if tested is None or not tested.dof:
+            return None
+        return tested.distance2, tested.dof
+
+    def _dry(self, cfg: InputConfig, reading: Reading) -> tuple[float, int] | None:
+        """The scan match's squared Mahalanobis distance and rows against the current state,
+        nothing fused; None when it would not be tested (a map or keyframe not yet placed)."""
+        self._flush()
+        self.predict(reading.stamp_ns)
+        slot = self._slots[cfg.name]
+        if reading.pose is None or slot.stamp_ns is None:
+            return None
+        if reading.map_ns is not None:
+            if not slot.map or slot.key != reading.map_ns:
+                return None
+        elif slot.map or slot.key != reading.keyframe_ns:
+            return None
+        noise = self._pose_noise(cfg, reading.pose_covariance, reading.pose, False)
+        outcome = self._relative_update(cfg, slot, reading.pose, noise, dry=True)
+        return (outcome.distance2, outcome.dof) if outcome.dof else None
+
+    def _reacquire(self, cfg: InputConfig, reading: Reading, streak: int) -> Outcome:
+        """Take a scan input back after `streak` refused matches: a disagreement that lasted
+        this long is the state's (its dead reckoning erred while the matches were refused), so
+        the pose's body-frame uncertainty grows by the disagreement and the match is fused. A
+        map or keyframe not yet placed is placed from this match."""
+        slot = self._slots[cfg.name]
+        noise = self._pose_noise(cfg, reading.pose_covariance, reading.pose, False)
+        in_frame = slot.stamp_ns is not None and (
+            (reading.map_ns is not None and slot.map and slot.key == reading.map_ns)
+            or (reading.map_ns is None and not slot.map and slot.key == reading.keyframe_ns))
+        note = f'{streak} matches refused in a row: taken back'
+        if not in_frame:
+            return self._update(cfg, reading)
+        at = slot.offset
+        frame = (float(self.x[at]), float(self.x[at + 1]), float(self.x[at + 2]))
+        predicted = se2.between(frame, self.pose)
+        # The disagreement in the pose's body frame: pose ⊕ e = frame ⊕ match.
+        error = se2.between(self.pose, se2.compose(frame, reading.pose))
+        self.p[_DIAG3] += np.square(error) + 1e-12
+        outcome = self._relative_update(cfg, slot, reading.pose, noise)
+        del predicted
+        return replace(outcome, note=f'{note}; {outcome.note}' if outcome.note else note)
+
+    def _save(self) -> _Saved:
+        """A copy of everything update() changes (fault isolation's checkpoint)."""
+        return _Saved(self.x.copy(), self.p.copy(), self.stamp_ns,
+                      [(c.stamp_ns, c.key, c.reading, c.map) for c in self._slots.values()],
+                      dict(self._pending), dict(self._last_seen), dict(self._origin),
+                      self._initialized, dict(self._refusals), self.updates,
+                      None if self._step_cross is None else self._step_cross.copy(),
+                      self._step_variance)
+
+    def _restore(self, saved: _Saved) -> None:
+        self.x, self.p, self.stamp_ns = saved.x.copy(), saved.p.copy(), saved.stamp_ns
+        for slot, (stamp, key, reading, is_map) in zip(self._slots.values(), saved.slots):
+            slot.stamp_ns, slot.key, slot.reading, slot.map = stamp, key, reading, is_map
+        self._pending, self._last_seen = dict(saved.pending), dict(saved.last_seen)
+        self._origin, self._initialized = dict(saved.origin), saved.initialized
+        self._refusals = dict(saved.refusals)
+        self.updates = saved.updates
+        self._step_cross = None if saved.step_cross is None else saved.step_cross.copy()
+        self._step_variance = saved.step_variance
 
     @staticmethod
     def _masked(selection, residual, h, r) -> tuple:
@@ -540,10 +832,11 @@ class EkfFusion:
         h = np.zeros((3, self._size))
         h[:, :3] = body_to_odom(float(self.x[YAW]))
         return self._correct(*self._masked(self._rows[cfg.name][0], residual, h, cov),
-                             cfg.gate_chi2)
+                             cfg)
 
-    def _differential(self, cfg: InputConfig, reading: Reading) -> Outcome:
-        """The motion from the slot's reading to this one, fused against the clone."""
+    def _differential(self, cfg: InputConfig, reading: Reading, dry: bool = False) -> Outcome:
+        """The motion from the slot's reading to this one, fused against the clone (dry: only
+        tested, the clone left as it is)."""
         slot = self._slots[cfg.name]
         previous = slot.reading
         if previous is None:
@@ -566,12 +859,62 @@ class EkfFusion:
                                            reading.pose, reading.pose_covariance)
         dt = (reading.stamp_ns - previous.stamp_ns) * 1e-9
         noise = self._pose_noise(cfg, cov, increment, static, dt)
-        outcome = self._relative_update(cfg, slot, increment, noise, dt)
-        self._clone(slot, reading=reading)
+        # A dead-reckoning increment's error is mostly the slow drift its noise describes,
+        # which the motion model cannot see from one increment to the next: SHORT_TERM_SHARE
+        # of it is the increment's own noise, the rest grows the pose's uncertainty once the
+        # increment is in (as a motion input's noise). All of it as the increment's noise, the
+        # constant-velocity model took a third of the motion of the CARMEN Edmonton log's
+        # odometry away (jittered stamps: 6.3 m fused of 9.3 m travelled in 20 s).
+        short = noise * _SHORT_TERM
+        outcome = self._relative_update(cfg, slot, increment, short, dt, dry)
+        if not dry:
+            outcome = self._after_refusal(
+                cfg, outcome, (reading.stamp_ns - slot.stamp_ns) * 1e-9,
+                lambda: self._relative_update(cfg, slot, increment, short, dt))
+            if outcome.fused:
+                self._drift(increment, (noise - short) * self.noise_scale[cfg.name])
+            # A refused increment is measured again with the next reading, from the last
+            # accepted one: a reading whose pose or stamp is off drops out, its motion does
+            # not (the input restarts only when that span grows beyond its max_gap_s).
+            if not outcome.gated or dt > cfg.max_gap_s:
+                self._clone(slot, reading=reading)
         return outcome
 
+    def _drift(self, increment: Pose2, covariance: NDArray[np.float64]) -> None:
+        """The pose's uncertainty grown by an increment's drift (its covariance in the frame
+        the increment started from, turned into the pose's body frame)."""
+        c, s = math.cos(increment[2]), math.sin(increment[2])
+        turn = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        self.p[:3, :3] += turn @ covariance @ turn.T
+
+    def _after_refusal(self, cfg: InputConfig, outcome: Outcome, span_s: float,
+                       retry) -> Outcome:
+        """A dead-reckoning input refused twice in a row contradicts the velocity the motion
+        model extrapolates (a burst in the input, taken as velocity by an earlier correction):
+        the velocity is forgotten (zero, as uncertain as the robot's speeds), the motion over
+        the refused span (span_s, since the input's last accepted reading) as uncertain as
+        that makes it, and the reading is tried again."""
+        name = cfg.name
+        if not outcome.gated:
+            self._refusals[name] = 0
+            return outcome
+        self._refusals[name] = self._refusals.get(name, 0) + 1
+        if self._refusals[name] < 2:
+            return outcome
+        self._refusals[name] = 0
+        self.x[VX:WZ + 1] = 0.0
+        self.p[VX:WZ + 1, :] = 0.0
+        self.p[:, VX:WZ + 1] = 0.0
+        self.p[VX:WZ + 1, VX:WZ + 1] = np.diag(self._velocity_variance)
+        self.p[_DIAG3] += self._velocity_variance * span_s ** 2
+        if self._step_cross is not None:
+            self._step_cross[VX:WZ + 1] = 0.0
+        again = retry()
+        note = 'refused twice in a row: the velocity forgotten'
+        return replace(again, note=f'{again.note}; {note}' if again.note else note)
+
     def _relative_update(self, cfg: InputConfig, slot: _Clone, measured: Pose2,
-                         noise: NDArray, dt: float = 0.0) -> Outcome:
+                         noise: NDArray, dt: float = 0.0, dry: bool = False) -> Outcome:
         at = slot.offset
         clone = (float(self.x[at]), float(self.x[at + 1]), float(self.x[at + 2]))
         predicted, j_pose, j_clone = relative_jacobian(clone, self.pose)
@@ -585,8 +928,38 @@ class EkfFusion:
             yaw += float(self.x[BG]) * dt
         residual = np.array([measured[0] - predicted[0], measured[1] - predicted[1],
                              _wrap(measured[2] - yaw)])
-        return self._correct(*self._masked(self._rows[cfg.name][0], residual, h, noise),
-                             cfg.gate_chi2)
+        selection = self._rows[cfg.name][0]
+        spread = None
+        if not cfg.keyframes:
+            # Dead reckoning is gated against the motion the robot can make in its interval
+            # (its velocities' spread over dt) besides the motion model's prediction: stamps
+            # jitter, and the increment carries the motion whatever the model expected.
+            spread = np.diag(self._velocity_variance * dt * dt)
+            if selection is not None:
+                spread = spread[selection[1]]
+            if not dry:
+                implausible = self._implausible(cfg, measured, dt, selection)
+                if implausible is not None:
+                    return implausible
+        return self._correct(*self._masked(selection, residual, h, noise), cfg, dry, spread)
+
+    def _implausible(self, cfg: InputConfig, measured: Pose2, dt: float,
+                     selection) -> Outcome | None:
+        """A refusal when an increment (m, rad) over dt (s) is beyond the motion the robot
+        can make (its velocities' spread, zero-mean, at the input's gate), else None."""
+        if dt <= 0.0:
+            return None
+        motion = np.asarray(measured) / dt
+        z2 = motion * motion / self._velocity_variance
+        if selection is not None:
+            z2 = z2[selection[0]]
+        d2 = float(z2.sum())
+        gate = self._gates[cfg.name][z2.size]
+        if d2 <= gate:
+            return None
+        return Outcome(gated=True, distance2=d2, dof=z2.size, note=(
+            f'an increment the robot cannot make: {math.hypot(measured[0], measured[1]):.3f} m '
+            f'and {math.degrees(abs(measured[2])):.1f} deg in {dt:.3f} s'))
 
     def _map(self, cfg: InputConfig, reading: Reading) -> Outcome:
         """A match in a local map's frame: it measures between(map origin, pose), the map's
@@ -648,7 +1021,7 @@ class EkfFusion:
             self._step_cross[at:at + 3] = j @ self._step_cross[:3]
         slot.stamp_ns, slot.key, slot.reading = self.stamp_ns, key, None
 
-    def _twist(self, cfg: InputConfig, reading: Reading) -> Outcome:
+    def _twist(self, cfg: InputConfig, reading: Reading, dry: bool = False) -> Outcome:
         cov = reading.twist_covariance
         if cfg.covariance == 'model' or cov is None or not np.all(np.diag(cov) > 0.0):
             cov = np.diag(cfg.twist_variance)
@@ -659,8 +1032,13 @@ class EkfFusion:
         if cfg.gyro_bias:
             h[2, BG] = 1.0
         residual = np.asarray(reading.twist, dtype=float) - h @ self.x
-        return self._correct(*self._masked(self._rows[cfg.name][1], residual, h, cov),
-                             cfg.gate_chi2)
+        outcome = self._correct(*self._masked(self._rows[cfg.name][1], residual, h, cov),
+                                cfg, dry)
+        if dry:
+            return outcome
+        return self._after_refusal(cfg, outcome, 0.0, lambda: self._correct(
+            *self._masked(self._rows[cfg.name][1], np.asarray(reading.twist, dtype=float)
+                          - h @ self.x, h, cov), cfg))
 
 
 def _with_heading_delay(cfg: InputConfig, reading: Reading) -> Reading:

@@ -32,20 +32,23 @@ POSE_MODES = ('absolute', 'relative', 'differential')
 @dataclass(frozen=True)
 class NoiseModel:
     """Variance of a differential pose input's increment, used when the source publishes a
-    static or zero covariance: x and y get variance_per_m per metre travelled, yaw
-    variance_per_rad per radian turned (plus yaw_variance_per_m per metre), each at least
-    min_variance."""
+    static or zero covariance: x and y get variance_per_m per metre travelled (plus
+    xy_variance_per_rad per radian turned: where the source's point is not the one it turns
+    about), yaw variance_per_rad per radian turned (plus yaw_variance_per_m per metre), each
+    at least min_variance."""
 
     variance_per_m: float = 1e-4          # m^2 per m
     variance_per_rad: float = 1e-3        # rad^2 per rad
     yaw_variance_per_m: float = 1e-4      # rad^2 per m
     yaw_variance_per_s: float = 0.0       # rad^2 per s (a gyro's white rate noise density^2)
+    xy_variance_per_rad: float = 0.0      # m^2 per rad
     min_variance: float = 1e-12
 
     def increment_covariance(self, increment: Pose2, dt: float = 0.0) -> NDArray[np.float64]:
         """3x3 covariance over (x, y, yaw) of a body-frame increment over dt seconds."""
         distance = math.hypot(increment[0], increment[1])
-        xy = max(self.variance_per_m * distance, self.min_variance)
+        xy = max(self.variance_per_m * distance + self.xy_variance_per_rad * abs(increment[2]),
+                 self.min_variance)
         yaw = max(self.variance_per_rad * abs(increment[2]) + self.yaw_variance_per_m * distance
                   + self.yaw_variance_per_s * dt, self.min_variance)
         return np.diag([xy, xy, yaw])
@@ -67,7 +70,9 @@ class InputConfig:
     noise: NoiseModel = NoiseModel()
     twist_variance: tuple[float, float, float] = (1e-4, 1e-4, 1e-4)  # when the message has none
     covariance_scale: float = 1.0        # the message's covariance times this (>= 1: distrust)
-    gate_chi2: float = math.inf          # squared Mahalanobis distance above which: rejected
+    # The gate: a reading is refused when its innovation lies beyond this probability's
+    # chi-square quantile for its rows (squared Mahalanobis distance).
+    gate_probability: float = 0.999
     # The input is a gyro whose bias the filter estimates: a vyaw rate measures wz + bias, a
     # differential yaw measures the heading change + bias x interval.
     gyro_bias: bool = False
@@ -97,13 +102,14 @@ class InputConfig:
             out.append(('covariance', "must be 'auto', 'message' or 'model'", self.covariance))
         if not (math.isfinite(self.covariance_scale) and self.covariance_scale > 0.0):
             out.append(('covariance_scale', 'must be finite and > 0', self.covariance_scale))
-        if not (self.gate_chi2 > 0.0):
-            out.append(('gate_chi2', 'must be > 0 (inf: no gate)', self.gate_chi2))
+        if not (0.5 <= self.gate_probability < 1.0):
+            out.append(('gate_probability', 'must be in [0.5, 1) (the gate cannot be switched '
+                        'off)', self.gate_probability))
         if not any(self.mask):
             out.append(('mask', 'must select at least one of ' + ', '.join(QUANTITIES),
                         self.mask))
         for name in ('variance_per_m', 'variance_per_rad', 'yaw_variance_per_m',
-                     'yaw_variance_per_s', 'min_variance'):
+                     'yaw_variance_per_s', 'xy_variance_per_rad', 'min_variance'):
             value = getattr(self.noise, name)
             if not (math.isfinite(value) and value >= 0.0):
                 out.append((name, 'must be finite and >= 0', value))
@@ -190,12 +196,12 @@ INPUT_DEFAULTS: dict[str, dict] = {
     'wheel_odom': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential', 'covariance': 'auto',
                    'covariance_scale': 1.0, 'variance_per_m': 1e-4, 'variance_per_rad': 1e-3,
                    'yaw_variance_per_m': 1e-4, 'yaw_variance_per_s': 0.0,
-                   'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 0.0, 'max_gap_s': 0.0,
-                   'delay_s': 0.0},
+                   'xy_variance_per_rad': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
+                   'gate_probability': 0.999, 'max_gap_s': 0.0, 'delay_s': 0.0},
     'imu': {'mask': ['yaw'], 'pose_mode': 'differential', 'covariance': 'model',
             'covariance_scale': 1.0, 'variance_per_m': 0.0, 'variance_per_rad': 0.0,
             'yaw_variance_per_m': 0.0, 'yaw_variance_per_s': 1e-8,
-            'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_chi2': 16.0,
+            'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_probability': 0.999,
             # gyro_integrator's max_gap_s: across a longer silence of its input it holds the
             # heading (the turn in the gap is not in its output), so no increment spans one.
             'max_gap_s': 0.5, 'heading_delay_s': 0.0, 'delay_s': 0.0},
@@ -203,7 +209,7 @@ INPUT_DEFAULTS: dict[str, dict] = {
                    'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,
                    'variance_per_rad': 1e-3, 'yaw_variance_per_m': 1e-4,
                    'yaw_variance_per_s': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
-                   'gate_chi2': 25.0, 'max_gap_s': 0.0, 'delay_s': 0.0,
+                   'gate_probability': 0.999, 'max_gap_s': 0.0, 'delay_s': 0.0,
                    'map_variance_per_m': 0.0, 'map_yaw_variance_per_m': 0.0},
 }
 
@@ -220,9 +226,12 @@ INPUT_DESCRIPTIONS: dict[str, str] = {
     'variance_per_rad': 'noise model: yaw variance per radian turned (rad^2/rad)',
     'yaw_variance_per_m': 'noise model: yaw variance per metre travelled (rad^2/m)',
     'yaw_variance_per_s': 'noise model: yaw variance per second (rad^2/s)',
+    'xy_variance_per_rad': 'noise model: x/y variance per radian turned (m^2/rad), where the '
+                           "source's point is not the one the robot turns about",
     'twist_variance': 'vx, vy, vyaw variances when the message has none',
-    'gate_chi2': 'refuse a measurement whose squared Mahalanobis distance exceeds this '
-                 '(chi-square value); 0 = no gate',
+    'gate_probability': 'refuse a reading whose innovation lies beyond this probability of '
+                        'a consistent one (the chi-square quantile of its rows; the gate '
+                        'cannot be off)',
     'max_gap_s': 'differential: no increment across a longer silence of this input (s); '
                  "0 = the node's max_gap_s, else the shorter of the two",
     'heading_delay_s': "how far the input's heading lags its stamp (s): its yaw is read as "
@@ -242,7 +251,6 @@ def input_config(name: str, values: dict, **fixed) -> InputConfig:
     gap, which the input's own max_gap_s, when > 0, shortens). ValueError for an unknown
     quantity in the mask."""
     v = {**INPUT_DEFAULTS[name], **values}
-    gate = float(v['gate_chi2'])
     own_gap = float(v.get('max_gap_s', 0.0))
     if own_gap > 0.0:
         fixed = {**fixed, 'max_gap_s': min(own_gap, fixed.get('max_gap_s', own_gap))}
@@ -252,10 +260,11 @@ def input_config(name: str, values: dict, **fixed) -> InputConfig:
         noise=NoiseModel(variance_per_m=float(v['variance_per_m']),
                          variance_per_rad=float(v['variance_per_rad']),
                          yaw_variance_per_m=float(v['yaw_variance_per_m']),
-                         yaw_variance_per_s=float(v['yaw_variance_per_s'])),
+                         yaw_variance_per_s=float(v['yaw_variance_per_s']),
+                         xy_variance_per_rad=float(v.get('xy_variance_per_rad', 0.0))),
         twist_variance=tuple(float(x) for x in v['twist_variance']),
         heading_delay_s=float(v.get('heading_delay_s', 0.0)),   # imu only
         map_variance_per_m=float(v.get('map_variance_per_m', 0.0)),   # scan_match only
         map_yaw_variance_per_m=float(v.get('map_yaw_variance_per_m', 0.0)),
         delay_s=float(v['delay_s']),
-        gate_chi2=gate if gate > 0.0 else math.inf, **fixed)
+        gate_probability=float(v['gate_probability']), **fixed)
