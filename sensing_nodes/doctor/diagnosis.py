@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -15,10 +15,10 @@ import yaml
 from sensing_nodes.bags.sensor_streams import SensorBagError
 from sensing_nodes.bags.survey import ImuStream, JointStream, OdomStream, Survey
 from sensing_nodes.core.diagnosis import covariance as cov_checks
+from sensing_nodes.core.diagnosis import cross, timing, wheels
 from sensing_nodes.core.diagnosis import imu as imu_checks
 from sensing_nodes.core.diagnosis import laser as laser_checks
 from sensing_nodes.core.diagnosis import tf as tf_checks
-from sensing_nodes.core.diagnosis import timing, wheels
 from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check
 from sensing_nodes.core.evaluation import calibration as cal
 from sensing_nodes.core.geometry import se2
@@ -71,7 +71,7 @@ class Diagnosis:
     scan_track: tuple[np.ndarray, np.ndarray] | None = None   # (t, poses) of scan matching
     scan_track_status: dict[str, int] = field(default_factory=dict)
     mount: imu_checks.MountEstimate | None = None
-    gyro_bias: float = 0.0
+    gyro_bias: float | None = None            # rad/s while still; None: never still
     gyro_noise_density: float | None = None
     offsets: dict[str, float] = field(default_factory=dict)   # track -> s vs the reference
     noise: dict[str, float] = field(default_factory=dict)
@@ -88,6 +88,12 @@ class Diagnosis:
     scan_variance: Any = None                 # (S, 3) each match's variance (x, y, yaw)
     preset_text: str = ''
     imu_tilt_deg: float | None = None         # largest base tilt the IMU's orientation shows
+    orientation_usable: bool = False          # the IMU's own orientation can be fused
+    orientation_yaw: tuple[np.ndarray, np.ndarray] | None = None   # its yaw in base_link
+    wheel_yaw_scale: float = 1.0              # the preset's separation over the found one
+    odom_yaw_distrusted: set[str] = field(default_factory=set)   # Odometry topics
+    distrust: dict[str, str] = field(default_factory=dict)   # input -> why the fusion doubts it
+    laser_on_tf_static: bool = False
 
     def add(self, checks: Check | list[Check]) -> None:
         self.checks.extend([checks] if isinstance(checks, Check) else checks)
@@ -175,6 +181,7 @@ def read_declared(d: Diagnosis) -> None:
     if static is not None:
         laser = [static[0][0], static[0][1], to_rpy(static[1])[2]]
         laser_from = '/tf_static'
+        d.laser_on_tf_static = True
     geometry = cal.Geometry(radius * float(w.get('left_radius_multiplier', 1.0)),
                             radius * float(w.get('right_radius_multiplier', 1.0)),
                             float(w.get('wheel_separation_m', 0.30)), *laser)
@@ -322,12 +329,14 @@ def wheel_section(d: Diagnosis) -> None:
         d.add(wheels.encoders_vs_odometry(odom.topic, joint_t, joints, t, yaw))
 
 
-def wheel_track(d: Diagnosis) -> tuple[np.ndarray, np.ndarray] | None:
-    """Dead reckoning from the encoders with the geometry found: (stamps, poses (J, 3))."""
+def wheel_track(d: Diagnosis, geometry: cal.Geometry | None = None
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Dead reckoning from the encoders with the geometry found (or the one given): (stamps,
+    poses (J, 3))."""
     if d.joints is None:
         return None
     t, joints = _joint_arrays(d)
-    g = d.geometry
+    g = geometry or d.geometry
     steps = np.diff(joints, axis=0)
     poses, _ = integrate_path((0.0, 0.0, 0.0), steps[:, 0] * g.left_radius_m,
                               steps[:, 1] * g.right_radius_m, g.wheel_separation_m)
@@ -426,39 +435,64 @@ def _reference_motion(d: Diagnosis) -> tuple[str, np.ndarray, np.ndarray, np.nda
     return None
 
 
-def _mount_section(d: Diagnosis, t: np.ndarray, accel: np.ndarray, up, axis, ref
+def _declared_mount(d: Diagnosis, note: str) -> imu_checks.MountEstimate:
+    """The declared mount as the preset's (not judged: nothing measured replaces it)."""
+    r = d.declared.imu_mount
+    roll, pitch, yaw = (math.atan2(r[2, 1], r[2, 2]), -math.asin(float(np.clip(r[2, 0], -1, 1))),
+                        math.atan2(r[1, 0], r[0, 0]))
+    return imu_checks.MountEstimate(roll, pitch, yaw, 'declared', note)
+
+
+def _mount_section(d: Diagnosis, t: np.ndarray, accel: np.ndarray, up, up_std, rate_fit, ref
                    ) -> np.ndarray:
     """The mount from the up axis (gravity's, else the rate axis) and the accelerations'
-    yaw, checked against the declared one; the rotation the gyro is read through (the
-    declared yaw kept where none was found)."""
+    yaw, each angle with its standard deviation and snapped to a right angle within 2 sigma,
+    checked against the declared one; the rotation the gyro is read through (the declared
+    mount where the data shows none, the declared yaw where the accelerations show none)."""
     imu = d.imu
-    direction = up if up is not None else axis
-    if direction is None:
+    if up is None and rate_fit is not None:
+        up, up_std = rate_fit[0], rate_fit[2]
+        up_from = 'rotation'
+    else:
+        up_from = 'gravity'
+    if up is None:
+        still = d.imu_still is not None and d.imu_still.still.sum() >= 20
+        reason = ('neither gravity (the IMU never stands still) nor a reference that turns '
+                  'shows its axes' if not still else 'no gravity reading and no reference that '
+                  'turns shows its axes')
         d.add(Check('imu_mount', imu.topic, SKIPPED, None, 'deg',
-                    'neither gravity nor a reference yaw rate shows the IMU\'s axes'))
+                    f'not judged: {reason}; params.yaml keeps the declared mount '
+                    f'({d.declared.imu_mount_from})'))
+        d.mount = _declared_mount(d, reason)
         return d.declared.imu_mount
-    roll, pitch = imu_checks.roll_pitch_of(direction)
-    yaw, note = None, 'no reference motion'
-    if up is not None and ref is not None:
+    roll, pitch = imu_checks.roll_pitch_of(up)
+    roll_std = up_std / max(abs(math.cos(pitch)), 0.1)
+    yaw = yaw_std = None
+    note = 'no reference motion'
+    if up_from == 'gravity' and ref is not None:
         found = imu_checks.horizontal_yaw(t, accel, roll, pitch, ref[1], ref[2], ref[3])
-        yaw, note = (found[0], f'from accelerations, {found[1]:.2f} m/s^2 RMS') \
-            if found else (None, 'the robot hardly accelerates')
-    elif up is None:
-        note = 'no gravity in the accelerometer'
-    d.mount = imu_checks.MountEstimate(roll, pitch, yaw,
-                                       'gravity' if up is not None else 'rotation', note)
+        if found:
+            yaw, yaw_std = found[0], found[2]
+            note = f'from accelerations against {ref[0]} ({found[1]:.2f} m/s^2 RMS)'
+        else:
+            note = 'the robot hardly accelerates'
+    elif up_from == 'rotation':
+        note = 'no gravity reading to level the accelerations'
+    d.mount = imu_checks.MountEstimate.snapped(roll, pitch, yaw, (roll_std, up_std, yaw_std),
+                                               up_from, note)
     d.add(imu_checks.mount_check(imu.topic, d.mount, d.declared.imu_mount,
                                  d.declared.imu_mount_from,
                                  imu.frame_id.lstrip('/') == d.base_frame))
     if yaw is None:     # keep the declared yaw about the vertical
         declared_yaw = math.atan2(d.declared.imu_mount[1, 0], d.declared.imu_mount[0, 0])
-        d.mount = imu_checks.MountEstimate(roll, pitch, declared_yaw, d.mount.up_from, note)
+        d.mount = imu_checks.MountEstimate(d.mount.roll, d.mount.pitch, declared_yaw,
+                                           d.mount.up_from, note, d.mount.measured, d.mount.std)
     return d.mount.rotation()
 
 
 def imu_section(d: Diagnosis) -> None:
     """Gravity (REP 103/145), the rate axis, the mount found against the declared one, gyro
-    bias and noise; the gyro's yaw track about base_link's z."""
+    bias and noise; the gyro's yaw track about base_link's z; the IMU's own orientation."""
     if d.imu is None:
         return
     imu = d.imu
@@ -471,29 +505,50 @@ def imu_section(d: Diagnosis) -> None:
         moving = (np.abs(np.interp(at, (rt - rt[0]) * 1e-9, v)) > 1e-3) | \
             (np.abs(np.interp(at, (rt - rt[0]) * 1e-9, w)) > 1e-3)
     still = imu_checks.stillness(t, gyro, accel, moving)
-    gravity, up = imu_checks.gravity_check(imu.topic, accel, still, d.declared.imu_mount)
+    d.imu_still = still
+    gravity, up, up_std = imu_checks.gravity_check(imu.topic, accel, still,
+                                                   d.declared.imu_mount)
     d.add(gravity)
-    axis = None
+    rate_fit = None
     if ref is not None:
-        fit = imu_checks.rate_axis(t, gyro, ref[1], ref[3])
-        if fit is not None:
-            axis = fit[0]
-            d.add(imu_checks.rate_axis_check(imu.topic, ref[0], fit[0], fit[1], up))
-    rotation = _mount_section(d, t, accel, up, axis, ref)
+        rate_fit = imu_checks.rate_axis(t, gyro, ref[1], ref[3])
+        if rate_fit is not None:
+            d.add(imu_checks.rate_axis_check(imu.topic, ref[0], rate_fit[0], rate_fit[1], up))
+    rotation = _mount_section(d, t, accel, up, up_std, rate_fit, ref)
     rate_z = gyro @ rotation[2]
     noise = imu_checks.gyro_noise_checks(imu.topic, t, rate_z, still)
     d.add(noise)
-    d.gyro_bias = next((c.details['bias_rad_s'] for c in noise
-                        if c.name == 'gyro_bias' and c.verdict != SKIPPED), 0.0)
+    bias = next((c for c in noise if c.name == 'gyro_bias' and c.verdict != SKIPPED), None)
+    d.gyro_bias = bias.details['bias_rad_s'] if bias is not None else None
     d.gyro_noise_density = next((c.value for c in noise
                                  if c.name == 'gyro_noise' and c.verdict != SKIPPED), None)
-    d.tracks[imu.topic] = (t, integrate_rate(t, rate_z, bias=d.gyro_bias))
-    d.imu_still = still
-    if not np.all(imu.orientation_cov[:, 0] == -1.0) and np.any(imu.orientation[:, 3] != 0):
-        tilt = [math.degrees(math.acos(min(1.0, abs(float(
-            (quaternion_matrix(q) @ rotation.T)[2, 2]))))) for q in
-            imu.orientation[::max(1, len(imu.orientation) // 2000)]]
-        d.imu_tilt_deg = float(max(tilt))
+    d.tracks[imu.topic] = (t, integrate_rate(t, rate_z, bias=d.gyro_bias or 0.0))
+    if imu_reports_orientation(imu):
+        turned = float(np.abs(np.diff(d.tracks[imu.topic][1])).sum())
+        check = cross.orientation_check(imu.topic, imu.orientation, imu.orientation_cov, turned)
+        d.add(check)
+        d.orientation_usable = not (check.details['identity'] or (
+            check.details['constant'] and turned > math.radians(5.0)))
+        if d.orientation_usable:
+            ot, q = sorted_unique(imu.t, imu.orientation)
+            yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in
+                             (quaternion_matrix(row) @ rotation.T for row in q)])
+            d.orientation_yaw = (ot, yaw)
+            tilt = [math.degrees(math.acos(min(1.0, abs(float(
+                (quaternion_matrix(q) @ rotation.T)[2, 2]))))) for q in
+                imu.orientation[::max(1, len(imu.orientation) // 2000)]]
+            d.imu_tilt_deg = float(max(tilt))
+
+
+def imu_reports_orientation(imu: ImuStream | None) -> bool:
+    """The Imu messages fill their orientation (REP 145: covariance[0] -1 says they do not)."""
+    return imu is not None and not np.all(imu.orientation_cov[:, 0] == -1.0) and \
+        bool(np.all(np.linalg.norm(imu.orientation, axis=1) > 0.5))
+
+
+def orientation_track(topic: str) -> str:
+    """The name of the yaw track of an IMU's own orientation."""
+    return f'{topic} (its orientation)'
 
 
 def offset_section(d: Diagnosis) -> None:
@@ -527,6 +582,86 @@ def offset_section(d: Diagnosis) -> None:
         d.add(timing.offset_check(name, reference, solved[name], pairs))
     d.offsets = solved
     d.offset_reference = reference
+
+
+def _shifted(d: Diagnosis, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A yaw track with its time offset against the reference taken out."""
+    t, yaw = d.tracks[name]
+    return t - int(round(d.offsets.get(name, 0.0) * 1e9)), yaw
+
+
+def _gain(check: Check) -> float | None:
+    return check.details.get('gain') if check.verdict != SKIPPED else None
+
+
+def cross_section(d: Diagnosis) -> None:
+    """Each source against the others: the wheels' and each odometry's yaw rate against the
+    gyro's, their distance against scan matching's, every pair's heading over the run (time
+    offsets taken out)."""
+    gyro = d.imu.topic if d.imu is not None and d.imu.topic in d.tracks else None
+    if gyro is not None:
+        gt, gy = _shifted(d, gyro)
+        if d.joints is not None:
+            jt, joints = _joint_arrays(d)
+            jt = jt - int(round(d.offsets.get('wheels', 0.0) * 1e9))
+            found = cross.yaw_rate_gain('wheels', gyro, jt, wheels.wheel_rates(
+                jt, joints, d.geometry)[3], gt, gy, '')
+            gain = _gain(found)
+            d.wheel_yaw_scale = 1.0 if gain is None or \
+                cross.GAIN_LOW <= gain <= cross.GAIN_HIGH else gain
+            separation = d.geometry.wheel_separation_m * d.wheel_yaw_scale
+            fix = (f'params.yaml\'s wheel_separation_m ({separation:.4f} m, '
+                   + ('calibrated against scan matching' if d.calibration is not None else
+                      'the declared one') + ') ' + (
+                       f'scaled by {d.wheel_yaw_scale:.2f} so that the wheels turn as the gyro '
+                       'does' if d.wheel_yaw_scale != 1.0 else
+                       f'brings the gain to {gain:.2f}' if gain is not None else 'is kept'))
+            check = cross.yaw_rate_gain('wheels', gyro, jt, wheels.wheel_rates(
+                jt, joints, d.declared.geometry)[3], gt, gy, fix)
+            if check.verdict != SKIPPED:
+                check.details['gain_with_preset_geometry'] = gain
+                check.details['preset_separation_m'] = separation
+            if check.verdict == PROBLEM:
+                check = replace(check, fix=fix)
+                if d.wheel_yaw_scale != 1.0:
+                    d.distrust['wheels'] = (f'its yaw rate is {check.value:.2f}x the gyro\'s '
+                                            '(yaw_rate_gain)')
+            d.add(check)
+        for odom in d.odoms:
+            ot, oy = _shifted(d, odom.topic)
+            fix = ('params.yaml leaves its yaw rate out of the fusion (wheel_odom.mask without '
+                   'yaw and vyaw): the gyro gives the heading')
+            check = cross.yaw_rate_gain(odom.topic, gyro, ot, oy, gt, gy, fix)
+            if check.verdict == PROBLEM:
+                check = replace(check, fix=fix)
+                d.odom_yaw_distrusted.add(odom.topic)
+                d.distrust[odom.topic] = (f'its yaw rate is {check.value:.2f}x the gyro\'s '
+                                          '(yaw_rate_gain: skid steer)')
+            d.add(check)
+    ref = _reference_intervals(d)
+    if ref is not None:
+        t0, t1, motion, _ = ref
+        sources = ([('wheels', wheel_track(d, d.declared.geometry))] if d.joints is not None
+                   else []) + [(o.topic, d.pose_tracks[o.topic]) for o in d.odoms]
+        for name, (t, pose) in sources:
+            inc = _increments(t, pose, t0, t1)
+            if name == 'wheels':
+                fix = ('params.yaml\'s wheel_radius_m is calibrated against scan matching'
+                       if d.calibration is not None else 'set wheel_radius_m')
+            else:
+                fix = 'correct the wheel radius in the driver (the fusion takes its speed as is)'
+            check = cross.speed_scale(name, inc[:, 0], motion[:, 0], fix)
+            if check.verdict == PROBLEM and name == 'wheels' and d.calibration is not None:
+                check = replace(check, fix=fix)
+            d.add(check)
+    names = list(d.tracks) + (['orientation'] if d.orientation_yaw is not None else [])
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            ta, ya = _shifted(d, a) if a != 'orientation' else d.orientation_yaw
+            tb, yb = _shifted(d, b) if b != 'orientation' else d.orientation_yaw
+            label = (lambda n: orientation_track(d.imu.topic) if n == 'orientation' else
+                     (f'{n} (gyro heading)' if d.imu is not None and n == d.imu.topic else n))
+            d.add(cross.heading_agreement(label(a), label(b), ta, ya, tb, yb))
 
 
 def _increments(t: np.ndarray, poses: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, Check
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check
 from sensing_nodes.core.geometry.imu_mount import quaternion_matrix
-from sensing_nodes.doctor.diagnosis import Diagnosis, sorted_unique
+from sensing_nodes.doctor.diagnosis import Diagnosis, orientation_track, sorted_unique
 from sensing_nodes.doctor.preset import imu_has_orientation
 from sensing_nodes.topics import FUSED, GROUND_TRUTH
 
@@ -53,7 +53,7 @@ def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray) -> None:
         it, q = sorted_unique(d.imu.t, d.imu.orientation)
         yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in
                          (quaternion_matrix(row) @ rotation.T for row in q)])
-        compared[d.imu.topic + ' (its orientation)'] = heading_only(it, yaw)
+        compared[orientation_track(d.imu.topic)] = heading_only(it, yaw)
     d.fused['compared'] = {n: v for n, v in compared.items() if v is not None}
 
 
@@ -88,9 +88,44 @@ def fused_section(d: Diagnosis, out: Path) -> None:
     # The first output is the filter's initial state (with an absolute IMU yaw: before the
     # first orientation reached it): the comparisons anchor at the second.
     compare_fused(d, t[1:], poses[1:])
-    shown = '; '.join(f'{n}: {v.get("rms_position_error_m", float("nan")):.3f} m / '
-                      f'{v["rms_heading_error_deg"]:.2f} deg RMS'
-                      for n, v in d.fused['compared'].items())
-    d.add(Check('fused', 'preset', OK, float(len(t)), 'outputs',
-                f'the preset\'s fused output ({len(t)} estimates) against each input: {shown}',
-                '', d.fused))
+    d.add(fused_check(d, len(t)))
+
+
+# The fused output this far from an input needs a reason: metres, tens of degrees (RMS).
+FAR_M, FAR_DEG = 1.0, 10.0
+
+
+def figures(v: dict) -> str:
+    """'0.014 m / 0.30 deg RMS' (heading only: '0.30 deg RMS')."""
+    position = v.get('rms_position_error_m')
+    return (f'{position:.3f} m / ' if position is not None else '') + \
+        f'{v["rms_heading_error_deg"]:.2f} deg RMS'
+
+
+def fused_check(d: Diagnosis, outputs: int) -> Check:
+    """The fused output against each input: ok where it follows them, or where it departs
+    from one the report names a reason to distrust (d.distrust); a warning where it departs
+    from an input and nothing says why."""
+    far, explained = {}, {}
+    for name, v in d.fused['compared'].items():
+        if name.startswith('ground truth'):
+            continue
+        if (v.get('rms_position_error_m') or 0.0) >= FAR_M or \
+                v['rms_heading_error_deg'] >= FAR_DEG:
+            base = name.removesuffix(' (gyro heading)')
+            (explained if base in d.distrust else far)[name] = v
+    near = '; '.join(f'{n}: {figures(v)}' for n, v in d.fused['compared'].items()
+                     if n not in far and n not in explained)
+    parts = [f'the preset\'s fused output ({outputs} estimates) against each input: '
+             + (near or 'none close')]
+    for name, v in explained.items():
+        base = name.removesuffix(' (gyro heading)')
+        parts.append(f'it departs from {name} ({figures(v)}) by design: {d.distrust[base]}')
+    for name, v in far.items():
+        parts.append(f'it departs from {name} ({figures(v)}) and no check says why: the inputs '
+                     'disagree; compare them in the plots before trusting either')
+    d.fused['distrusted'] = {n: d.distrust[n.removesuffix(' (gyro heading)')] for n in explained}
+    d.fused['unexplained'] = list(far)
+    return Check('fused', 'preset', WARNING if far else OK, float(outputs), 'outputs',
+                 '; '.join(parts), f'within {FAR_M:g} m and {FAR_DEG:g} deg RMS of each input, '
+                 'or a reason named', d.fused)

@@ -26,12 +26,14 @@ class Check:
     advice: str
     limit: str = ''
     details: dict[str, Any] = field(default_factory=dict)
+    fix: str = ''           # what the preset (params.yaml) does about it; '' nothing
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready: non-finite numbers become None."""
         return {'name': self.name, 'subject': self.subject, 'verdict': self.verdict,
                 'value': _finite(self.value), 'unit': self.unit, 'limit': self.limit,
-                'advice': self.advice, 'details': _json(self.details)}
+                'advice': self.advice, 'fixed_by_preset': self.fix or None,
+                'details': _json(self.details)}
 
 
 def graded(value: float, warn: float, problem: float) -> str:
