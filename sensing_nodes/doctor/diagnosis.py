@@ -19,7 +19,7 @@ from sensing_nodes.core.diagnosis import cross, timing, wheels
 from sensing_nodes.core.diagnosis import imu as imu_checks
 from sensing_nodes.core.diagnosis import laser as laser_checks
 from sensing_nodes.core.diagnosis import tf as tf_checks
-from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check, graded
 from sensing_nodes.core.evaluation import calibration as cal
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.geometry.imu_mount import mount_rotation, quaternion_matrix
@@ -89,6 +89,7 @@ class Diagnosis:
     preset_text: str = ''
     imu_tilt_deg: float | None = None         # largest base tilt the IMU's orientation shows
     orientation_usable: bool = False          # the IMU's own orientation can be fused
+    imu_rate_z: tuple[np.ndarray, np.ndarray] | None = None   # gyro about base_link's z
     orientation_yaw: tuple[np.ndarray, np.ndarray] | None = None   # its yaw in base_link
     wheel_yaw_scale: float = 1.0              # the preset's separation over the found one
     odom_yaw_distrusted: set[str] = field(default_factory=set)   # Odometry topics
@@ -307,7 +308,7 @@ def wheel_section(d: Diagnosis) -> None:
     joint_t, joints = _joint_arrays(d)
     if d.scan is not None and np.ptp(joints, axis=0).max() > 1e-6:
         scan_t, points, beam_times = _scan_points(d)
-        nominal = d.declared.geometry
+        nominal = _gyro_scaled_geometry(d, joint_t, joints)
         try:
             for _ in range(2):
                 intervals = cal.make_intervals(joint_t, joints, scan_t, points, nominal,
@@ -327,6 +328,22 @@ def wheel_section(d: Diagnosis) -> None:
     for odom in d.odoms:
         t, yaw = sorted_unique(odom.t, odom.pose[:, 2])
         d.add(wheels.encoders_vs_odometry(odom.topic, joint_t, joints, t, yaw))
+
+
+def _gyro_scaled_geometry(d: Diagnosis, joint_t: np.ndarray, joints: np.ndarray
+                          ) -> cal.Geometry:
+    """The declared geometry as the calibration's starting guess, its separation scaled to
+    turn as the gyro does where the wheels turn more than twice (or less than half) as much
+    (a skid-steer base, a track width far off): scan matching guided by such wheels fails."""
+    g = d.declared.geometry
+    if d.imu is None:
+        return g
+    t, gyro = sorted_unique(d.imu.t, d.imu.gyro)
+    mid, _, w, _ = wheels.wheel_rates(joint_t, joints, g)
+    fit = imu_checks.rate_axis(t, gyro, mid, w)
+    if fit is None or 0.5 <= fit[1] <= 2.0:
+        return g
+    return replace(g, wheel_separation_m=g.wheel_separation_m / fit[1])
 
 
 def wheel_track(d: Diagnosis, geometry: cal.Geometry | None = None
@@ -523,6 +540,7 @@ def imu_section(d: Diagnosis) -> None:
     d.gyro_noise_density = next((c.value for c in noise
                                  if c.name == 'gyro_noise' and c.verdict != SKIPPED), None)
     d.tracks[imu.topic] = (t, integrate_rate(t, rate_z, bias=d.gyro_bias or 0.0))
+    d.imu_rate_z = (t, rate_z)
     if imu_reports_orientation(imu):
         turned = float(np.abs(np.diff(d.tracks[imu.topic][1])).sum())
         check = cross.orientation_check(imu.topic, imu.orientation, imu.orientation_cov, turned)
@@ -594,6 +612,21 @@ def _gain(check: Check) -> float | None:
     return check.details.get('gain') if check.verdict != SKIPPED else None
 
 
+def _bias_from_wheels(d: Diagnosis, bias: float) -> None:
+    """A gyro never still: its bias from the yaw-rate offset against the wheels (which agree
+    with it in gain), in place of the still reading it lacks; its yaw track integrated
+    again."""
+    d.gyro_bias = bias
+    t, rate_z = d.imu_rate_z
+    d.tracks[d.imu.topic] = (t, integrate_rate(t, rate_z, bias=bias))
+    d.checks = [c for c in d.checks if not (c.name == 'gyro_bias' and c.verdict == SKIPPED)]
+    verdict = graded(abs(bias), math.radians(1.0), 0.05)
+    d.add(Check('gyro_bias', d.imu.topic, verdict, math.degrees(bias), 'deg/s',
+                f'bias {math.degrees(bias):+.3f} deg/s, read against the wheels\' yaw rate while '
+                'moving (the IMU never stands still): initial_bias_z_rad_s in params.yaml',
+                '< 1 deg/s', {'bias_rad_s': bias, 'from': 'wheels'}))
+
+
 def cross_section(d: Diagnosis) -> None:
     """Each source against the others: the wheels' and each odometry's yaw rate against the
     gyro's, their distance against scan matching's, every pair's heading over the run (time
@@ -607,6 +640,10 @@ def cross_section(d: Diagnosis) -> None:
             found = cross.yaw_rate_gain('wheels', gyro, jt, wheels.wheel_rates(
                 jt, joints, d.geometry)[3], gt, gy, '')
             gain = _gain(found)
+            if d.gyro_bias is None and gain is not None and \
+                    cross.GAIN_LOW <= gain <= cross.GAIN_HIGH:
+                _bias_from_wheels(d, -found.details['offset_rad_s'] / gain)
+                gt, gy = _shifted(d, gyro)
             d.wheel_yaw_scale = 1.0 if gain is None or \
                 cross.GAIN_LOW <= gain <= cross.GAIN_HIGH else gain
             separation = d.geometry.wheel_separation_m * d.wheel_yaw_scale
@@ -645,12 +682,14 @@ def cross_section(d: Diagnosis) -> None:
                    else []) + [(o.topic, d.pose_tracks[o.topic]) for o in d.odoms]
         for name, (t, pose) in sources:
             inc = _increments(t, pose, t0, t1)
+            travel = np.copysign(np.hypot(inc[:, 0], inc[:, 1]), inc[:, 0])
+            along = np.copysign(np.hypot(motion[:, 0], motion[:, 1]), motion[:, 0])
             if name == 'wheels':
                 fix = ('params.yaml\'s wheel_radius_m is calibrated against scan matching'
                        if d.calibration is not None else 'set wheel_radius_m')
             else:
                 fix = 'correct the wheel radius in the driver (the fusion takes its speed as is)'
-            check = cross.speed_scale(name, inc[:, 0], motion[:, 0], fix)
+            check = cross.speed_scale(name, travel, along, fix)
             if check.verdict == PROBLEM and name == 'wheels' and d.calibration is not None:
                 check = replace(check, fix=fix)
             d.add(check)

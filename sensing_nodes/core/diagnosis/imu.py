@@ -166,9 +166,8 @@ def horizontal_yaw(t: NDArray[np.int64], accel: NDArray[np.float64], roll: float
                    ) -> tuple[float, float, float] | None:
     """Mount yaw (rad) from the levelled horizontal accelerations against base_link's (dv/dt,
     v w), both averaged over bin_s bins, with a constant bias fitted; the RMS of the
-    reference acceleration it rests on (m/s^2), and the yaw's standard deviation (rad: the
-    scatter of the yaws that six stretches of the bag give, at least 0.1 deg). None when the
-    robot hardly accelerates."""
+    reference acceleration it rests on (m/s^2), and the yaw's standard deviation (rad, from
+    the residuals, at least 0.1 deg). None when the robot hardly accelerates."""
     level = mount_rotation(roll, pitch, 0.0)
     a = accel @ level.T
     t0 = max(t[0], ref_t[0])
@@ -190,21 +189,22 @@ def horizontal_yaw(t: NDArray[np.int64], accel: NDArray[np.float64], roll: float
     ref_rms = float(np.sqrt(np.mean(forward[use] ** 2 + lateral[use] ** 2)))
     if use.sum() < 20 or np.sum(np.hypot(forward[use], lateral[use]) > 0.1) < 10:
         return None
-    def fit(f, s, x, y) -> float:
-        one, zero = np.ones(f.size), np.zeros(f.size)
-        # a_lev = Rz(-yaw) a_base + bias: x = c f + s' l + bx, y = -s' f + c l + by
-        design = np.vstack((np.column_stack((f, s, one, zero)),
-                            np.column_stack((s, -f, zero, one))))
-        coef, *_ = np.linalg.lstsq(design, np.concatenate((x, y)), rcond=None)
-        return math.atan2(float(coef[1]), float(coef[0]))
-
     f, s, x, y = forward[use], lateral[use], ax[use], ay[use]
-    yaw = fit(f, s, x, y)
-    parts = [fit(*(c[i] for c in (f, s, x, y))) for i in np.array_split(np.arange(f.size), 6)
-             if np.sum(np.hypot(f[i], s[i]) > 0.1) >= 5]
-    spread = [math.remainder(p - yaw, math.tau) for p in parts]
-    std = math.sqrt(float(np.mean(np.square(spread))) / len(parts)) if len(parts) >= 3 \
-        else math.radians(5.0)
+    one, zero = np.ones(f.size), np.zeros(f.size)
+    # a_lev = Rz(-yaw) a_base + bias: x = c f + s' l + bx, y = -s' f + c l + by
+    design = np.vstack((np.column_stack((f, s, one, zero)), np.column_stack((s, -f, zero, one))))
+    target = np.concatenate((x, y))
+    coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+    yaw = math.atan2(float(coef[1]), float(coef[0]))
+    # The angle's standard deviation from the residuals, their correlation from bin to bin
+    # (vibration, the reference's own errors) counted: (1 + rho) / (1 - rho) samples per one.
+    residual = target - design @ coef
+    dof = max(target.size - 4, 1)
+    rho = float(np.clip(np.mean([np.corrcoef(r[:-1], r[1:])[0, 1] for r in
+                                 (residual[:f.size], residual[f.size:])]), 0.0, 0.95))
+    inflate = (1.0 + rho) / (1.0 - rho)
+    cov = float((residual ** 2).sum()) / dof * np.linalg.inv(design.T @ design) * inflate
+    std = math.sqrt(0.5 * float(cov[0, 0] + cov[1, 1])) / max(float(np.hypot(*coef[:2])), 1e-9)
     return yaw, ref_rms, max(std, math.radians(0.1))
 
 
