@@ -597,7 +597,10 @@ def offset_section(d: Diagnosis) -> None:
             d.add(Check('time_offset', f'{name} vs {reference}', SKIPPED, None, 's',
                         f'not measured: {refused}'))
             continue
-        d.add(timing.offset_check(name, reference, solved[name], pairs))
+        fused = {'wheels' if d.joints is not None else (d.odoms[0].topic if d.odoms else ''),
+                 d.imu.topic if d.imu is not None else ''}
+        d.add(timing.offset_check(name, reference, solved[name], pairs,
+                                  reference == 'scan matching' and name in fused))
     d.offsets = solved
     d.offset_reference = reference
 
@@ -693,14 +696,14 @@ def cross_section(d: Diagnosis) -> None:
             if check.verdict == PROBLEM and name == 'wheels' and d.calibration is not None:
                 check = replace(check, fix=fix)
             d.add(check)
-    names = list(d.tracks) + (['orientation'] if d.orientation_yaw is not None else [])
+    headings = {(f'{n} (gyro heading)' if d.imu is not None and n == d.imu.topic else n):
+                _shifted(d, n) for n in d.tracks}
+    if d.orientation_yaw is not None:
+        headings[orientation_track(d.imu.topic)] = d.orientation_yaw
+    names = list(headings)
     for i, a in enumerate(names):
         for b in names[i + 1:]:
-            ta, ya = _shifted(d, a) if a != 'orientation' else d.orientation_yaw
-            tb, yb = _shifted(d, b) if b != 'orientation' else d.orientation_yaw
-            label = (lambda n: orientation_track(d.imu.topic) if n == 'orientation' else
-                     (f'{n} (gyro heading)' if d.imu is not None and n == d.imu.topic else n))
-            d.add(cross.heading_agreement(label(a), label(b), ta, ya, tb, yb))
+            d.add(cross.heading_agreement(a, b, *headings[a], *headings[b]))
 
 
 def _increments(t: np.ndarray, poses: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:

@@ -57,6 +57,21 @@ def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray) -> None:
     d.fused['compared'] = {n: v for n, v in compared.items() if v is not None}
 
 
+def _quietly(quiet: bool, call):
+    """call() with the nodes' INFO logs silenced when quiet (rcutils' default level, put
+    back afterwards: a caller's own nodes keep theirs)."""
+    if not quiet:
+        return call()
+    import rclpy.logging
+
+    previous = rclpy.logging.get_logger_level('')
+    rclpy.logging.set_logger_level('', rclpy.logging.LoggingSeverity.WARN)
+    try:
+        return call()
+    finally:
+        rclpy.logging.set_logger_level('', previous)
+
+
 def fused_section(d: Diagnosis, out: Path) -> None:
     """The preset through the nodes offline (sensing_pipeline's code) over the bag, and the
     fused output against each input, anchored at the fused output's second stamp."""
@@ -67,8 +82,9 @@ def fused_section(d: Diagnosis, out: Path) -> None:
         return
     fused_bag = out / 'fused_bag'
     try:
-        counts = run(d.survey.path, fused_bag, d.nodes, params_files=[out / 'params.yaml'],
-                     remaps=d.remaps, progress=False)
+        counts = _quietly(getattr(d.args, 'quiet', False), lambda: run(
+            d.survey.path, fused_bag, d.nodes, params_files=[out / 'params.yaml'],
+            remaps=d.remaps, progress=False))
     except PipelineError as exc:
         d.add(Check('fused', 'preset', PROBLEM, None, 'm',
                     f'the preset does not run through the nodes: {exc}'))
@@ -78,7 +94,9 @@ def fused_section(d: Diagnosis, out: Path) -> None:
                     f'the preset does not load ({type(exc).__name__}: {exc})'))
         return
     t, poses = load_odometry(fused_bag, FUSED)
-    d.fused = {'outputs': counts, 'final_pose': poses[-1].tolist() if len(poses) else None,
+    d.fused = {'outputs': counts, 'final_pose': None if not len(poses) else {
+                   'x_m': round(float(poses[-1][0]), 4), 'y_m': round(float(poses[-1][1]), 4),
+                   'yaw_deg': round(math.degrees(float(poses[-1][2])), 2)},
                'compared': {}, 'bag': str(fused_bag)}
     d.pose_tracks['fused'] = (t, poses)
     if len(t) < 2:

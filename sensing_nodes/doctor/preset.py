@@ -221,6 +221,13 @@ def _fix_of(d: Diagnosis, c: Check) -> str:
                 or c.subject == '/wheel/odom':
             return 'params.yaml gives the fusion the noise model measured here (covariance: model)'
         return ''
+    if c.name == 'imu_orientation':
+        imu = fusion.get('imu', {})
+        if imu.get('source') == 'integrated' or 'imu' not in fusion:
+            return 'params.yaml integrates the gyro instead of fusing the orientation'
+        if imu.get('covariance') == 'model':
+            return 'params.yaml gives the orientation the noise model (covariance: model)'
+        return ''
     if c.name == 'heading_agreement':
         names = c.subject.split(' vs ')
         doubted = [n for n in names if _base_name(n) in d.distrust]
