@@ -279,7 +279,8 @@ def imu_on_its_side_plus(yaw_deg: float = 2.0) -> Rewrite:
 
     def change(topic, t, msg):
         if topic == '/tf_static':
-            msg = TFMessage(transforms=[tr for tr in msg.transforms if tr.child_frame_id != 'imu_link'])
+            msg = TFMessage(transforms=[tr for tr in msg.transforms
+                                        if tr.child_frame_id != 'imu_link'])
         return turn(topic, t, msg)
     return change
 
