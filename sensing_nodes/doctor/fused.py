@@ -75,6 +75,7 @@ def _quietly(quiet: bool, call):
 def fused_section(d: Diagnosis, out: Path) -> None:
     """The preset through the nodes offline (sensing_pipeline's code) over the bag, and the
     fused output against each input, anchored at the fused output's second stamp."""
+    from sensing_nodes.bags.storage import failure_reason
     from sensing_nodes.graph.pipeline import PipelineError, run
 
     if 'complementary_fusion' not in d.nodes:
@@ -91,7 +92,7 @@ def fused_section(d: Diagnosis, out: Path) -> None:
         return
     except Exception as exc:  # rcl refuses a parameter file with its own exception types
         d.add(Check('fused', 'preset', PROBLEM, None, 'm',
-                    f'the preset does not load ({type(exc).__name__}: {exc})'))
+                    f'the preset does not load ({failure_reason(exc)})'))
         return
     t, poses = load_odometry(fused_bag, FUSED)
     d.fused = {'outputs': counts, 'final_pose': None if not len(poses) else {

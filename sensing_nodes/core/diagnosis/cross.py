@@ -108,8 +108,9 @@ def orientation_check(subject: str, orientation: NDArray[np.float64],
     while the gyro turns, identity throughout, or with zero covariance, a filter cannot use
     it (problem); the preset integrates the gyro instead."""
     q = np.asarray(orientation, dtype=float)
-    q = q * np.sign(q[:, 3:4] + (q[:, 3:4] == 0))          # one hemisphere
-    spread_deg = math.degrees(2.0 * float(np.max(np.linalg.norm(q - q[0], axis=1))))
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    # The largest rotation from the first orientation (deg).
+    spread_deg = math.degrees(2.0 * math.acos(min(1.0, float(np.min(np.abs(q @ q[0]))))))
     identity = bool(np.allclose(q, [0.0, 0.0, 0.0, 1.0], atol=1e-9))
     constant = spread_deg < 1e-3
     zero_cov = bool(np.all(np.asarray(orientation_var) == 0.0))
