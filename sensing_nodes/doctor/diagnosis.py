@@ -547,11 +547,11 @@ def imu_section(d: Diagnosis) -> None:
         d.add(check)
         d.orientation_usable = not (check.details['identity'] or (
             check.details['constant'] and turned > math.radians(5.0)))
+        ot, q = sorted_unique(imu.t, imu.orientation)
+        yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in
+                         (quaternion_matrix(row) @ rotation.T for row in q)])
+        d.orientation_yaw = (ot, yaw)
         if d.orientation_usable:
-            ot, q = sorted_unique(imu.t, imu.orientation)
-            yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in
-                             (quaternion_matrix(row) @ rotation.T for row in q)])
-            d.orientation_yaw = (ot, yaw)
             tilt = [math.degrees(math.acos(min(1.0, abs(float(
                 (quaternion_matrix(q) @ rotation.T)[2, 2]))))) for q in
                 imu.orientation[::max(1, len(imu.orientation) // 2000)]]
