@@ -145,8 +145,12 @@ def find_inputs(d: Diagnosis) -> None:
              'odometry': [o.topic for o in d.odoms]}
     several = {k: v for k, v in d.candidates.items() if len(v) > 1}
     missing = [k for k in ('joints', 'scan', 'imu') if found[k] is None]
-    advice = (f'inputs: {found}; base frame {d.base_frame}'
-              + (f'; several candidates {several}: choose with --{"/".join(several)}-topic'
+    listed = '; '.join(f'{kind} {", ".join(v) if isinstance(v, list) else v}'
+                       for kind, v in found.items() if v)
+    advice = (f'inputs: {listed}; base frame {d.base_frame}'
+              + ('; several candidates: ' + '; '.join(f'{k} {", ".join(v)}' for k, v in
+                                                     several.items())
+                 + f' (choose with --{"/".join(several)}-topic)'
                  if several else '')
               + (f'; absent: {", ".join(missing)} (their checks are skipped)' if missing else ''))
     d.add(Check('inputs', 'bag', WARNING if several else OK, None, '', advice, '',
@@ -224,7 +228,8 @@ def wheel_columns(d: Diagnosis) -> None:
         d.wheel_columns = (lefts[0], rights[0])
         return
     d.add(Check('wheel_joints', 'wheels', PROBLEM, None, '',
-                f'cannot tell the wheels among {list(names)}: give --left-joint/--right-joint'))
+                f'cannot tell the wheels among the joints {", ".join(names)}: give '
+                '--left-joint/--right-joint'))
     d.joints = None
 
 
@@ -411,11 +416,12 @@ def scan_section(d: Diagnosis) -> None:
     d.scan_track_status = status
     d.tracks['scan matching'] = (scan_t, np.unwrap(np.array(poses)[:, 2]))
     matched = status.get('matched', 0) / max(len(points) - 1, 1)
+    shown = ', '.join(f'{n} {k}' for k, n in sorted(status.items()))
     d.add(Check('scan_matching', d.scan.topic, OK if matched >= 0.8 else WARNING,
                 100.0 * matched, '% matched',
-                f'{100 * matched:.0f} % of scans matched their keyframe ({status}): the '
+                f'{100 * matched:.0f} % of scans matched their keyframe ({shown}): the '
                 'reference for the time offsets, noise and covariance checks' if matched >= 0.8
-                else f'only {100 * matched:.0f} % of scans matched ({status}): a sparse or '
+                else f'only {100 * matched:.0f} % of scans matched ({shown}): a sparse or '
                 'moving scene; the checks against scan matching are weak', '>= 80 %'))
 
 
@@ -595,7 +601,8 @@ def offset_section(d: Diagnosis) -> None:
             continue
         if name not in solved:
             d.add(Check('time_offset', f'{name} vs {reference}', SKIPPED, None, 's',
-                        f'not measured: {refused}'))
+                        'not measured: ' + '; '.join(f'{pair}: {why}'
+                                                     for pair, why in refused.items())))
             continue
         fused = {'wheels' if d.joints is not None else (d.odoms[0].topic if d.odoms else ''),
                  d.imu.topic if d.imu is not None else ''}

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check, plural
 from sensing_nodes.core.geometry.imu_mount import quaternion_matrix
 from sensing_nodes.doctor.diagnosis import Diagnosis, orientation_track, sorted_unique
 from sensing_nodes.doctor.preset import imu_has_orientation
@@ -58,14 +58,14 @@ def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray) -> None:
 
 
 def _quietly(quiet: bool, call):
-    """call() with the nodes' INFO logs silenced when quiet (rcutils' default level, put
+    """call() with the nodes' INFO and WARN logs silenced when quiet (rcutils' default level, put
     back afterwards: a caller's own nodes keep theirs)."""
     if not quiet:
         return call()
     import rclpy.logging
 
     previous = rclpy.logging.get_logger_level('')
-    rclpy.logging.set_logger_level('', rclpy.logging.LoggingSeverity.WARN)
+    rclpy.logging.set_logger_level('', rclpy.logging.LoggingSeverity.ERROR)
     try:
         return call()
     finally:
@@ -102,7 +102,8 @@ def fused_section(d: Diagnosis, out: Path) -> None:
     d.pose_tracks['fused'] = (t, poses)
     if len(t) < 2:
         d.add(Check('fused', 'preset', PROBLEM, float(len(t)), 'outputs',
-                    f'the fusion published {len(t)} estimates over the bag ({counts})'))
+                    f'the fusion published {plural(len(t), "estimate")} over the bag ('
+                    + ', '.join(f'{topic} {n}' for topic, n in counts.items()) + ')'))
         return
     # The first output is the filter's initial state (with an absolute IMU yaw: before the
     # first orientation reached it): the comparisons anchor at the second.
