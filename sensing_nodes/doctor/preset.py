@@ -230,11 +230,25 @@ def _fix_of(d: Diagnosis, c: Check) -> str:
         return ''
     if c.name == 'heading_agreement':
         names = c.subject.split(' vs ')
-        doubted = [n for n in names if _base_name(n) in d.distrust]
+        doubted = [n for n in names if _base_name(n) in d.distrust
+                   and _heading_left_out(d, _base_name(n))]
         if doubted:
             return (f'params.yaml does not fuse the heading of {doubted[0]} '
                     f'({d.distrust[_base_name(doubted[0])]})')
     return ''
+
+
+def _heading_left_out(d: Diagnosis, name: str) -> bool:
+    """The preset's fusion takes no heading from this source."""
+    fusion = d.preset.get('complementary_fusion', {}).get('ros__parameters', {})
+    wheel, imu = fusion.get('wheel_odom', {}), fusion.get('imu', {})
+    if d.imu is not None and name == orientation_track(d.imu.topic):
+        return imu.get('source') != 'orientation'
+    if name == 'wheels':
+        name = '/wheel/odom'
+    if name in ('/wheel/odom',) + tuple(o.topic for o in d.odoms):
+        return wheel.get('topic') != name or not {'yaw', 'vyaw'} & set(wheel.get('mask', []))
+    return False
 
 
 def _base_name(name: str) -> str:
@@ -252,9 +266,16 @@ def judge_fixes(d: Diagnosis) -> None:
     if d.imu is not None and not d.orientation_usable and imu_reports_orientation(d.imu):
         d.distrust.setdefault(orientation_track(d.imu.topic),
                               'it is a placeholder (imu_orientation)')
-    # A source whose heading disagrees with every other (three or more) is the odd one out.
+    # A source whose heading disagrees with every other (three or more) is the odd one out;
+    # of two, the one that disagrees with scan matching (the doctor's external reference).
     heading = [c for c in d.checks if c.name == 'heading_agreement' and c.verdict != SKIPPED]
     names = {n for c in heading for n in c.subject.split(' vs ')}
+    for c in heading:
+        pair = c.subject.split(' vs ')
+        if c.verdict == PROBLEM and 'scan matching' in pair and len(names) == 2:
+            other = _base_name(next(n for n in pair if n != 'scan matching'))
+            d.distrust.setdefault(other, f'its heading drifts {c.value:.0f} deg from scan '
+                                         'matching\'s, the reference (heading_agreement)')
     if len(names) >= 3:
         for name in names:
             pairs = [c for c in heading if name in c.subject.split(' vs ')]

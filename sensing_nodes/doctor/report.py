@@ -215,7 +215,8 @@ def verdict(d: Diagnosis) -> dict[str, Any]:
             'fused_against': {n: {k: v for k, v in f.items()}
                               for n, f in d.fused.get('compared', {}).items()},
             'distrusted': d.fused.get('distrusted', {}),
-            'fixed_by_preset': [_line(c) + f' -> {c.fix}' for c in problems if c.fix],
+            'fixed_by_preset': [_line(c) + ('' if 'params.yaml' in c.advice else f' -> {c.fix}')
+                                for c in problems if c.fix],
             'not_fixable': [_line(c) for c in problems if not c.fix]}
 
 
@@ -263,7 +264,8 @@ def report_html(d: Diagnosis, report: dict[str, Any]) -> str:
         f'<tr style="background:{COLOURS[c.verdict]}"><td>{e(c.subject)}</td><td>{e(c.name)}'
         f'</td><td><b>{e(c.verdict if c.verdict != SKIPPED else "not judged")}</b></td>'
         f'<td>{_number(c)}</td><td>{e(c.limit)}</td>'
-        f'<td>{e(c.advice)}{e(" -> " + c.fix) if c.fix else ""}</td></tr>' for c in d.checks)
+        f'<td>{e(c.advice)}{e(" -> " + c.fix) if c.fix and "params.yaml" not in c.advice else ""}'
+        '</td></tr>' for c in d.checks)
     topics = ''.join(f'<tr><td>{e(t)}</td><td>{e(v["type"])}</td><td>{v["count"]}</td></tr>'
                      for t, v in sorted(report['topics'].items()))
     compared = ''.join(

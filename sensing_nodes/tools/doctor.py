@@ -50,7 +50,7 @@ def print_summary(d: Diagnosis, out: Path, status: int) -> None:
             print(f'{plural(len(group), "problem")} {title}:')
         for c in group:
             print(f'  PROBLEM {c.subject}: {c.name}: {c.advice}'
-                  + (f' -> {c.fix}' if c.fix and c.fix not in c.advice else ''))
+                  + (f' -> {c.fix}' if c.fix and 'params.yaml' not in c.advice else ''))
     for c in d.checks:
         if c.verdict == WARNING:
             print(f'  WARNING {c.subject}: {c.name}: {c.advice}')
