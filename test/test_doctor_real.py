@@ -171,7 +171,7 @@ def test_razor_constant_orientation_is_flagged_and_the_preset_integrates_the_gyr
 
 
 @_needs(FREIBURG)
-def test_carmen_log_without_imu(tmp_path):
+def test_carmen_log_without_imu(tmp_path, capsys):
     """A converted CARMEN log (scans a metre apart, odometry, reference poses): no IMU checks,
     the laser's REP 117 conventions, the odometry's time offset against scan matching (the
     -0.155 s docs/real-data.md measures with sensing_calibrate --odom-delay), and the preset
@@ -192,6 +192,15 @@ def test_carmen_log_without_imu(tmp_path):
     assert preset['complementary_fusion']['ros__parameters']['use_imu'] is False
     truth = report['fused']['compared']['ground truth (/ground_truth/odom)']
     assert truth['rms_position_error_m'] < 1.5
+    # The log's raw odometry drifts from scan matching by some 200 deg over the log: of two
+    # headings, the one against the reference (scan matching) is distrusted, and the verdict
+    # stands on the fused output following scan matching.
+    heading = _checks(report, 'heading_agreement')['/odom vs scan matching']
+    assert heading['verdict'] == 'problem' and heading['value'] > 100.0
+    assert '/odom' in report['usable']['distrusted']
+    assert report['usable']['usable_with_params_yaml'] is True
+    out = capsys.readouterr()
+    assert '[WARN]' not in out.out + out.err and '[INFO]' not in out.out + out.err
 
 
 @pytest.mark.skipif(not (ROS / 'rosbag2-resources').is_dir(), reason='rosbag2-resources absent')

@@ -12,7 +12,7 @@ from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Ch
 from sensing_nodes.core.geometry.imu_mount import quaternion_matrix
 from sensing_nodes.doctor.diagnosis import Diagnosis, orientation_track, sorted_unique
 from sensing_nodes.doctor.preset import imu_has_orientation
-from sensing_nodes.topics import FUSED, GROUND_TRUTH
+from sensing_nodes.topics import FUSED, GROUND_TRUTH, IMU
 
 # --- the preset over the bag ----------------------------------------------------------------
 
@@ -27,9 +27,27 @@ def load_odometry(bag: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
     return t, np.array([rows[k] for k in t.tolist()], dtype=float).reshape(-1, 3)
 
 
-def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray) -> None:
+def load_headings(bag: Path, topic: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(stamps ns, unwrapped yaw rad) of an Imu topic's orientation (gyro_integrator's
+    output), None when the bag has none."""
+    from sensing_nodes.bags.storage import read_messages
+    from sensing_nodes.core.geometry.quaternion import yaw
+    from sensing_nodes.ros.conversions import stamp_to_ns
+
+    rows = {stamp_to_ns(m.header.stamp): yaw((m.orientation.x, m.orientation.y,
+                                              m.orientation.z, m.orientation.w))
+            for _, _, m in read_messages(bag, [topic])}
+    if len(rows) < 2:
+        return None
+    t = np.array(sorted(rows), dtype=np.int64)
+    return t, np.unwrap([rows[k] for k in t.tolist()])
+
+
+def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray,
+                  integrated: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """The fused output against each pose track, the bag's ground truth where it has one,
-    and the IMU's headings (its gyro's integral, its own orientation)."""
+    and the IMU's headings (the doctor's integral of its gyro, gyro_integrator's output where
+    the preset runs it, its own orientation)."""
     from sensing_nodes.core.evaluation.metrics import trajectory_errors
 
     def heading_only(stamps: np.ndarray, yaw: np.ndarray) -> dict[str, float] | None:
@@ -48,6 +66,8 @@ def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray) -> None:
             compared[name] = errors.summary()
     if d.imu is not None and d.imu.topic in d.tracks:
         compared[d.imu.topic + ' (gyro heading)'] = heading_only(*d.tracks[d.imu.topic])
+    if integrated is not None:
+        compared[f'{d.imu.topic} (gyro_integrator\'s heading)'] = heading_only(*integrated)
     if imu_has_orientation(d.imu):
         rotation = d.mount.rotation() if d.mount is not None else d.declared.imu_mount
         it, q = sorted_unique(d.imu.t, d.imu.orientation)
@@ -107,7 +127,8 @@ def fused_section(d: Diagnosis, out: Path) -> None:
         return
     # The first output is the filter's initial state (with an absolute IMU yaw: before the
     # first orientation reached it): the comparisons anchor at the second.
-    compare_fused(d, t[1:], poses[1:])
+    integrated = load_headings(fused_bag, IMU) if 'gyro_integrator' in d.nodes else None
+    compare_fused(d, t[1:], poses[1:], integrated)
     d.add(fused_check(d, len(t)))
 
 
@@ -127,8 +148,11 @@ def fused_check(d: Diagnosis, outputs: int) -> Check:
     from one the report names a reason to distrust (d.distrust); a warning where it departs
     from an input and nothing says why."""
     far, explained = {}, {}
+    # Where gyro_integrator runs, its heading is the gyro as the fusion gets it: the doctor's
+    # own integral (one bias, read while still) is shown, not held against the output.
+    nodes_gyro = any(n.endswith('(gyro_integrator\'s heading)') for n in d.fused['compared'])
     for name, v in d.fused['compared'].items():
-        if name.startswith('ground truth'):
+        if name.startswith('ground truth') or (nodes_gyro and name.endswith('(gyro heading)')):
             continue
         if (v.get('rms_position_error_m') or 0.0) >= FAR_M or \
                 v['rms_heading_error_deg'] >= FAR_DEG:
@@ -141,9 +165,17 @@ def fused_check(d: Diagnosis, outputs: int) -> Check:
     for name, v in explained.items():
         base = name.removesuffix(' (gyro heading)')
         parts.append(f'it departs from {name} ({figures(v)}) by design: {d.distrust[base]}')
+    fusion = d.preset.get('complementary_fusion', {}).get('ros__parameters', {})
+    imu_alone = 'imu' in fusion and not fusion.get('use_wheel_odom') and \
+        not fusion.get('use_scan_match_heading')
     for name, v in far.items():
-        parts.append(f'it departs from {name} ({figures(v)}) and no check says why: the inputs '
-                     'disagree; compare them in the plots before trusting either')
+        if imu_alone and name.endswith('(gyro_integrator\'s heading)'):
+            parts.append(f'it departs from {name} ({figures(v)}), the only heading it fuses: the '
+                         'fusion refuses part of that input (its outlier gate, imu.gate_chi2; '
+                         'the refusals are counted on its /diagnostics)')
+        else:
+            parts.append(f'it departs from {name} ({figures(v)}) and no check says why: the '
+                         'inputs disagree; compare them in the plots before trusting either')
     d.fused['distrusted'] = {n: d.distrust[n.removesuffix(' (gyro heading)')] for n in explained}
     d.fused['unexplained'] = list(far)
     return Check('fused', 'preset', WARNING if far else OK, float(outputs), 'outputs',

@@ -207,7 +207,7 @@ def verdict(d: Diagnosis) -> dict[str, Any]:
     elif fused.verdict == WARNING:
         usable, why = False, ('the fused output departs from '
                               + ', '.join(d.fused.get('unexplained', []))
-                              + ' and no check says which input is wrong')
+                              + ' and no check explains it (the fused check says more)')
     else:
         usable, why = True, 'the fused output follows every input it does not name a reason ' \
             'to distrust'
