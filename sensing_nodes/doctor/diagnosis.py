@@ -677,7 +677,7 @@ def cross_section(d: Diagnosis) -> None:
         for odom in d.odoms:
             ot, oy = _shifted(d, odom.topic)
             fix = ('params.yaml leaves its yaw rate out of the fusion (wheel_odom.mask without '
-                   'yaw and vyaw): the gyro gives the heading')
+                   'yaw and vyaw): the IMU gives the heading')
             check = cross.yaw_rate_gain(odom.topic, gyro, ot, oy, gt, gy, fix)
             if check.verdict == PROBLEM:
                 check = replace(check, fix=fix)
