@@ -10,8 +10,12 @@ import numpy as np
 
 from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check, plural
 from sensing_nodes.core.geometry.imu_mount import quaternion_matrix
-from sensing_nodes.doctor.diagnosis import Diagnosis, orientation_track, sorted_unique
-from sensing_nodes.doctor.preset import imu_has_orientation
+from sensing_nodes.doctor.diagnosis import (
+    Diagnosis,
+    imu_reports_orientation,
+    orientation_track,
+    sorted_unique,
+)
 from sensing_nodes.topics import FUSED, GROUND_TRUTH, IMU
 
 # --- the preset over the bag ----------------------------------------------------------------
@@ -68,7 +72,7 @@ def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray,
         compared[d.imu.topic + ' (gyro heading)'] = heading_only(*d.tracks[d.imu.topic])
     if integrated is not None:
         compared[f'{d.imu.topic} (gyro_integrator\'s heading)'] = heading_only(*integrated)
-    if imu_has_orientation(d.imu):
+    if imu_reports_orientation(d.imu):
         rotation = d.mount.rotation() if d.mount is not None else d.declared.imu_mount
         it, q = sorted_unique(d.imu.t, d.imu.orientation)
         yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in

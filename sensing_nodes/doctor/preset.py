@@ -9,7 +9,6 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sensing_nodes.bags.survey import ImuStream
 from sensing_nodes.core.diagnosis import covariance as cov_checks
 from sensing_nodes.core.diagnosis import imu as imu_checks
 from sensing_nodes.core.diagnosis import timing
@@ -24,11 +23,6 @@ from sensing_nodes.doctor.diagnosis import (
 from sensing_nodes.topics import FUSED, IMU, IMU_RAW, JOINT_STATES, SCAN
 
 # --- the preset -----------------------------------------------------------------------------
-
-def imu_has_orientation(imu: ImuStream | None) -> bool:
-    """The Imu messages fill their orientation (it may still be unusable: imu_orientation)."""
-    return imu_reports_orientation(imu)
-
 
 def _delay(d: Diagnosis, name: str) -> float:
     """A track's time offset for the fusion's delay_s: 0 within the check's tolerance, and 0
