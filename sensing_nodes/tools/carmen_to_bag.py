@@ -346,7 +346,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = convert(args.log, out, options)
     except ValueError as exc:
-        print(f'carmen_to_bag: error: {args.log}: {exc}', file=sys.stderr)
+        reason = str(exc)       # most name the log already: never twice
+        named = reason if reason.startswith(str(args.log)) else f'{args.log}: {reason}'
+        print(f'carmen_to_bag: error: {named}', file=sys.stderr)
         return EXIT_BAD_INPUT
     _report(args.log, out, summary)
     return 0
