@@ -200,6 +200,91 @@ def nan_ranges(scans: int = 10, beams: int = 30, every: int = 20) -> Rewrite:
     return change
 
 
+# sensor_sim's wheel radii (config/sensor_sim.yaml: the right wheel 1 % large).
+SIM_RADII_M = (0.05, 0.0505)
+
+
+def skid_steer(gain: float) -> Rewrite:
+    """The wheels' yaw rate `gain` times the robot's: the difference of the two wheels'
+    travel scaled by gain, their mean kept (a skid-steer base whose wheels slip sideways in
+    turns: gain > 1; or a track width declared gain times too small)."""
+    left_r, right_r = SIM_RADII_M
+
+    def change(topic, t, msg):
+        if topic == '/joint_states':
+            left, right = msg.position[0] * left_r, msg.position[1] * right_r
+            mean, diff = 0.5 * (left + right), (right - left) * gain
+            msg.position = [(mean - 0.5 * diff) / left_r, (mean + 0.5 * diff) / right_r]
+            if len(msg.velocity) == 2:
+                vl, vr = msg.velocity[0] * left_r, msg.velocity[1] * right_r
+                vm, vd = 0.5 * (vl + vr), (vr - vl) * gain
+                msg.velocity = [(vm - 0.5 * vd) / left_r, (vm + 0.5 * vd) / right_r]
+        return [(topic, msg, t)]
+    return change
+
+
+def _without(topics: tuple[str, ...], change: Rewrite | None = None) -> Rewrite:
+    def rewrite_one(topic, t, msg):
+        if topic in topics:
+            return []
+        return change(topic, t, msg) if change is not None else [(topic, msg, t)]
+    return rewrite_one
+
+
+# An IMU-only bag (the gyro and the ground truth to score against): what an IMU's own
+# orientation is fused for when nothing else gives a heading.
+IMU_ONLY_DROPS = ('/joint_states', '/scan', '/wheel/odom', '/tf')
+
+
+def imu_only() -> Rewrite:
+    """The clean bag's IMU alone (no encoders, laser, odometry): the reference run of
+    constant_orientation."""
+    return _without(IMU_ONLY_DROPS)
+
+
+def constant_orientation() -> Rewrite:
+    """The IMU alone, its orientation the identity in every message with an all-zero
+    covariance (a driver filling the field with a placeholder, like imu_tools' Razor bag)."""
+    def change(topic, t, msg):
+        if topic == '/imu/data_raw':
+            msg.orientation.x = msg.orientation.y = msg.orientation.z = 0.0
+            msg.orientation.w = 1.0
+            msg.orientation_covariance = [0.0] * 9
+        return [(topic, msg, t)]
+    return _without(IMU_ONLY_DROPS, change)
+
+
+def never_still(amplitude_rad_s: float = 0.2, frequency_hz: float = 0.3) -> Rewrite:
+    """An IMU that never stands still: it rocks about its x axis (amplitude_rad_s at
+    frequency_hz, its gravity reading turning with it) all the time, the wheels' stops
+    included."""
+    def change(topic, t, msg):
+        if topic == '/imu/data_raw':
+            phase = 2.0 * math.pi * frequency_hz * (t - START_NS) * 1e-9
+            msg.angular_velocity.x += amplitude_rad_s * math.sin(phase)
+            tilt = -amplitude_rad_s / (2.0 * math.pi * frequency_hz) * math.cos(phase)
+            a = msg.linear_acceleration
+            a.y, a.z = (math.cos(tilt) * a.y + math.sin(tilt) * a.z,
+                        -math.sin(tilt) * a.y + math.cos(tilt) * a.z)
+        return [(topic, msg, t)]
+    return change
+
+
+def imu_on_its_side_plus(yaw_deg: float = 2.0) -> Rewrite:
+    """The IMU on its side (rolled -90 deg) and turned yaw_deg about the vertical off the right
+    angle, /tf_static declaring only the laser (the nodes take the mount from params.yaml)."""
+    from tf2_msgs.msg import TFMessage
+
+    turn = rotated_imu(mount_rotation(-math.pi / 2, 0.0, math.radians(yaw_deg)))
+
+    def change(topic, t, msg):
+        if topic == '/tf_static':
+            msg = TFMessage(transforms=[tr for tr in msg.transforms
+                                        if tr.child_frame_id != 'imu_link'])
+        return turn(topic, t, msg)
+    return change
+
+
 CATALOGUE = {
     'upside_down': lambda: upside_down(),
     'imu_yaw_90': lambda: rotated_imu(mount_rotation(0.0, 0.0, math.pi / 2)),
@@ -211,6 +296,12 @@ CATALOGUE = {
     'second_tf_publisher': lambda: second_tf_publisher(),
     'stamps_backwards': lambda: reversed_stamps('/joint_states'),
     'nan_ranges': lambda: nan_ranges(),
+    'skid_yaw_gain_0.2': lambda: skid_steer(0.2),
+    'skid_yaw_gain_5': lambda: skid_steer(5.0),
+    'imu_only': lambda: imu_only(),
+    'constant_orientation': lambda: constant_orientation(),
+    'never_still': lambda: never_still(),
+    'imu_side_plus_2deg': lambda: imu_on_its_side_plus(2.0),
 }
 
 

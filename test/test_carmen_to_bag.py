@@ -1,7 +1,8 @@
 """carmen_to_bag: the shared CARMEN logs convert (scan geometry, no-return values, odometry,
 reference poses); a bad line is reported with its number and the rest converts; a log whose
-time is broken (all 0, six significant digits, backwards, negative, wrapped) converts with a
-time base rebuilt from the line order, said so, or is refused naming the problem."""
+time is broken (all 0, six significant digits, a clock that stood still, backwards, negative,
+wrapped) converts with a time base rebuilt from the line order, said so, or is refused naming
+the problem."""
 
 from __future__ import annotations
 
@@ -13,10 +14,12 @@ import numpy as np
 import pytest
 from harness import run_to_exit
 
-from sensing_nodes.bags.carmen import read_carmen
+from sensing_nodes.bags.carmen import TimeCheck, check_time, read_carmen
 from sensing_nodes.bags.storage import BagReader, read_messages, topic_counts
 from sensing_nodes.ros.conversions import odometry_pose, scan_arrays
-from sensing_nodes.tools.carmen_to_bag import TIME_BASE_KEY, convert
+from sensing_nodes.tools import carmen_to_bag
+from sensing_nodes.tools import eval as sensing_eval
+from sensing_nodes.tools.carmen_to_bag import TIME_BASE_KEY, ConvertOptions, convert, time_base
 
 CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'
 needs_logs = pytest.mark.skipif(not CARMEN.is_dir(), reason=f'CARMEN logs not found in {CARMEN}')
@@ -162,6 +165,9 @@ def test_unusable_input_is_refused_without_output(tmp_path):
     empty = _write_log(tmp_path / 'empty.log.gz', ['ODOM 0 0 0 0 0 0 1.0 h 1.0', 'FLASER x'])
     result = run_to_exit('carmen_to_bag', [str(empty), str(out)])
     assert result.returncode == 2 and 'no FLASER line parsed' in result.stderr
+    # The path is named once: 'carmen_to_bag: error: LOG: no FLASER line parsed (1 bad lines)'.
+    assert result.stderr.strip() == \
+        f'carmen_to_bag: error: {empty}: no FLASER line parsed (1 bad lines)', result.stderr
     assert not out.exists() and not list(tmp_path.glob('.bag*'))
 
 
@@ -189,20 +195,26 @@ def test_an_anchor_with_a_garbage_stamp_is_chained_like_a_zero_one(tmp_path):
 SCANS, ODOM_PER_SCAN = 12, 4
 
 
-def _timed_log(path: Path, stamp) -> Path:
-    """A "corrected" log of SCANS scans, ODOM_PER_SCAN odometry lines 0.1 m apart before each
-    and the re-anchoring line after it; stamp(k) writes the stamp of the k-th odometry line (a
-    scan carries its preceding line's, the re-anchoring line 0)."""
+def _timed_log(path: Path, stamp, scans: int = SCANS, odom_per_scan: int = ODOM_PER_SCAN,
+               scan_stamp=None) -> Path:
+    """A "corrected" log of `scans` scans, `odom_per_scan` odometry lines 0.1 m apart before
+    each and the re-anchoring line after it (none without odometry lines); stamp(k) writes the
+    stamp of the k-th odometry line, scan_stamp(j) that of the j-th scan (default: its
+    preceding odometry line's; the re-anchoring line 0)."""
     ranges = ' '.join(['2.0'] * 180)
     lines, k, x = [], 0, 0.0
-    for _ in range(SCANS):
-        for _ in range(ODOM_PER_SCAN):
+    for j in range(scans):
+        for _ in range(odom_per_scan):
             x += 0.1
             lines.append(f'ODOM {x:.4f} 0 0 0 0 0 {stamp(k)} host {stamp(k)}')
             k += 1
+        if odom_per_scan == 0:
+            x += 0.1
+        t = scan_stamp(j) if scan_stamp else stamp(k - 1)
         lines.append(f'FLASER 180 {ranges} {x + 0.01:.4f} 0.02 0 {x + 0.01:.4f} 0.02 0 '
-                     f'{stamp(k - 1)} host {stamp(k - 1)}')
-        lines.append(f'ODOM {x + 0.01:.4f} 0.02 0 0 0 0 0 host 0')
+                     f'{t} host {t}')
+        if odom_per_scan:
+            lines.append(f'ODOM {x + 0.01:.4f} 0.02 0 0 0 0 0 host 0')
     return _write_log(path, lines)
 
 
@@ -220,6 +232,7 @@ def test_a_log_without_time_converts_on_a_time_base_rebuilt_from_the_line_order(
     assert result.returncode == 0, result.stderr
     assert 'time base rebuilt from the order of the lines' in result.stdout, result.stdout
     assert why in result.stdout and 'assumed 5 Hz' in result.stdout
+    assert 'run icp_matcher with rate_limits:=false' in result.stdout
     # Every odometry line kept (not 2), 0.2 s apart; each scan at its preceding line's time.
     odom = [s for _, s, _ in read_messages(out, ['/odom'])]
     assert len(odom) == SCANS * ODOM_PER_SCAN
@@ -257,6 +270,127 @@ def test_a_log_whose_time_goes_wrong_is_refused_naming_the_problem(tmp_path, kin
     assert result.returncode == 0, result.stderr
     assert 'time base rebuilt' in result.stdout
     assert topic_counts(out)['/odom'][1] == SCANS * ODOM_PER_SCAN
+
+
+# -- coarse or repeated stamps: rebuilt where they carry no time, refused where part is sound ---
+def _whole_seconds(interval_s: float):
+    """Stamps of lines interval_s apart written to six significant digits (%g) of a six-digit
+    count of seconds: whole seconds."""
+    return lambda k: f'{975400 + interval_s * k:g}'
+
+
+@pytest.mark.parametrize('kind, odom_stamp, scan_stamp, words', [
+    ('odometry and scans on whole seconds', _whole_seconds(0.0365), None,
+     'the 474 ODOM lines carry 18 distinct stamps'),
+    # the odometry's stamps sound, the scans' coarse (which went unnoticed for the scans alone)
+    ('scans on whole seconds', lambda k: f'{975400 + 0.0365 * k:.4f}', _whole_seconds(0.073),
+     'the 237 FLASER lines carry 18 distinct stamps'),
+])
+def test_a_log_on_far_fewer_distinct_stamps_than_lines_is_rebuilt_and_said_so(
+        tmp_path, capsys, kind, odom_stamp, scan_stamp, words):
+    """237 scans at 18 distinct six-digit stamps (a log kept aside was converted on them without
+    a word, and sensing_eval then refused to score it): rebuilt from the line order, said so
+    with the matcher's setting for an assumed time, and every relation scored."""
+    log = _timed_log(tmp_path / 'log.gz', odom_stamp, scans=237, odom_per_scan=2,
+                     scan_stamp=scan_stamp)
+    out = tmp_path / 'bag'
+    assert carmen_to_bag.main([str(log), str(out)]) == 0
+    printed = capsys.readouterr()
+    assert 'time base rebuilt from the order of the lines' in printed.out, printed
+    assert words in printed.out and 'too coarse' in printed.out, printed.out
+    assert 'run icp_matcher with rate_limits:=false' in printed.out
+    assert printed.err == ''
+    scans = [s for _, s, _ in read_messages(out, ['/scan'])]
+    assert len(scans) == 237 and np.all(np.diff(scans) > 0)
+    assert BagReader(out).custom_data[TIME_BASE_KEY].startswith('rebuilt from the order')
+    scored = sensing_eval.evaluate(out, ['/odom'])['estimates']['/odom']
+    assert scored['relations'] == scored['relations_asked'] == 236, scored
+
+
+def test_a_clock_that_stood_still_is_refused_naming_the_time_base_lines(tmp_path, capsys):
+    """Sound stamps but for 6 odometry lines on one (the clock stood still for 0.6 s): rebuilding
+    would throw the sound time away, so the tool refuses in one line naming the run and
+    --time-base lines, which then converts it."""
+    log = _timed_log(tmp_path / 'log.gz',
+                     lambda k: f'{100 + 0.1 * (20 if 20 <= k < 26 else k):.3f}')
+    out = tmp_path / 'bag'
+    assert carmen_to_bag.main([str(log), str(out)]) == 2
+    printed = capsys.readouterr()
+    assert printed.out == '' and printed.err == (
+        f"carmen_to_bag: error: {log}: the log's time is broken: 6 consecutive ODOM lines carry "
+        'the same stamp 102 (lines 31 to 38): a clock that stood still; --time-base lines '
+        'rebuilds a time base from the order of the lines\n'), printed
+    assert not out.exists() and not list(tmp_path.glob('.bag*'))
+    assert carmen_to_bag.main([str(log), str(out), '--time-base', 'lines']) == 0
+    printed = capsys.readouterr().out
+    assert 'time base rebuilt from the order of the lines (6 consecutive ODOM lines' in printed
+    assert topic_counts(out)['/odom'][1] == SCANS * ODOM_PER_SCAN
+
+
+def test_scans_on_one_stamp_are_found_in_the_flaser_lines(tmp_path):
+    """The scans' own stamps are judged too: 5 FLASER lines on one stamp in a log of scans."""
+    log = read_carmen(_timed_log(tmp_path / 'log.gz', None, odom_per_scan=0, scan_stamp=lambda j:
+                                 f'{100.3 + 0.4 * (3 if 3 <= j < 8 else j):.3f}'))
+    check = check_time(log, np.zeros(0, dtype=bool))
+    assert check == TimeCheck('repeated', '5 consecutive FLASER lines carry the same stamp 101.5 '
+                                          '(lines 4 to 8): a clock that stood still')
+
+
+def test_a_few_repeated_stamps_convert_on_the_log_s_time_and_scans_sharing_one_are_said(
+        tmp_path, capsys):
+    """Runs of up to 4 equal stamps (the shared logs have runs of 2: Edmonton's odometry) are
+    no broken clock: the log's stamps are kept. A scan on its predecessor's stamp is warned
+    about, as the nodes skip it."""
+    four = _timed_log(tmp_path / 'four.log.gz',
+                      lambda k: f'{100 + 0.1 * (8 if 8 <= k < 12 else k):.3f}')
+    assert carmen_to_bag.main([str(four), str(tmp_path / 'four')]) == 0
+    printed = capsys.readouterr()
+    assert 'time base' not in printed.out and 'rate_limits' not in printed.out
+    assert '3 not after the previous' in printed.out and printed.err == '', printed
+    assert TIME_BASE_KEY not in BagReader(tmp_path / 'four').custom_data
+    # One odometry line per scan, the 6th on the 5th's stamp: scans 5 and 6 share it.
+    shared = _timed_log(tmp_path / 'shared.log.gz', lambda k: f'{100 + 0.1 * (k - (k == 5)):.3f}',
+                        odom_per_scan=1)
+    assert carmen_to_bag.main([str(shared), str(tmp_path / 'shared')]) == 0
+    printed = capsys.readouterr()
+    assert 'time base' not in printed.out
+    assert printed.err == ('carmen_to_bag: warning: 1 scans carry the stamp of the scan before '
+                           'them: the nodes skip a repeated stamp and sensing_eval scores one '
+                           'pose a stamp\n'), printed.err
+    scans = [s for _, s, _ in read_messages(tmp_path / 'shared', ['/scan'])]
+    assert scans[:6] == [100_000_000_000 + k * 100_000_000 for k in (0, 1, 2, 3, 4, 4)]
+
+
+@pytest.mark.parametrize('time_base', ['auto', 'lines'])
+def test_a_log_whose_line_order_cannot_time_the_scans_is_refused(tmp_path, capsys, time_base):
+    """No ODOM line to carry a time (scans only, on whole seconds): a rebuilt time base would
+    put every scan at 0, so neither time base is used, and both name the stamps' problem."""
+    log = _timed_log(tmp_path / 'log.gz', None, scans=237, odom_per_scan=0,
+                     scan_stamp=_whole_seconds(0.073))
+    out = tmp_path / 'bag'
+    assert carmen_to_bag.main([str(log), str(out), '--time-base', time_base]) == 2
+    printed = capsys.readouterr()
+    assert len(printed.err.splitlines()) == 1, printed.err
+    assert 'cannot time the scans: its 237 FLASER lines get 1 distinct times from its 0 ODOM ' \
+        'lines' in printed.err, printed.err
+    assert 'the 237 FLASER lines carry 18 distinct stamps' in printed.err
+    assert not out.exists()
+
+
+@needs_logs
+def test_the_shared_logs_keep_their_time_base():
+    """No false alarm: six shared logs keep their own stamps, freiburg-campus (every stamp 0)
+    is rebuilt as before."""
+    for path in sorted(CARMEN.glob('*-corrected.log.gz')):
+        log = read_carmen(path)
+        time = time_base(log, ConvertOptions())
+        if path.name.startswith('freiburg-campus'):
+            assert time.rebuilt.startswith('rebuilt from the order of the lines (15683 of the '
+                                           '15683 odometry lines are stamped 0)'), time.rebuilt
+            continue
+        assert time.rebuilt == '', (path.name, time.rebuilt)
+        np.testing.assert_array_equal(time.odom_s, log.odom_time_s)
+        np.testing.assert_array_equal(time.scan_s, [s.time_s for s in log.scans])
 
 
 def test_a_time_offset_that_makes_stamps_negative_is_refused(tmp_path):

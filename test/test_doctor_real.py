@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,7 @@ ROS = DATASETS / 'ros'
 PHIDGETS = ROS / 'imu_tools-phidgets_imu_upside_down.bag'
 TURTLEBOT = ROS / 'fuse-turtlebot3.bag'
 JACKAL = ROS / 'robot_localization-test2.bag'
+RAZOR = ROS / 'imu_tools-sparkfun_razor.bag'
 FREIBURG = DATASETS / 'carmen' / 'freiburg-101-corrected.log.gz'
 
 
@@ -49,9 +51,12 @@ def test_phidgets_imu_is_found_upside_down(tmp_path):
     assert mount['verdict'] == 'problem' and mount['value'] > 170.0
     assert abs(abs(mount['details']['roll_deg']) - 180.0) < 5.0
     assert abs(mount['details']['pitch_deg']) < 5.0 and mount['details']['yaw_deg'] is None
+    # -179.4 and 0.9 deg lie within 2 sigma of the right angles: the preset takes them.
+    assert mount['details']['measured_deg'][0] == pytest.approx(-179.4, abs=1.0)
     params = yaml.safe_load((tmp_path / 'out' / 'params.yaml').read_text())
-    assert abs(abs(params['gyro_integrator']['ros__parameters']['mount_roll_rad']) - math.pi) \
-        < math.radians(5.0)
+    gyro = params['gyro_integrator']['ros__parameters']
+    assert abs(gyro['mount_roll_rad']) == pytest.approx(math.pi, abs=1e-6)
+    assert gyro['mount_pitch_rad'] == 0.0
 
 
 @_needs(TURTLEBOT)
@@ -85,23 +90,43 @@ def test_turtlebot3_encoders_do_not_fit_odom_and_the_preset_beats_the_hand_made(
     assert fused['rms_position_error_m'] <= 0.036, fused
     assert fused['rms_heading_error_deg'] <= 0.36, fused
     assert report['fused']['compared']['/odom']['rms_position_error_m'] <= 0.036
+    # Every problem is the package's default geometry against the Waffle's (fixed) or the
+    # data itself (Gazebo's slip against /odom, no gravity); the preset is usable.
+    assert report['usable']['usable_with_params_yaml'] is True
+    gain = _checks(report, 'yaw_rate_gain')['wheels vs /imu']
+    assert gain['verdict'] == 'problem' and gain['fixed_by_preset']
+    assert gain['details']['gain_with_preset_geometry'] == pytest.approx(1.0, abs=0.1)
 
 
 @_needs(JACKAL)
-def test_jackal_preset_ends_within_robot_localizations_tolerance(tmp_path):
-    """robot_localization's test2.bag: base-controller odometry (static covariance) and an IMU
-    with orientation in base_link; the preset fuses the odometry's velocities and the IMU's
-    orientation (level_with_imu_tilt: the robot climbs) and ends within 0.1383 m of
-    robot_localization's expected (1.0206, 3.4292), as config/fusion_jackal_test2.yaml does."""
+def test_jackal_wheel_yaw_is_flagged_and_the_preset_ends_within_tolerance(tmp_path):
+    """robot_localization's test2.bag: base-controller odometry (static covariance) whose yaw
+    rate a skid-steer base inflates (its pose turns thousands of degrees against the IMU's few
+    hundred) and an IMU with orientation in base_link. The odometry's yaw rate against the
+    gyro's is a problem the preset fixes (its yaw left out of the fusion); the IMU never stands
+    still, so gravity and the gyro bias are not judged; the preset fuses the odometry's speeds
+    and the IMU's orientation (level_with_imu_tilt: the robot climbs) and ends within 0.1383 m
+    of robot_localization's expected (1.0206, 3.4292)."""
     code, report = _doctor(JACKAL, tmp_path / 'out')
-    assert code == 0, [c for c in report['checks'] if c['verdict'] == 'problem']
-    assert _checks(report, 'covariance')['/jackal_velocity_controller/odom']['details'][
-        'pose'] == 'static'
+    odom = '/jackal_velocity_controller/odom'
+    assert _checks(report, 'covariance')[odom]['details']['pose'] == 'static'
+    gain = _checks(report, 'yaw_rate_gain')[f'{odom} vs /imu/data']
+    assert gain['verdict'] == 'problem' and gain['value'] > 2.0, gain
+    assert 'skid steer' in gain['advice'] and gain['fixed_by_preset']
+    assert _checks(report, 'imu_gravity')['/imu/data']['verdict'] == 'skipped'
+    assert _checks(report, 'gyro_bias')['/imu/data']['verdict'] == 'skipped'
+    heading = _checks(report, 'heading_agreement')[f'{odom} vs /imu/data (gyro heading)']
+    assert heading['verdict'] == 'problem' and heading['value'] > 1000.0
+    assert code == 1
     fusion = report['preset']['parameters']['complementary_fusion']['ros__parameters']
-    assert fusion['wheel_odom']['mask'] == ['vx', 'vy', 'vyaw']
+    assert fusion['wheel_odom']['mask'] == ['vx', 'vy']
     assert fusion['imu']['source'] == 'orientation' and fusion['level_with_imu_tilt'] is True
-    x, y, _ = report['fused']['final_pose']
-    assert math.hypot(x - 1.0206, y - 3.4292) <= 0.1383
+    usable = report['usable']
+    assert usable['usable_with_params_yaml'] is True and not usable['not_fixable'], usable
+    fused = _checks(report, 'fused')['preset']
+    assert fused['verdict'] == 'ok' and 'yaw_rate_gain' in fused['advice']
+    pose = report['fused']['final_pose']
+    assert math.hypot(pose['x_m'] - 1.0206, pose['y_m'] - 3.4292) <= 0.1383
     # The same preset over DDS: sensing_replay as params.yaml's comment gives it.
     from harness import run_to_exit
 
@@ -118,8 +143,35 @@ def test_jackal_preset_ends_within_robot_localizations_tolerance(tmp_path):
     assert math.hypot(poses[-1][0] - 1.0206, poses[-1][1] - 3.4292) <= 0.1383
 
 
+@_needs(RAZOR)
+def test_razor_constant_orientation_is_flagged_and_the_preset_integrates_the_gyro(tmp_path,
+                                                                               capsys):
+    """imu_tools' SparkFun Razor, turned by hand: its orientation is (0, 0, 0, 1) in every
+    message with an all-zero covariance. A problem the preset fixes by integrating the gyro
+    (gyro_integrator, then the fusion's integrated input); the IMU never stands still, so
+    gravity, the mount and the bias are not judged and the preset carries none of them;
+    --quiet prints no log line of the nodes."""
+    code, report = _doctor(RAZOR, tmp_path / 'out')
+    orientation = _checks(report, 'imu_orientation')['/imu/data_raw']
+    assert orientation['verdict'] == 'problem' and orientation['details']['identity']
+    assert 'integrates the gyro' in orientation['fixed_by_preset']
+    for name in ('imu_gravity', 'imu_mount', 'gyro_bias'):
+        check = _checks(report, name)['/imu/data_raw']
+        assert check['verdict'] == 'skipped' and check['advice'].startswith('not judged'), check
+    params = report['preset']['parameters']
+    assert params['complementary_fusion']['ros__parameters']['imu']['source'] == 'integrated'
+    gyro = params['gyro_integrator']['ros__parameters']
+    assert 'initial_bias_z_rad_s' not in gyro
+    assert (gyro['mount_roll_rad'], gyro['mount_pitch_rad']) == (0.0, 0.0)   # the declared
+    assert code == 1
+    out = capsys.readouterr()
+    assert '[INFO]' not in out.out + out.err
+    text = (tmp_path / 'out' / 'report.html').read_text().split('<h2>Plots')[0]
+    assert not re.search(r'\bnan\b', text) and 'Usable with params.yaml' in text
+
+
 @_needs(FREIBURG)
-def test_carmen_log_without_imu(tmp_path):
+def test_carmen_log_without_imu(tmp_path, capsys):
     """A converted CARMEN log (scans a metre apart, odometry, reference poses): no IMU checks,
     the laser's REP 117 conventions, the odometry's time offset against scan matching (the
     -0.155 s docs/real-data.md measures with sensing_calibrate --odom-delay), and the preset
@@ -140,6 +192,15 @@ def test_carmen_log_without_imu(tmp_path):
     assert preset['complementary_fusion']['ros__parameters']['use_imu'] is False
     truth = report['fused']['compared']['ground truth (/ground_truth/odom)']
     assert truth['rms_position_error_m'] < 1.5
+    # The log's raw odometry drifts from scan matching by some 200 deg over the log: of two
+    # headings, the one against the reference (scan matching) is distrusted, and the verdict
+    # stands on the fused output following scan matching.
+    heading = _checks(report, 'heading_agreement')['/odom vs scan matching']
+    assert heading['verdict'] == 'problem' and heading['value'] > 100.0
+    assert '/odom' in report['usable']['distrusted']
+    assert report['usable']['usable_with_params_yaml'] is True
+    out = capsys.readouterr()
+    assert '[WARN]' not in out.out + out.err and '[INFO]' not in out.out + out.err
 
 
 @pytest.mark.skipif(not (ROS / 'rosbag2-resources').is_dir(), reason='rosbag2-resources absent')

@@ -196,6 +196,7 @@ def test_blank_scan_falls_back_to_the_prediction_without_a_jump(probe, pubs):
     assert int(values['fallback']) == 1
     assert int(values['too_few_points']) == 1
     assert 'match failed' in log
+    assert 'rate limits off' not in log                 # on by default
 
 
 def test_constant_velocity_model_without_odometry(probe, pubs):
@@ -206,6 +207,19 @@ def test_constant_velocity_model_without_odometry(probe, pubs):
     pose, _ = odometry_pose(out[T0 + (count - 1) * SCAN_DT])
     trans, rot = pose_error(pose, reference(count - 1))
     assert trans < 0.01 and rot < math.radians(0.3)
+
+
+def test_rate_limits_off_are_said_once_at_start_up():
+    """For stamps whose time is assumed (carmen_to_bag's rebuilt time base): one line."""
+    with NodeProcess('icp_matcher', params={'rate_limits': False}) as node:
+        started = time.monotonic()
+        while 'rate limits off' not in node.output() and time.monotonic() - started < 20:
+            time.sleep(0.1)
+        time.sleep(0.5)                                  # a second such line would be out now
+        assert node.alive(), node.output()
+        log = node.output()
+    assert log.count('rate limits off (rate_limits: false): max_speed_m_s and '
+                     'max_yaw_rate_rad_s do not bound the matches') == 1, log
 
 
 @pytest.mark.parametrize('args, name', [

@@ -1,5 +1,6 @@
 """core.scan_matching without ROS: mount transforms, odometry interpolation, keyframe policy,
-fallback without a jump, stamp handling, and the drift on the simulated default route."""
+fallback without a jump, stamp handling, the drift on the simulated default route, and the
+physical limits relative to the odometry's prediction (on and off)."""
 
 import math
 
@@ -10,9 +11,12 @@ from sensing_nodes.core import icp
 from sensing_nodes.core.geometry.scan import beam_angles, scan_to_points
 from sensing_nodes.core.geometry.se2 import between, compose, wrap_angle
 from sensing_nodes.core.scan_matching import (
+    ZERO,
     KeyframeScanMatcher,
+    LocalMapScanMatcher,
     OdometryBuffer,
     ScanMatcherSettings,
+    limit_step,
     mount_transform,
     unmount_transform,
 )
@@ -197,3 +201,85 @@ def test_a_scan_a_microsecond_after_the_previous_keeps_the_velocity():
         assert step.status == 'matched', step.reason
     ref = between(path(0), path(9))
     assert math.hypot(step.pose[0] - ref[0], step.pose[1] - ref[1]) < 0.01
+
+
+# --- physical limits, relative to the odometry's prediction (local_map mode) -----------------
+START = (-2.0, -1.5, 0.4)        # base_link in the room at the first scan (south-west)
+TURN = (0.0, 0.0, math.pi / 2)   # what the odometry reports over the next 0.2 s: 90 deg in place
+SCAN_DT = 2 * DT                 # 0.2 s: a yaw limit of 3 rad/s allows 0.6 rad (34 deg) a step
+
+
+def test_limit_step_holds_the_deviation_from_the_reference():
+    # Without a reference (the step itself): (0.3, 0.4) m over 0.1 s at 2 m/s is 0.2 m of its
+    # 0.5 m, 0.5 rad at 3 rad/s is 0.3 rad.
+    step, limited = limit_step((0.3, 0.4, 0.5), ZERO, 0.1, 2.0, 3.0)
+    assert limited and step == pytest.approx((0.12, 0.16, 0.3))
+    assert limit_step((0.1, 0.0, 0.1), ZERO, 0.1, 2.0, 3.0) == ((0.1, 0.0, 0.1), False)
+    # The odometry turned 90 deg in 0.2 s: a step 0.05 m and 5 deg from it passes as it is ...
+    turned = (0.05, 0.0, math.pi / 2 + math.radians(5.0))
+    assert limit_step(turned, TURN, 0.2, 2.0, 3.0) == (turned, False)
+    # ... one 0.5 m and 0.8 rad from it keeps 0.4 m (2 m/s) and 0.6 rad (3 rad/s) of that.
+    step, limited = limit_step((0.3, -0.4, math.pi / 2 + 0.8), TURN, 0.2, 2.0, 3.0)
+    assert limited and step == pytest.approx((0.24, -0.32, math.pi / 2 + 0.6))
+    # Deviations are angles: 3.0 rad against -3.0 rad is 0.28 rad apart, within 0.3.
+    assert limit_step((0.0, 0.0, -3.0), (0.0, 0.0, 3.0), 0.1, 2.0, 3.0)[1] is False
+
+
+def _two_scans(settings, truth_motion, odometry_motion=TURN):
+    """LocalMapScanMatcher over a scan at START and one SCAN_DT later after truth_motion (base
+    frame), the odometry reporting odometry_motion; the second step and the truth (odom frame,
+    whose origin is base_link at the first scan)."""
+    matcher = LocalMapScanMatcher(settings)
+    matcher.process(T0, laser_points(START), None)
+    step = matcher.process(T0 + SCAN_DT, laser_points(compose(START, truth_motion)),
+                           odometry_motion)
+    return matcher, step
+
+
+def test_a_90_deg_turn_the_odometry_reports_and_the_scans_confirm_passes_unclamped():
+    """A turn of 90 deg in 0.2 s (the limit: 0.6 rad) reported by the odometry, the scans
+    agreeing: matched and published as it is (the limits held the prediction and the step to
+    34 deg before, as on a real log with 60-80 deg turns between scans)."""
+    truth = (0.02, 0.01, math.pi / 2 + math.radians(2.0))
+    _, step = _two_scans(ScanMatcherSettings(laser_pose=MOUNT), truth)
+    assert step.status == 'matched', step.reason
+    assert 'limited' not in step.events and 'prediction_limited' not in step.events
+    assert math.hypot(step.pose[0] - truth[0], step.pose[1] - truth[1]) < 0.005
+    assert abs(wrap_angle(step.pose[2] - truth[2])) < math.radians(0.2)
+
+
+# The scans show 0.3 m sideways and 10 deg more than the odometry's 90 deg turn: the match is
+# accepted (within max_jump: 0.5 m, 30 deg), but at 1 m/s and 0.5 rad/s the robot cannot be
+# more than 0.2 m and 0.1 rad from the odometry's motion after 0.2 s.
+SLIPPED = (0.0, 0.3, math.pi / 2 + math.radians(10.0))
+SLOW = {'max_speed_m_s': 1.0, 'max_yaw_rate_rad_s': 0.5}
+
+
+def test_a_match_beyond_the_limits_around_the_prediction_is_held_to_them_then_caught_up():
+    matcher, step = _two_scans(ScanMatcherSettings(laser_pose=MOUNT, **SLOW), SLIPPED)
+    assert step.status == 'matched', step.reason
+    assert 'limited' in step.events
+    np.testing.assert_allclose(step.pose, (0.0, 0.2, math.pi / 2 + 0.1), atol=0.003)
+    # The map holds the match: the robot standing still, the published pose reaches it at the
+    # next scan (0.1 m and 0.075 rad to go: within the limits).
+    after = matcher.process(T0 + 2 * SCAN_DT, laser_points(compose(START, SLIPPED)), ZERO)
+    assert after.status == 'matched' and 'limited' not in after.events, after.reason
+    np.testing.assert_allclose(after.pose, SLIPPED, atol=0.003)
+
+
+def test_rate_limits_off_publish_the_match_and_leave_the_prediction_alone():
+    """Stamps whose time is assumed (rebuilt from a log's line order): nothing is held."""
+    off = ScanMatcherSettings(laser_pose=MOUNT, rate_limits=False, **SLOW)
+    _, step = _two_scans(off, SLIPPED)
+    assert step.status == 'matched' and 'limited' not in step.events, step.reason
+    np.testing.assert_allclose(step.pose, SLIPPED, atol=0.003)
+    # Without odometry the constant-velocity prediction is held to the limits only when on:
+    # after a 0.5 m step in 0.1 s (5 m/s, 2.5 times the default limit) the next prediction is
+    # 5 m/s x 0.1 s again.
+    for settings, held in ((ScanMatcherSettings(laser_pose=MOUNT), True),
+                           (ScanMatcherSettings(laser_pose=MOUNT, rate_limits=False), False)):
+        matcher = LocalMapScanMatcher(settings)
+        for k in range(3):
+            step = matcher.process(T0 + k * DT, laser_points(compose(START, (0.5 * k, 0, 0))),
+                                   (0.5, 0.0, 0.0) if k == 1 else None)
+        assert ('prediction_limited' in step.events) is held, step.events

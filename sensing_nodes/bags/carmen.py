@@ -5,9 +5,10 @@ Beams span 180 degrees counter-clockwise from -90 degrees; the FLASER pose of th
 "corrected" logs is the laser's pose (see ../shared/datasets/carmen/README.md).
 
 Real logs' stamps can be broken: all written as 0 (freiburg-campus), lost to six significant
-digits (1.13486e+09: most consecutive stamps equal), going backwards, negative, or wrapped
-(a span of 2^32 s). `check_time` names the problem; `line_order_time` rebuilds a time base from
-the order of the lines, every ODOM line one tick of an assumed odometry rate.
+digits (1.13486e+09: far fewer distinct stamps than lines), a clock that stood still (many
+consecutive lines on one stamp), going backwards, negative, or wrapped (a span of 2^32 s).
+`check_time` names the problem; `line_order_time` rebuilds a time base from the order of the
+lines, every ODOM line one tick of an assumed odometry rate.
 """
 
 from __future__ import annotations
@@ -110,7 +111,12 @@ def read_carmen(path: str | Path) -> CarmenLog:
 # garbage such as 2.5e-91 (each repeats its scan's reference pose, as the real zeros do).
 ZERO_STAMP_S = 1e-6
 WRAP_S = 2.0 ** 31     # a step or span of 68 years: a clock that wrapped, not a robot's run
-COARSE_TIES = 0.5      # more consecutive odometry stamps equal than this share: too coarse
+# Fewer distinct stamps than this share of a stream's lines (ODOM or FLASER): too coarse to order
+# them (six significant digits of seconds since 1970 keep one stamp per 10^4 s).
+COARSE_DISTINCT = 0.5
+# This many consecutive lines of one stream on one stamp: a clock that stood still, where the
+# rest of the stamps may be sound. The shared logs' longest run is 2 (Edmonton's odometry).
+REPEATED_RUN = 5
 
 
 def reference_repeats(log: CarmenLog) -> NDArray[np.bool_]:
@@ -128,8 +134,8 @@ def reference_repeats(log: CarmenLog) -> NDArray[np.bool_]:
 @dataclass(frozen=True)
 class TimeCheck:
     """What is wrong with a log's stamps: kind '' (nothing), 'all_equal' or 'coarse' (no time
-    to use: rebuild it), 'backwards', 'negative' or 'wrapped' (refuse, or rebuild when asked),
-    and a sentence naming it with line numbers."""
+    to use: rebuild it), 'backwards', 'negative', 'wrapped' or 'repeated' (time that is partly
+    sound: refuse, or rebuild when asked), and a sentence naming it with line numbers."""
 
     kind: str
     text: str = ''
@@ -158,21 +164,48 @@ def check_time(log: CarmenLog, anchors: NDArray[np.bool_]) -> TimeCheck:
         return TimeCheck('wrapped', f'the stamps span {np.ptp(merged):.4g} s (at line '
                                     f'{merged_lines[at]}: {merged[at]:.10g}): a clock that '
                                     'wrapped around')
-    odom_steps = np.diff(t)
-    ties = int(np.sum(odom_steps == 0))
-    if odom_steps.size and ties > COARSE_TIES * odom_steps.size:
-        positive = odom_steps[odom_steps > 0]
-        resolution = f'; the smallest step between them is {positive.min():g} s' \
-            if positive.size else ''
-        return TimeCheck('coarse', f'{ties} of {odom_steps.size} consecutive odometry stamps '
-                                   f'are equal: too coarse to order them (written to too few '
-                                   f'significant digits, e.g. {t[0]:g}?){resolution}')
+    streams = (('ODOM', t, lines), ('FLASER', scans,
+                                     np.array([s.line for s in log.scans], dtype=np.int64)))
+    for name, stamps, _ in streams:
+        coarse = coarse_stamps(name, stamps)
+        if coarse:
+            return TimeCheck('coarse', coarse)
     back = np.flatnonzero(steps < 0)
     if back.size:
         return TimeCheck('backwards', f'stamps go backwards at {back.size} lines (the first: '
                                       f'line {merged_lines[back[0] + 1]}: '
                                       f'{merged[back[0] + 1]:g} after {merged[back[0]]:g})')
+    for name, stamps, stream_lines in streams:
+        first, count = longest_run(stamps)
+        if count >= REPEATED_RUN:
+            return TimeCheck('repeated', f'{count} consecutive {name} lines carry the same stamp '
+                                         f'{stamps[first]:.10g} (lines {stream_lines[first]} to '
+                                         f'{stream_lines[first + count - 1]}): a clock that '
+                                         'stood still')
     return TimeCheck('')
+
+
+def coarse_stamps(name: str, stamps: NDArray[np.float64]) -> str:
+    """Why the stamps (s) of a stream's lines (named `name`) are too coarse to order them
+    (fewer distinct than COARSE_DISTINCT of the lines), or ''."""
+    distinct = np.unique(stamps)
+    if stamps.size < 2 or distinct.size >= COARSE_DISTINCT * stamps.size:
+        return ''
+    steps = np.diff(distinct)
+    resolution = f'; the smallest step between them is {steps.min():g} s' if steps.size else ''
+    return (f'the {stamps.size} {name} lines carry {distinct.size} distinct stamps: too coarse '
+            f'to order them (written to too few significant digits, e.g. {stamps[0]:g}?)'
+            f'{resolution}')
+
+
+def longest_run(stamps: NDArray[np.float64]) -> tuple[int, int]:
+    """(index of its first element, length) of the longest run of consecutive equal stamps."""
+    if stamps.size == 0:
+        return 0, 0
+    starts = np.flatnonzero(np.concatenate([[True], stamps[1:] != stamps[:-1]]))
+    lengths = np.diff(np.concatenate([starts, [stamps.size]]))
+    longest = int(np.argmax(lengths))
+    return int(starts[longest]), int(lengths[longest])
 
 
 def line_order_time(log: CarmenLog, anchors: NDArray[np.bool_],

@@ -45,7 +45,7 @@ class PassResult:
 def load_bag(path: str | Path) -> InputBag:
     """Read a whole bag; InputBagError (naming the file) when it is missing or unreadable. A
     bag a recording did not close is read up to its last complete record (the reader warns)."""
-    from sensing_nodes.bags.storage import BagError, BagReader
+    from sensing_nodes.bags.storage import BagError, BagReader, failure_reason
 
     path = Path(path)
     try:
@@ -57,7 +57,7 @@ def load_bag(path: str | Path) -> InputBag:
     except BagError as exc:
         raise InputBagError(str(exc)) from None
     except Exception as exc:  # rosbags raises several types for damaged files
-        raise InputBagError(f'{path}: cannot read the bag ({type(exc).__name__}: {exc}); '
+        raise InputBagError(f'{path}: cannot read the bag ({failure_reason(exc)}); '
                           'truncated or damaged?') from None
     got = defaultdict(int)
     for topic, _, _ in messages:

@@ -15,6 +15,7 @@ import heapq
 import importlib
 import itertools
 import os
+import re
 import signal
 import struct
 import sys
@@ -61,6 +62,23 @@ TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 class BagError(Exception):
     """A bag that cannot be read: the message names the file and what is wrong."""
+
+
+def failure_reason(exc: BaseException) -> str:
+    """Why a reader failed, in words: no Python class names, no tuple reprs."""
+    if isinstance(exc, KeyError):
+        return f'the field {exc.args[0]} is missing' if exc.args else 'a field is missing'
+    if isinstance(exc, UnicodeDecodeError):
+        return 'bytes that are not text where the format wants text'
+    args = exc.args
+    while len(args) == 1 and isinstance(args[0], tuple):     # a tuple of reasons, once or twice
+        args = args[0]
+    parts = [str(a) for a in args if str(a)] or [str(exc)]
+    text = '; '.join(parts)
+    # Messages that embed a tuple repr of one string: "damaged: ('Header ...',)".
+    text = re.sub(r"\(\s*['\"]([^'\"]*)['\"]\s*,?\s*\)", r'\1', text)
+    return text.strip().rstrip('.') or 'an unreadable record'
+
 
 
 def canonical_cdr(raw: bytes | memoryview, msgtype: str) -> bytes:
@@ -543,7 +561,7 @@ class BagReader:
         except RecoveryError as exc:
             raise BagError(f'{self.path}: nothing readable: {exc}') from None
         except Exception as exc:  # rosbags raises several types for damaged files
-            raise BagError(f'{self.path}: cannot read the bag ({type(exc).__name__}: {exc}); '
+            raise BagError(f'{self.path}: cannot read the bag ({failure_reason(exc)}); '
                            'truncated or damaged?') from None
         self.topics: dict[str, TopicInfo] = {}
         for source in self._sources:
@@ -688,7 +706,7 @@ class Ros1Bag:
             with AnyReader([path], default_typestore=TYPESTORE) as reader:
                 connections = list(reader.connections)
         except Exception as exc:  # rosbags raises several types for damaged or foreign files
-            raise BagError(f'{path}: cannot read the bag ({type(exc).__name__}: {exc}); a '
+            raise BagError(f'{path}: cannot read the bag ({failure_reason(exc)}); a '
                            'rosbag2 folder or a ROS 1 .bag file expected') from None
         self.topics: dict[str, TopicInfo] = {}
         for c in connections:

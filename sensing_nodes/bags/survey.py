@@ -273,7 +273,7 @@ def _messages(reader, path: Path, topics: dict[str, tuple[str, int]], kinds: dic
 
 def survey_bag(path: str | Path, progress: Callable[[str], None] | None = None) -> Survey:
     """Read the bag once (see the module doc); SensorBagError when it cannot be read."""
-    from sensing_nodes.bags.storage import BagError, BagReader
+    from sensing_nodes.bags.storage import BagError, BagReader, failure_reason
 
     path = Path(path)
     try:
@@ -299,8 +299,8 @@ def survey_bag(path: str | Path, progress: Callable[[str], None] | None = None) 
     except BagError as exc:
         raise SensorBagError(str(exc)) from None
     except Exception as exc:  # rosbags and rclpy raise several types for damaged messages
-        raise SensorBagError(f'{path}: cannot read message {done + 1} ({type(exc).__name__}: '
-                             f'{exc}); truncated or damaged?') from None
+        raise SensorBagError(f'{path}: cannot read message {done + 1} '
+                             f'({failure_reason(exc)}); truncated or damaged?') from None
     collect.finish(kinds)
     if not survey.times:
         raise SensorBagError(f'{path}: the bag holds no messages')

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sensing_nodes.bags.storage import BagReader
 from sensing_nodes.bench.icp_real import carmen_dir
 from sensing_nodes.paths import config_file
 from sensing_nodes.tools import carmen_to_bag, pipeline
@@ -35,6 +36,9 @@ PIPELINE_ARGUMENTS = (
     '--param', 'icp_matcher:laser_x_m:=0.0', '--param', 'icp_matcher:max_gap_s:=60.0',
     '--param', 'icp_matcher:odom_max_extrapolation_s:=1.0',
     '--params-file', str(config_file('fusion_carmen.yaml')), '--no-progress')
+# ... and for a log whose time carmen_to_bag rebuilt from the line order (freiburg-campus):
+# speed and yaw-rate limits measure nothing on an assumed time.
+ASSUMED_TIME_ARGUMENTS = ('--param', 'icp_matcher:rate_limits:=false')
 FAR_M, FAR_RAD = 1.0, math.radians(30.0)
 
 
@@ -46,11 +50,13 @@ def log_figures(name: str, out: Path, modes: tuple[str, ...] = MODES,
     shutil.rmtree(bag, ignore_errors=True)
     if carmen_to_bag.main([str(log), str(bag)]) != 0:
         return {'error': 'carmen_to_bag could not convert it'}
+    assumed = ASSUMED_TIME_ARGUMENTS \
+        if carmen_to_bag.TIME_BASE_KEY in BagReader(bag).custom_data else ()
     figures: dict = {}
     for mode in modes:
         processed = out / f'{name}-{mode}'
         shutil.rmtree(processed, ignore_errors=True)
-        if pipeline.main([str(bag), str(processed), *PIPELINE_ARGUMENTS,
+        if pipeline.main([str(bag), str(processed), *PIPELINE_ARGUMENTS, *assumed,
                           '--param', f'icp_matcher:mode:={mode}']) != 0:
             figures[mode] = {'error': 'sensing_pipeline failed'}
             continue

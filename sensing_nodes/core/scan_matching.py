@@ -66,9 +66,15 @@ class ScanMatcherSettings:
     icp_options: icp.IcpOptions = icp.IcpOptions()   # how each scan is matched
     # --- local_map mode (LocalMapScanMatcher) ---
     local_map: LocalMapSettings = LocalMapSettings()
-    # No published step faster than these: a match beyond them is not believed at once.
+    # Physical limits, relative to the odometry's prediction: the published step deviates from
+    # the odometry's motion by at most these x the time since the previous scan (without
+    # odometry, the step itself is held to them), so a match beyond them is not believed at
+    # once while a sharp turn the odometry reports and the scans confirm passes.
     max_speed_m_s: float = 2.0
     max_yaw_rate_rad_s: float = 3.0
+    # False where the stamps' time is assumed (rebuilt from a log's line order): a rate
+    # measures nothing there, so the limits above are off.
+    rate_limits: bool = True
     # The map anchor (what /scan_match/keyframe_odom is relative to) is renewed after this far.
     anchor_distance_m: float = 5.0
     # A match whose mean alignment error exceeds this many times the median of the last
@@ -146,8 +152,9 @@ class ScanStep:
     map_pose: Pose2 | None = None
     map_covariance: NDArray[np.float64] | None = None
     # What else happened, each counted on /diagnostics: deskewed_by_odometry,
-    # deskewed_by_velocity, gap, limited (the published step was held to the physical limits),
-    # prediction_limited, reacquire_attempts, reacquired, degenerate, map_pruned.
+    # deskewed_by_velocity, gap, limited (the published step was held to the physical limits
+    # around the odometry's motion), prediction_limited (the constant-velocity prediction
+    # was), reacquire_attempts, reacquired, degenerate, map_pruned.
     events: tuple[str, ...] = ()
 
     @property
@@ -171,18 +178,22 @@ def predicted_step(odometry_motion: Pose2 | None, twist: Pose2,
     return (twist[0] * dt_s, twist[1] * dt_s, twist[2] * dt_s), 'constant_velocity'
 
 
-def limit_step(step: Pose2, dt_s: float, max_speed_m_s: float,
+def limit_step(step: Pose2, reference: Pose2, dt_s: float, max_speed_m_s: float,
                max_yaw_rate_rad_s: float) -> tuple[Pose2, bool]:
-    """A motion (base frame, m, rad) over dt_s held to the physical limits: translation and
-    rotation each scaled down to at most max_speed x dt and max_yaw_rate x dt; and whether it
-    had to be."""
-    distance = math.hypot(step[0], step[1])
+    """A motion (base frame, m, rad) over dt_s whose deviation from `reference` (the odometry's
+    motion over the same interval, same frame; ZERO: the step itself) is held to the physical
+    limits: the translation's difference scaled down to at most max_speed x dt, the rotation's
+    clipped to max_yaw_rate x dt; and whether it had to be."""
+    dx, dy = step[0] - reference[0], step[1] - reference[1]
+    dyaw = wrap_angle(step[2] - reference[2])
+    distance = math.hypot(dx, dy)
     reach, turn = max_speed_m_s * dt_s, max_yaw_rate_rad_s * dt_s
-    if distance <= reach and abs(step[2]) <= turn:
+    if distance <= reach and abs(dyaw) <= turn:
         return step, False
     scale = reach / distance if distance > reach else 1.0
-    yaw = max(-turn, min(turn, step[2]))
-    return (step[0] * scale, step[1] * scale, yaw), True
+    yaw = max(-turn, min(turn, dyaw))
+    return (reference[0] + dx * scale, reference[1] + dy * scale,
+            wrap_angle(reference[2] + yaw)), True
 
 
 def deskewed_by_odometry(points: NDArray[np.float64], beam_times_s: NDArray[np.float64] | None,
@@ -374,8 +385,10 @@ class LocalMapScanMatcher:
     odom frame (core/local_map.py) from the predicted pose, with a correspondence gate adapted
     to the recent model error; inserts each matched scan into the map. A failed match takes the
     odometry's motion, or without odometry a decaying velocity; after repeated failures a wide
-    search re-acquires the pose in the map. The published pose never steps beyond the physical
-    limits. Matches are also given relative to a long-lived map anchor (keyframe_stamp_ns)."""
+    search re-acquires the pose in the map. The published pose never deviates from the
+    odometry's motion (without odometry: never steps) beyond the physical limits, unless they
+    are off (rate_limits). Matches are also given relative to a long-lived map anchor
+    (keyframe_stamp_ns)."""
 
     def __init__(self, settings: ScanMatcherSettings | None = None) -> None:
         self.settings = settings or ScanMatcherSettings()
@@ -478,10 +491,13 @@ class LocalMapScanMatcher:
         s = self.settings
         dt = (stamp_ns - self.stamp_ns) * 1e-9
         predicted_motion, source = predicted_step(predicted_motion, self.twist, dt)
-        predicted_motion, limited = limit_step(predicted_motion, dt, s.max_speed_m_s,
-                                               s.max_yaw_rate_rad_s)
-        if limited:
-            events.append('prediction_limited')
+        # The odometry's motion is a measurement, the reference the limits are relative to; the
+        # matcher's own extrapolation (constant velocity) is held to them.
+        if s.rate_limits and source == 'constant_velocity':
+            predicted_motion, limited = limit_step(predicted_motion, ZERO, dt, s.max_speed_m_s,
+                                                   s.max_yaw_rate_rad_s)
+            if limited:
+                events.append('prediction_limited')
         points, half, how, middle_s = self._sweep(points, beam_times_s, sweep_motion)
         if how:
             events.append(how)
@@ -558,11 +574,14 @@ class LocalMapScanMatcher:
             self._maybe_insert(points, mid, events)
             new_anchor = math.hypot(base[0] - self.anchor_pose[0],
                                     base[1] - self.anchor_pose[1]) > s.anchor_distance_m
-        # The published pose moves towards the map pose, never faster than the limits.
-        step, limited = limit_step(between(previous_pose, target_pose), dt, s.max_speed_m_s,
-                                   s.max_yaw_rate_rad_s)
-        if limited:
-            events.append('limited')
+        # The published pose moves towards the map pose, never further from the odometry's
+        # motion (without odometry: never further) than the limits.
+        step = between(previous_pose, target_pose)
+        if s.rate_limits:
+            step, limited = limit_step(step, predicted_motion if source == 'odometry' else ZERO,
+                                       dt, s.max_speed_m_s, s.max_yaw_rate_rad_s)
+            if limited:
+                events.append('limited')
         self.pose = compose(previous_pose, step)
         if new_anchor:
             self.anchor_pose, self.anchor_covariance = self.map_pose, self.covariance.copy()

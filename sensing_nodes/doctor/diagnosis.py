@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -15,11 +15,11 @@ import yaml
 from sensing_nodes.bags.sensor_streams import SensorBagError
 from sensing_nodes.bags.survey import ImuStream, JointStream, OdomStream, Survey
 from sensing_nodes.core.diagnosis import covariance as cov_checks
+from sensing_nodes.core.diagnosis import cross, timing, wheels
 from sensing_nodes.core.diagnosis import imu as imu_checks
 from sensing_nodes.core.diagnosis import laser as laser_checks
 from sensing_nodes.core.diagnosis import tf as tf_checks
-from sensing_nodes.core.diagnosis import timing, wheels
-from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check, graded
 from sensing_nodes.core.evaluation import calibration as cal
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.geometry.imu_mount import mount_rotation, quaternion_matrix
@@ -71,7 +71,7 @@ class Diagnosis:
     scan_track: tuple[np.ndarray, np.ndarray] | None = None   # (t, poses) of scan matching
     scan_track_status: dict[str, int] = field(default_factory=dict)
     mount: imu_checks.MountEstimate | None = None
-    gyro_bias: float = 0.0
+    gyro_bias: float | None = None            # rad/s while still; None: never still
     gyro_noise_density: float | None = None
     offsets: dict[str, float] = field(default_factory=dict)   # track -> s vs the reference
     noise: dict[str, float] = field(default_factory=dict)
@@ -88,6 +88,13 @@ class Diagnosis:
     scan_variance: Any = None                 # (S, 3) each match's variance (x, y, yaw)
     preset_text: str = ''
     imu_tilt_deg: float | None = None         # largest base tilt the IMU's orientation shows
+    orientation_usable: bool = False          # the IMU's own orientation can be fused
+    imu_rate_z: tuple[np.ndarray, np.ndarray] | None = None   # gyro about base_link's z
+    orientation_yaw: tuple[np.ndarray, np.ndarray] | None = None   # its yaw in base_link
+    wheel_yaw_scale: float = 1.0              # the preset's separation over the found one
+    odom_yaw_distrusted: set[str] = field(default_factory=set)   # Odometry topics
+    distrust: dict[str, str] = field(default_factory=dict)   # input -> why the fusion doubts it
+    laser_on_tf_static: bool = False
 
     def add(self, checks: Check | list[Check]) -> None:
         self.checks.extend([checks] if isinstance(checks, Check) else checks)
@@ -138,8 +145,12 @@ def find_inputs(d: Diagnosis) -> None:
              'odometry': [o.topic for o in d.odoms]}
     several = {k: v for k, v in d.candidates.items() if len(v) > 1}
     missing = [k for k in ('joints', 'scan', 'imu') if found[k] is None]
-    advice = (f'inputs: {found}; base frame {d.base_frame}'
-              + (f'; several candidates {several}: choose with --{"/".join(several)}-topic'
+    listed = '; '.join(f'{kind} {", ".join(v) if isinstance(v, list) else v}'
+                       for kind, v in found.items() if v)
+    advice = (f'inputs: {listed}; base frame {d.base_frame}'
+              + ('; several candidates: ' + '; '.join(f'{k} {", ".join(v)}' for k, v in
+                                                     several.items())
+                 + f' (choose with --{"/".join(several)}-topic)'
                  if several else '')
               + (f'; absent: {", ".join(missing)} (their checks are skipped)' if missing else ''))
     d.add(Check('inputs', 'bag', WARNING if several else OK, None, '', advice, '',
@@ -175,6 +186,7 @@ def read_declared(d: Diagnosis) -> None:
     if static is not None:
         laser = [static[0][0], static[0][1], to_rpy(static[1])[2]]
         laser_from = '/tf_static'
+        d.laser_on_tf_static = True
     geometry = cal.Geometry(radius * float(w.get('left_radius_multiplier', 1.0)),
                             radius * float(w.get('right_radius_multiplier', 1.0)),
                             float(w.get('wheel_separation_m', 0.30)), *laser)
@@ -216,7 +228,8 @@ def wheel_columns(d: Diagnosis) -> None:
         d.wheel_columns = (lefts[0], rights[0])
         return
     d.add(Check('wheel_joints', 'wheels', PROBLEM, None, '',
-                f'cannot tell the wheels among {list(names)}: give --left-joint/--right-joint'))
+                f'cannot tell the wheels among the joints {", ".join(names)}: give '
+                '--left-joint/--right-joint'))
     d.joints = None
 
 
@@ -300,7 +313,7 @@ def wheel_section(d: Diagnosis) -> None:
     joint_t, joints = _joint_arrays(d)
     if d.scan is not None and np.ptp(joints, axis=0).max() > 1e-6:
         scan_t, points, beam_times = _scan_points(d)
-        nominal = d.declared.geometry
+        nominal = _gyro_scaled_geometry(d, joint_t, joints)
         try:
             for _ in range(2):
                 intervals = cal.make_intervals(joint_t, joints, scan_t, points, nominal,
@@ -322,12 +335,30 @@ def wheel_section(d: Diagnosis) -> None:
         d.add(wheels.encoders_vs_odometry(odom.topic, joint_t, joints, t, yaw))
 
 
-def wheel_track(d: Diagnosis) -> tuple[np.ndarray, np.ndarray] | None:
-    """Dead reckoning from the encoders with the geometry found: (stamps, poses (J, 3))."""
+def _gyro_scaled_geometry(d: Diagnosis, joint_t: np.ndarray, joints: np.ndarray
+                          ) -> cal.Geometry:
+    """The declared geometry as the calibration's starting guess, its separation scaled to
+    turn as the gyro does where the wheels turn more than twice (or less than half) as much
+    (a skid-steer base, a track width far off): scan matching guided by such wheels fails."""
+    g = d.declared.geometry
+    if d.imu is None:
+        return g
+    t, gyro = sorted_unique(d.imu.t, d.imu.gyro)
+    mid, _, w, _ = wheels.wheel_rates(joint_t, joints, g)
+    fit = imu_checks.rate_axis(t, gyro, mid, w)
+    if fit is None or 0.5 <= fit[1] <= 2.0:
+        return g
+    return replace(g, wheel_separation_m=g.wheel_separation_m / fit[1])
+
+
+def wheel_track(d: Diagnosis, geometry: cal.Geometry | None = None
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Dead reckoning from the encoders with the geometry found (or the one given): (stamps,
+    poses (J, 3))."""
     if d.joints is None:
         return None
     t, joints = _joint_arrays(d)
-    g = d.geometry
+    g = geometry or d.geometry
     steps = np.diff(joints, axis=0)
     poses, _ = integrate_path((0.0, 0.0, 0.0), steps[:, 0] * g.left_radius_m,
                               steps[:, 1] * g.right_radius_m, g.wheel_separation_m)
@@ -385,11 +416,12 @@ def scan_section(d: Diagnosis) -> None:
     d.scan_track_status = status
     d.tracks['scan matching'] = (scan_t, np.unwrap(np.array(poses)[:, 2]))
     matched = status.get('matched', 0) / max(len(points) - 1, 1)
+    shown = ', '.join(f'{n} {k}' for k, n in sorted(status.items()))
     d.add(Check('scan_matching', d.scan.topic, OK if matched >= 0.8 else WARNING,
                 100.0 * matched, '% matched',
-                f'{100 * matched:.0f} % of scans matched their keyframe ({status}): the '
+                f'{100 * matched:.0f} % of scans matched their keyframe ({shown}): the '
                 'reference for the time offsets, noise and covariance checks' if matched >= 0.8
-                else f'only {100 * matched:.0f} % of scans matched ({status}): a sparse or '
+                else f'only {100 * matched:.0f} % of scans matched ({shown}): a sparse or '
                 'moving scene; the checks against scan matching are weak', '>= 80 %'))
 
 
@@ -426,39 +458,64 @@ def _reference_motion(d: Diagnosis) -> tuple[str, np.ndarray, np.ndarray, np.nda
     return None
 
 
-def _mount_section(d: Diagnosis, t: np.ndarray, accel: np.ndarray, up, axis, ref
+def _declared_mount(d: Diagnosis, note: str) -> imu_checks.MountEstimate:
+    """The declared mount as the preset's (not judged: nothing measured replaces it)."""
+    r = d.declared.imu_mount
+    roll, pitch, yaw = (math.atan2(r[2, 1], r[2, 2]), -math.asin(float(np.clip(r[2, 0], -1, 1))),
+                        math.atan2(r[1, 0], r[0, 0]))
+    return imu_checks.MountEstimate(roll, pitch, yaw, 'declared', note)
+
+
+def _mount_section(d: Diagnosis, t: np.ndarray, accel: np.ndarray, up, up_std, rate_fit, ref
                    ) -> np.ndarray:
     """The mount from the up axis (gravity's, else the rate axis) and the accelerations'
-    yaw, checked against the declared one; the rotation the gyro is read through (the
-    declared yaw kept where none was found)."""
+    yaw, each angle with its standard deviation and snapped to a right angle within 2 sigma,
+    checked against the declared one; the rotation the gyro is read through (the declared
+    mount where the data shows none, the declared yaw where the accelerations show none)."""
     imu = d.imu
-    direction = up if up is not None else axis
-    if direction is None:
+    if up is None and rate_fit is not None:
+        up, up_std = rate_fit[0], rate_fit[2]
+        up_from = 'rotation'
+    else:
+        up_from = 'gravity'
+    if up is None:
+        still = d.imu_still is not None and d.imu_still.still.sum() >= 20
+        reason = ('neither gravity (the IMU never stands still) nor a reference that turns '
+                  'shows its axes' if not still else 'no gravity reading and no reference that '
+                  'turns shows its axes')
         d.add(Check('imu_mount', imu.topic, SKIPPED, None, 'deg',
-                    'neither gravity nor a reference yaw rate shows the IMU\'s axes'))
+                    f'not judged: {reason}; params.yaml keeps the declared mount '
+                    f'({d.declared.imu_mount_from})'))
+        d.mount = _declared_mount(d, reason)
         return d.declared.imu_mount
-    roll, pitch = imu_checks.roll_pitch_of(direction)
-    yaw, note = None, 'no reference motion'
-    if up is not None and ref is not None:
+    roll, pitch = imu_checks.roll_pitch_of(up)
+    roll_std = up_std / max(abs(math.cos(pitch)), 0.1)
+    yaw = yaw_std = None
+    note = 'no reference motion'
+    if up_from == 'gravity' and ref is not None:
         found = imu_checks.horizontal_yaw(t, accel, roll, pitch, ref[1], ref[2], ref[3])
-        yaw, note = (found[0], f'from accelerations, {found[1]:.2f} m/s^2 RMS') \
-            if found else (None, 'the robot hardly accelerates')
-    elif up is None:
-        note = 'no gravity in the accelerometer'
-    d.mount = imu_checks.MountEstimate(roll, pitch, yaw,
-                                       'gravity' if up is not None else 'rotation', note)
+        if found:
+            yaw, yaw_std = found[0], found[2]
+            note = f'from accelerations against {ref[0]} ({found[1]:.2f} m/s^2 RMS)'
+        else:
+            note = 'the robot hardly accelerates'
+    elif up_from == 'rotation':
+        note = 'no gravity reading to level the accelerations'
+    d.mount = imu_checks.MountEstimate.snapped(roll, pitch, yaw, (roll_std, up_std, yaw_std),
+                                               up_from, note)
     d.add(imu_checks.mount_check(imu.topic, d.mount, d.declared.imu_mount,
                                  d.declared.imu_mount_from,
                                  imu.frame_id.lstrip('/') == d.base_frame))
     if yaw is None:     # keep the declared yaw about the vertical
         declared_yaw = math.atan2(d.declared.imu_mount[1, 0], d.declared.imu_mount[0, 0])
-        d.mount = imu_checks.MountEstimate(roll, pitch, declared_yaw, d.mount.up_from, note)
+        d.mount = imu_checks.MountEstimate(d.mount.roll, d.mount.pitch, declared_yaw,
+                                           d.mount.up_from, note, d.mount.measured, d.mount.std)
     return d.mount.rotation()
 
 
 def imu_section(d: Diagnosis) -> None:
     """Gravity (REP 103/145), the rate axis, the mount found against the declared one, gyro
-    bias and noise; the gyro's yaw track about base_link's z."""
+    bias and noise; the gyro's yaw track about base_link's z; the IMU's own orientation."""
     if d.imu is None:
         return
     imu = d.imu
@@ -471,29 +528,51 @@ def imu_section(d: Diagnosis) -> None:
         moving = (np.abs(np.interp(at, (rt - rt[0]) * 1e-9, v)) > 1e-3) | \
             (np.abs(np.interp(at, (rt - rt[0]) * 1e-9, w)) > 1e-3)
     still = imu_checks.stillness(t, gyro, accel, moving)
-    gravity, up = imu_checks.gravity_check(imu.topic, accel, still, d.declared.imu_mount)
+    d.imu_still = still
+    gravity, up, up_std = imu_checks.gravity_check(imu.topic, accel, still,
+                                                   d.declared.imu_mount)
     d.add(gravity)
-    axis = None
+    rate_fit = None
     if ref is not None:
-        fit = imu_checks.rate_axis(t, gyro, ref[1], ref[3])
-        if fit is not None:
-            axis = fit[0]
-            d.add(imu_checks.rate_axis_check(imu.topic, ref[0], fit[0], fit[1], up))
-    rotation = _mount_section(d, t, accel, up, axis, ref)
+        rate_fit = imu_checks.rate_axis(t, gyro, ref[1], ref[3])
+        if rate_fit is not None:
+            d.add(imu_checks.rate_axis_check(imu.topic, ref[0], rate_fit[0], rate_fit[1], up))
+    rotation = _mount_section(d, t, accel, up, up_std, rate_fit, ref)
     rate_z = gyro @ rotation[2]
     noise = imu_checks.gyro_noise_checks(imu.topic, t, rate_z, still)
     d.add(noise)
-    d.gyro_bias = next((c.details['bias_rad_s'] for c in noise
-                        if c.name == 'gyro_bias' and c.verdict != SKIPPED), 0.0)
+    bias = next((c for c in noise if c.name == 'gyro_bias' and c.verdict != SKIPPED), None)
+    d.gyro_bias = bias.details['bias_rad_s'] if bias is not None else None
     d.gyro_noise_density = next((c.value for c in noise
                                  if c.name == 'gyro_noise' and c.verdict != SKIPPED), None)
-    d.tracks[imu.topic] = (t, integrate_rate(t, rate_z, bias=d.gyro_bias))
-    d.imu_still = still
-    if not np.all(imu.orientation_cov[:, 0] == -1.0) and np.any(imu.orientation[:, 3] != 0):
-        tilt = [math.degrees(math.acos(min(1.0, abs(float(
-            (quaternion_matrix(q) @ rotation.T)[2, 2]))))) for q in
-            imu.orientation[::max(1, len(imu.orientation) // 2000)]]
-        d.imu_tilt_deg = float(max(tilt))
+    d.tracks[imu.topic] = (t, integrate_rate(t, rate_z, bias=d.gyro_bias or 0.0))
+    d.imu_rate_z = (t, rate_z)
+    if imu_reports_orientation(imu):
+        turned = float(np.abs(np.diff(d.tracks[imu.topic][1])).sum())
+        check = cross.orientation_check(imu.topic, imu.orientation, imu.orientation_cov, turned)
+        d.add(check)
+        d.orientation_usable = not (check.details['identity'] or (
+            check.details['constant'] and turned > math.radians(5.0)))
+        ot, q = sorted_unique(imu.t, imu.orientation)
+        yaw = np.unwrap([math.atan2(b[1, 0], b[0, 0]) for b in
+                         (quaternion_matrix(row) @ rotation.T for row in q)])
+        d.orientation_yaw = (ot, yaw)
+        if d.orientation_usable:
+            tilt = [math.degrees(math.acos(min(1.0, abs(float(
+                (quaternion_matrix(q) @ rotation.T)[2, 2]))))) for q in
+                imu.orientation[::max(1, len(imu.orientation) // 2000)]]
+            d.imu_tilt_deg = float(max(tilt))
+
+
+def imu_reports_orientation(imu: ImuStream | None) -> bool:
+    """The Imu messages fill their orientation (REP 145: covariance[0] -1 says they do not)."""
+    return imu is not None and not np.all(imu.orientation_cov[:, 0] == -1.0) and \
+        bool(np.all(np.linalg.norm(imu.orientation, axis=1) > 0.5))
+
+
+def orientation_track(topic: str) -> str:
+    """The name of the yaw track of an IMU's own orientation."""
+    return f'{topic} (its orientation)'
 
 
 def offset_section(d: Diagnosis) -> None:
@@ -522,11 +601,116 @@ def offset_section(d: Diagnosis) -> None:
             continue
         if name not in solved:
             d.add(Check('time_offset', f'{name} vs {reference}', SKIPPED, None, 's',
-                        f'not measured: {refused}'))
+                        'not measured: ' + '; '.join(f'{pair}: {why}'
+                                                     for pair, why in refused.items())))
             continue
-        d.add(timing.offset_check(name, reference, solved[name], pairs))
+        fused = {'wheels' if d.joints is not None else (d.odoms[0].topic if d.odoms else ''),
+                 d.imu.topic if d.imu is not None else ''}
+        d.add(timing.offset_check(name, reference, solved[name], pairs,
+                                  reference == 'scan matching' and name in fused))
     d.offsets = solved
     d.offset_reference = reference
+
+
+def _shifted(d: Diagnosis, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A yaw track with its time offset against the reference taken out."""
+    t, yaw = d.tracks[name]
+    return t - int(round(d.offsets.get(name, 0.0) * 1e9)), yaw
+
+
+def _gain(check: Check) -> float | None:
+    return check.details.get('gain') if check.verdict != SKIPPED else None
+
+
+def _bias_from_wheels(d: Diagnosis, bias: float) -> None:
+    """A gyro never still: its bias from the yaw-rate offset against the wheels (which agree
+    with it in gain), in place of the still reading it lacks; its yaw track integrated
+    again."""
+    d.gyro_bias = bias
+    t, rate_z = d.imu_rate_z
+    d.tracks[d.imu.topic] = (t, integrate_rate(t, rate_z, bias=bias))
+    d.checks = [c for c in d.checks if not (c.name == 'gyro_bias' and c.verdict == SKIPPED)]
+    verdict = graded(abs(bias), math.radians(1.0), 0.05)
+    d.add(Check('gyro_bias', d.imu.topic, verdict, math.degrees(bias), 'deg/s',
+                f'bias {math.degrees(bias):+.3f} deg/s, read against the wheels\' yaw rate while '
+                'moving (the IMU never stands still): initial_bias_z_rad_s in params.yaml',
+                '< 1 deg/s', {'bias_rad_s': bias, 'from': 'wheels'}))
+
+
+def cross_section(d: Diagnosis) -> None:
+    """Each source against the others: the wheels' and each odometry's yaw rate against the
+    gyro's, their distance against scan matching's, every pair's heading over the run (time
+    offsets taken out)."""
+    gyro = d.imu.topic if d.imu is not None and d.imu.topic in d.tracks else None
+    if gyro is not None:
+        gt, gy = _shifted(d, gyro)
+        if d.joints is not None:
+            jt, joints = _joint_arrays(d)
+            jt = jt - int(round(d.offsets.get('wheels', 0.0) * 1e9))
+            found = cross.yaw_rate_gain('wheels', gyro, jt, wheels.wheel_rates(
+                jt, joints, d.geometry)[3], gt, gy, '')
+            gain = _gain(found)
+            if d.gyro_bias is None and gain is not None and \
+                    cross.GAIN_LOW <= gain <= cross.GAIN_HIGH:
+                _bias_from_wheels(d, -found.details['offset_rad_s'] / gain)
+                gt, gy = _shifted(d, gyro)
+            d.wheel_yaw_scale = 1.0 if gain is None or \
+                cross.GAIN_LOW <= gain <= cross.GAIN_HIGH else gain
+            separation = d.geometry.wheel_separation_m * d.wheel_yaw_scale
+            fix = (f'params.yaml\'s wheel_separation_m ({separation:.4f} m, '
+                   + ('calibrated against scan matching' if d.calibration is not None else
+                      'the declared one') + ') ' + (
+                       f'scaled by {d.wheel_yaw_scale:.2f} so that the wheels turn as the gyro '
+                       'does' if d.wheel_yaw_scale != 1.0 else
+                       f'brings the gain to {gain:.2f}' if gain is not None else 'is kept'))
+            check = cross.yaw_rate_gain('wheels', gyro, jt, wheels.wheel_rates(
+                jt, joints, d.declared.geometry)[3], gt, gy, fix)
+            if check.verdict != SKIPPED:
+                check.details['gain_with_preset_geometry'] = gain
+                check.details['preset_separation_m'] = separation
+            if check.verdict == PROBLEM:
+                check = replace(check, fix=fix)
+                if d.wheel_yaw_scale != 1.0:
+                    d.distrust['wheels'] = (f'its yaw rate is {check.value:.2f}x the gyro\'s '
+                                            '(yaw_rate_gain)')
+            d.add(check)
+        for odom in d.odoms:
+            ot, oy = _shifted(d, odom.topic)
+            fix = ('params.yaml leaves its yaw rate out of the fusion (wheel_odom.mask without '
+                   'yaw and vyaw): the IMU gives the heading')
+            check = cross.yaw_rate_gain(odom.topic, gyro, ot, oy, gt, gy, fix)
+            if check.verdict == PROBLEM:
+                check = replace(check, fix=fix)
+                d.odom_yaw_distrusted.add(odom.topic)
+                d.distrust[odom.topic] = (f'its yaw rate is {check.value:.2f}x the gyro\'s '
+                                          '(yaw_rate_gain: skid steer)')
+            d.add(check)
+    ref = _reference_intervals(d)
+    if ref is not None:
+        t0, t1, motion, _ = ref
+        sources = ([('wheels', wheel_track(d, d.declared.geometry))] if d.joints is not None
+                   else []) + [(o.topic, d.pose_tracks[o.topic]) for o in d.odoms]
+        for name, (t, pose) in sources:
+            inc = _increments(t, pose, t0, t1)
+            travel = np.copysign(np.hypot(inc[:, 0], inc[:, 1]), inc[:, 0])
+            along = np.copysign(np.hypot(motion[:, 0], motion[:, 1]), motion[:, 0])
+            if name == 'wheels':
+                fix = ('params.yaml\'s wheel_radius_m is calibrated against scan matching'
+                       if d.calibration is not None else 'set wheel_radius_m')
+            else:
+                fix = 'correct the wheel radius in the driver (the fusion takes its speed as is)'
+            check = cross.speed_scale(name, travel, along, fix)
+            if check.verdict == PROBLEM and name == 'wheels' and d.calibration is not None:
+                check = replace(check, fix=fix)
+            d.add(check)
+    headings = {(f'{n} (gyro heading)' if d.imu is not None and n == d.imu.topic else n):
+                _shifted(d, n) for n in d.tracks}
+    if d.orientation_yaw is not None:
+        headings[orientation_track(d.imu.topic)] = d.orientation_yaw
+    names = list(headings)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            d.add(cross.heading_agreement(a, b, *headings[a], *headings[b]))
 
 
 def _increments(t: np.ndarray, poses: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:

@@ -9,19 +9,20 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sensing_nodes.bags.survey import ImuStream
 from sensing_nodes.core.diagnosis import covariance as cov_checks
 from sensing_nodes.core.diagnosis import imu as imu_checks
 from sensing_nodes.core.diagnosis import timing
-from sensing_nodes.doctor.diagnosis import PROG, Diagnosis, scan_gap_s
+from sensing_nodes.core.diagnosis.check import PROBLEM, SKIPPED, Check
+from sensing_nodes.doctor.diagnosis import (
+    PROG,
+    Diagnosis,
+    imu_reports_orientation,
+    orientation_track,
+    scan_gap_s,
+)
 from sensing_nodes.topics import FUSED, IMU, IMU_RAW, JOINT_STATES, SCAN
 
 # --- the preset -----------------------------------------------------------------------------
-
-def imu_has_orientation(imu: ImuStream | None) -> bool:
-    return imu is not None and not np.all(imu.orientation_cov[:, 0] == -1.0) and \
-        bool(np.all(np.linalg.norm(imu.orientation, axis=1) > 0.5))
-
 
 def _delay(d: Diagnosis, name: str) -> float:
     """A track's time offset for the fusion's delay_s: 0 within the check's tolerance, and 0
@@ -40,7 +41,8 @@ def _wheel_preset(d: Diagnosis) -> dict[str, Any]:
               'right_wheel_joint': names[d.wheel_columns[1]],
               'wheel_radius_m': round(g.left_radius_m, 6), 'left_radius_multiplier': 1.0,
               'right_radius_multiplier': round(g.right_radius_m / g.left_radius_m, 6),
-              'wheel_separation_m': round(g.wheel_separation_m, 6), 'base_frame': d.base_frame}
+              'wheel_separation_m': round(g.wheel_separation_m * d.wheel_yaw_scale, 6),
+              'base_frame': d.base_frame}
     if 'wheel_variance_per_m' in d.noise:
         # wheel_odometry's k is per metre of each wheel's travel: along the path, both wheels
         # travel the distance, and the path's variance is k / 2 per metre.
@@ -81,26 +83,33 @@ def _odom_fusion_preset(d: Diagnosis) -> dict[str, Any]:
         # times the gyro's over the same intervals (slip in turns).
         if n.get('wheel_yaw_error_sum_sq', 0.0) > 10.0 * n.get('gyro_yaw_error_sum_sq', np.inf):
             out['mask'] = ['x', 'y']
+            ratio = n['wheel_yaw_error_sum_sq'] / max(n['gyro_yaw_error_sum_sq'], 1e-300)
+            d.distrust.setdefault('wheels', f'their heading errs {ratio ** 0.5:.0f}x the gyro\'s '
+                                  'against scan matching (slip in turns): params.yaml leaves '
+                                  'it out of the fusion')
         return out
     odom = d.odoms[0]
     pose, twist = (cov_checks.covariance_kind(odom.pose_var),
                    cov_checks.covariance_kind(odom.twist_var))
+    # Its heading left out where its yaw rate disagrees with the gyro's (yaw_rate_gain).
+    turning = odom.topic not in d.odom_yaw_distrusted or d.imu is None
     if pose == 'growing':
         return {'topic': odom.topic, 'pose_mode': 'differential', 'covariance': 'auto',
-                'mask': ['x', 'y', 'yaw'], 'delay_s': _delay(d, odom.topic)}
+                'mask': ['x', 'y', 'yaw'][:3 if turning else 2], 'delay_s': _delay(d, odom.topic)}
     if twist not in ('zero', 'none'):
-        return {'topic': odom.topic, 'mask': ['vx', 'vy', 'vyaw'], 'covariance': 'message',
-                'delay_s': _delay(d, odom.topic)}
+        return {'topic': odom.topic, 'mask': ['vx', 'vy', 'vyaw'][:3 if turning else 2],
+                'covariance': 'message', 'delay_s': _delay(d, odom.topic)}
     return {'topic': odom.topic, 'pose_mode': 'differential', 'covariance': 'model',
-            'mask': ['x', 'y', 'yaw'], 'delay_s': _delay(d, odom.topic)}
+            'mask': ['x', 'y', 'yaw'][:3 if turning else 2], 'delay_s': _delay(d, odom.topic)}
 
 
 def _gyro_preset(d: Diagnosis) -> dict[str, Any]:
     mount = d.mount or imu_checks.MountEstimate(0.0, 0.0, 0.0, '', '')
     params = {'mount_roll_rad': round(mount.roll, 6), 'mount_pitch_rad': round(mount.pitch, 6),
               'mount_yaw_rad': round(mount.yaw or 0.0, 6), 'base_frame': d.base_frame,
-              'initial_bias_z_rad_s': round(d.gyro_bias, 6),
               'use_wheel_odom': d.joints is not None}
+    if d.gyro_bias is not None:        # not judged (never still): the node's default
+        params['initial_bias_z_rad_s'] = round(d.gyro_bias, 6)
     if d.gyro_noise_density:
         params['gyro_noise_density'] = float(f'{d.gyro_noise_density:.3g}')
     return params
@@ -111,7 +120,7 @@ def _icp_preset(d: Diagnosis) -> dict[str, Any]:
     guide = 'wheels' if d.joints is not None else (d.odoms[0].topic if d.odoms else '')
     params = {'laser_x_m': round(g.laser_x_m, 4), 'laser_y_m': round(g.laser_y_m, 4),
               'laser_yaw_rad': round(g.laser_yaw_rad, 5), 'base_frame': d.base_frame,
-              'odom_topic': '/wheel/odom' if guide in ('wheels', '') else guide,
+              'odom_topic': '/wheel/odom' if guide == 'wheels' else guide,
               'odom_delay_s': _delay(d, guide)}
     if scan_gap_s(d) > 1.0:        # a keyframe log: bridge its gaps, extrapolate its odometry
         params['max_gap_s'] = scan_gap_s(d)
@@ -152,7 +161,7 @@ def build_preset(d: Diagnosis) -> None:
     """params.yaml's node sections, the nodes to run and the bag topics to remap."""
     doc: dict[str, Any] = {}
     remaps: dict[str, str] = {}
-    orientation_only = d.joints is None and d.scan is None and imu_has_orientation(d.imu)
+    orientation_only = d.joints is None and d.scan is None and d.orientation_usable
     if d.joints is not None:
         doc['wheel_odometry'] = _wheel_preset(d)
         if d.joints.topic != JOINT_STATES:
@@ -168,6 +177,107 @@ def build_preset(d: Diagnosis) -> None:
     doc['complementary_fusion'] = _fusion_preset(d, orientation_only)
     d.preset = {node: {'ros__parameters': params} for node, params in doc.items()}
     d.nodes, d.remaps = tuple(doc), remaps
+    judge_fixes(d)
+
+
+def _fix_of(d: Diagnosis, c: Check) -> str:
+    """What params.yaml does about a problem ('' nothing: the data itself is at fault, or
+    only the robot's own configuration can change it)."""
+    params = {node: v['ros__parameters'] for node, v in d.preset.items()}
+    fusion = params.get('complementary_fusion', {})
+    if c.fix:
+        return c.fix
+    if c.name in ('wheel_radius', 'wheel_separation') and 'wheel_odometry' in params:
+        return 'params.yaml sets the geometry calibrated against scan matching'
+    if c.name == 'laser_mount' and 'icp_matcher' in params:
+        return ('params.yaml sets icp_matcher\'s laser_x/y/yaw to the mount found'
+                + ('' if not d.laser_on_tf_static else ' (but /tf_static, which the nodes '
+                   'take first, declares another: correct it)'))
+    if c.name in ('imu_mount', 'imu_gravity') and d.imu is not None:
+        frame_is_base = d.imu.frame_id.lstrip('/') == d.base_frame
+        if c.name == 'imu_gravity' and c.unit != 'deg':
+            return ''            # no gravity in the accelerometer: the data
+        if frame_is_base or d.declared.imu_mount_from == '/tf_static':
+            return ''            # the nodes take the bag's declaration over params.yaml
+        return 'params.yaml sets the nodes\' mount_roll/pitch/yaw_rad to the mount found'
+    if c.name == 'time_offset':
+        source = c.subject.split(' vs ')[0]
+        inputs = {'wheels': fusion.get('wheel_odom', {}),
+                  (d.imu.topic if d.imu is not None else ''): fusion.get('imu', {})}
+        for odom in d.odoms:
+            if fusion.get('wheel_odom', {}).get('topic') == odom.topic:
+                inputs[odom.topic] = fusion['wheel_odom']
+        delay = inputs.get(source, {}).get('delay_s', 0.0)
+        return f'params.yaml sets its delay_s to {delay:.3f} s' if delay else ''
+    if c.name == 'covariance' and c.value == 0.0:
+        used = [fusion.get(k, {}) for k in ('wheel_odom', 'imu')]
+        if any(u.get('topic') == c.subject and u.get('covariance') == 'model' for u in used) \
+                or c.subject == '/wheel/odom':
+            return 'params.yaml gives the fusion the noise model measured here (covariance: model)'
+        return ''
+    if c.name == 'imu_orientation':
+        imu = fusion.get('imu', {})
+        if imu.get('source') == 'integrated' or 'imu' not in fusion:
+            return 'params.yaml integrates the gyro instead of fusing the orientation'
+        if imu.get('covariance') == 'model':
+            return 'params.yaml gives the orientation the noise model (covariance: model)'
+        return ''
+    if c.name == 'heading_agreement':
+        names = c.subject.split(' vs ')
+        doubted = [n for n in names if _base_name(n) in d.distrust
+                   and _heading_left_out(d, _base_name(n))]
+        if doubted:
+            return (f'params.yaml does not fuse the heading of {doubted[0]} '
+                    f'({d.distrust[_base_name(doubted[0])]})')
+    return ''
+
+
+def _heading_left_out(d: Diagnosis, name: str) -> bool:
+    """The preset's fusion takes no heading from this source."""
+    fusion = d.preset.get('complementary_fusion', {}).get('ros__parameters', {})
+    wheel, imu = fusion.get('wheel_odom', {}), fusion.get('imu', {})
+    if d.imu is not None and name == orientation_track(d.imu.topic):
+        return imu.get('source') != 'orientation'
+    if name == 'wheels':
+        name = '/wheel/odom'
+    if name in ('/wheel/odom',) + tuple(o.topic for o in d.odoms):
+        return wheel.get('topic') != name or not {'yaw', 'vyaw'} & set(wheel.get('mask', []))
+    return False
+
+
+def _base_name(name: str) -> str:
+    """A comparison's label without ' (gyro heading)'; the orientation's label kept."""
+    return name.removesuffix(' (gyro heading)')
+
+
+def judge_fixes(d: Diagnosis) -> None:
+    """Each problem marked with what params.yaml does about it, and the inputs the fusion
+    does not follow (d.distrust) completed from the headings that disagree."""
+    from dataclasses import replace
+
+    if d.imu is not None and d.orientation_yaw is not None and not d.orientation_usable:
+        d.distrust[orientation_track(d.imu.topic)] = 'it does not move (imu_orientation)'
+    if d.imu is not None and not d.orientation_usable and imu_reports_orientation(d.imu):
+        d.distrust.setdefault(orientation_track(d.imu.topic),
+                              'it is a placeholder (imu_orientation)')
+    # A source whose heading disagrees with every other (three or more) is the odd one out;
+    # of two, the one that disagrees with scan matching (the doctor's external reference).
+    heading = [c for c in d.checks if c.name == 'heading_agreement' and c.verdict != SKIPPED]
+    names = {n for c in heading for n in c.subject.split(' vs ')}
+    for c in heading:
+        pair = c.subject.split(' vs ')
+        if c.verdict == PROBLEM and 'scan matching' in pair and len(names) == 2:
+            other = _base_name(next(n for n in pair if n != 'scan matching'))
+            d.distrust.setdefault(other, f'its heading drifts {c.value:.0f} deg from scan '
+                                         'matching\'s, the reference (heading_agreement)')
+    if len(names) >= 3:
+        for name in names:
+            pairs = [c for c in heading if name in c.subject.split(' vs ')]
+            if pairs and all(c.verdict == PROBLEM for c in pairs) and \
+                    _base_name(name) not in d.distrust:
+                d.distrust[_base_name(name)] = (
+                    'its heading drifts from every other source\'s (heading_agreement)')
+    d.checks = [replace(c, fix=_fix_of(d, c)) if c.verdict == PROBLEM else c for c in d.checks]
 
 
 class _PresetDumper(yaml.SafeDumper):

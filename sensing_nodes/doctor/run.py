@@ -13,6 +13,7 @@ from sensing_nodes.doctor.diagnosis import (
     EXIT_OK,
     EXIT_PROBLEMS,
     Diagnosis,
+    cross_section,
     find_inputs,
     imu_section,
     motion_tracks,
@@ -33,7 +34,8 @@ from sensing_nodes.doctor.report import make_plots, report_html, report_json
 SECTIONS = (('inputs', find_inputs), ('parameters', read_declared), ('refusals', refusal_section),
             ('timing', timing_section), ('wheels', wheel_section), ('tracks', motion_tracks),
             ('scan matching', scan_section), ('imu', imu_section), ('offsets', offset_section),
-            ('noise', noise_section), ('tf', tf_section), ('preset', build_preset))
+            ('cross', cross_section), ('noise', noise_section), ('tf', tf_section),
+            ('preset', build_preset))
 
 
 def diagnose(bag: Path, args: argparse.Namespace,

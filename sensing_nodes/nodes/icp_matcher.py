@@ -107,6 +107,11 @@ class IcpMatcherNode(Node):
             f'({laser[0]}, {laser[1]}, {laser[2]}) in {self._base_frame}; each scan against '
             f'{against}; {options.method}, robust {options.correspondences.robust}; '
             f"deskewing {'on' if self._deskew else 'off'}")
+        if not settings.rate_limits:
+            self.get_logger().info(
+                'rate limits off (rate_limits: false): max_speed_m_s and max_yaw_rate_rad_s do '
+                "not bound the matches, as the stamps' time is assumed (e.g. rebuilt from a "
+                "log's line order)")
 
     # long: a parameter table (descriptors, ranges) in its documented order.
     def _declare_settings(self) -> ScanMatcherSettings:
@@ -171,10 +176,14 @@ class IcpMatcherNode(Node):
                                  'without odometry, a failed match leaves the velocity decaying '
                                  'with this time constant (s)', minimum=1e-3)
         max_speed = declare(self, 'max_speed_m_s', 2.0,
-                            'no published step faster than this (m/s)', minimum=1e-3)
+                            "no published step further from the odometry's motion than this x "
+                            'the time since the previous scan (m/s)', minimum=1e-3)
         max_yaw_rate = declare(self, 'max_yaw_rate_rad_s', 3.0,
-                               'no published step turning faster than this (rad/s)',
-                               minimum=1e-3)
+                               "no published step turning further from the odometry's than "
+                               'this x the time since the previous scan (rad/s)', minimum=1e-3)
+        rate_limits = declare(self, 'rate_limits', True,
+                              'max_speed_m_s and max_yaw_rate_rad_s on; false where the stamps '
+                              "carry no measured time (a log's rebuilt from its line order)")
         self._deskew = declare(self, 'deskew', True,
                                "move each beam to the scan's stamp by the motion during the "
                                'sweep, where the scan gives time_increment')
@@ -243,7 +252,7 @@ class IcpMatcherNode(Node):
             map_degeneracy_ratio=degeneracy,
             reacquire_after=reacquire_after, reacquire_window_m=reacquire_window,
             reacquire_window_rad=reacquire_window_rad, velocity_decay_s=velocity_decay,
-            max_speed_m_s=max_speed, max_yaw_rate_rad_s=max_yaw_rate,
+            max_speed_m_s=max_speed, max_yaw_rate_rad_s=max_yaw_rate, rate_limits=rate_limits,
             laser_pose=laser, keyframe_distance_m=kf_distance, keyframe_angle_rad=kf_angle,
             max_error_m=max_error, max_jump_m=max_jump, max_jump_rad=max_jump_rad,
             fallback_std_m=fallback_std_m, fallback_std_rad=fallback_std_rad, max_gap_s=max_gap,

@@ -15,12 +15,16 @@ see ../shared/datasets/carmen/README.md), so base_link's reference pose is the l
 back by it. A line that does not parse is reported with its number and the rest converts.
 
 Time: the log's stamps are used when they are sound. Where they carry no time (all equal, e.g.
-all 0; or most consecutive odometry stamps equal, written to too few digits) a time base is
-rebuilt from the order of the lines (`--time-base auto`, the default): every ODOM line one tick
-of an assumed rate (`--odom-rate`, 10 Hz), every scan at its preceding ODOM line's time; the
-output and the bag's metadata.yaml (custom_data `carmen_to_bag.time_base`) say so, with the
-speed the odometry then has. Stamps that go backwards, are negative or wrapped are refused with
-a message naming the first line; `--time-base lines` rebuilds a time base for those too.
+all 0; or fewer distinct stamps than half the ODOM or FLASER lines, written to too few digits)
+a time base is rebuilt from the order of the lines (`--time-base auto`, the default): every
+ODOM line one tick of an assumed rate (`--odom-rate`, 10 Hz), every scan at its preceding ODOM
+line's time; the output and the bag's metadata.yaml (custom_data `carmen_to_bag.time_base`) say
+so, with the speed the odometry then has and the matcher's setting for an assumed time
+(`rate_limits:=false`). Stamps that go backwards, are negative, wrapped or stand still (many
+consecutive lines on one stamp) are refused with a message naming the first line: rebuilding
+would throw away the time that is sound; `--time-base lines` rebuilds a time base for those
+too. A line order that cannot time the scans (fewer ODOM lines between them than scans) is
+refused too.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from sensing_nodes.bags.carmen import (
+    COARSE_DISTINCT,
     ZERO_STAMP_S,
     CarmenLog,
     TimeCheck,
@@ -123,7 +128,8 @@ def odometry_chain(log: CarmenLog,
 def time_base(log: CarmenLog, options: ConvertOptions) -> TimeBase:
     """The log's own stamps when they are sound; else one rebuilt from the line order
     (`options.time_base` 'auto': where the stamps carry no time; 'lines': always); ValueError
-    naming what is wrong with stamps that go backwards, are negative or wrapped."""
+    naming what is wrong with stamps that go backwards, are negative, wrapped or stand still
+    (with 'auto'), or with a line order that cannot time the scans."""
     repeats = reference_repeats(log)
     stamped_zero = np.abs(log.odom_time_s) < ZERO_STAMP_S
     odometry = int(np.sum(~repeats))
@@ -139,6 +145,13 @@ def time_base(log: CarmenLog, options: ConvertOptions) -> TimeBase:
         raise ValueError(f'the log\'s time is broken: {check.text}; --time-base lines '
                          'rebuilds a time base from the order of the lines')
     odom_s, scan_s = line_order_time(log, repeats, options.odom_rate_hz)
+    distinct = np.unique(scan_s).size
+    if scan_s.size > 1 and distinct < COARSE_DISTINCT * scan_s.size:
+        broken = f"the log's time is broken ({check.text}) and " if check.text else ''
+        raise ValueError(f'{broken}the order of the lines cannot time the scans: its '
+                         f'{scan_s.size} FLASER lines get {distinct} distinct times from its '
+                         f'{odometry} ODOM lines of odometry (a scan takes the time of the ODOM '
+                         'line before it)')
     why = check.text or 'asked for (--time-base lines)'
     return TimeBase(odom_s, scan_s, repeats,
                     f'rebuilt from the order of the lines ({why}): ODOM lines at an assumed '
@@ -189,6 +202,7 @@ def convert(log_path: str | Path, out: str | Path, options: ConvertOptions | Non
     counts = _write_bag(out, messages, options, time.rebuilt)
     speed = odometry_speed(time.odom_s[rows], poses) if len(rows) else (0.0, 0.0)
     return {'counts': counts, 'skipped_odom': skipped, 'errors': log.errors,
+            'scans_on_previous_stamp': int(np.sum(np.diff(time.scan_s) == 0)),
             'no_return_value': no_return_value(log), 'beams': len(log.scans[0].ranges),
             'time_base': time.rebuilt, 'odom_rate_hz': options.odom_rate_hz,
             'odometry_speed_m_s': speed,
@@ -196,13 +210,14 @@ def convert(log_path: str | Path, out: str | Path, options: ConvertOptions | Non
 
 
 def _read_log(path: Path) -> CarmenLog:
-    """The parsed log; ValueError when it cannot be read or has no scan."""
+    """The parsed log; ValueError (without the path: the caller names it) when it cannot be
+    read or has no scan."""
     try:
         log = read_carmen(path)
     except (OSError, EOFError, UnicodeDecodeError) as exc:
-        raise ValueError(f'{path}: cannot read the log ({exc})') from None
+        raise ValueError(f'cannot read the log ({exc})') from None
     if not log.scans:
-        raise ValueError(f'{path}: no FLASER line parsed'
+        raise ValueError('no FLASER line parsed'
                          + (f' ({len(log.errors)} bad lines)' if log.errors else ''))
     return log
 
@@ -331,7 +346,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = convert(args.log, out, options)
     except ValueError as exc:
-        print(f'carmen_to_bag: error: {args.log}: {exc}', file=sys.stderr)
+        reason = str(exc)       # most name the log already: never twice
+        named = reason if reason.startswith(str(args.log)) else f'{args.log}: {reason}'
+        print(f'carmen_to_bag: error: {named}', file=sys.stderr)
         return EXIT_BAD_INPUT
     _report(args.log, out, summary)
     return 0
@@ -359,6 +376,12 @@ def _report(log: str, out: Path, summary: dict) -> None:
             print(f'carmen_to_bag: warning: at the assumed rate the odometry is faster than the '
                   f'robot declares ({top:.2f} > {declared:g} m/s): its rate is likely lower '
                   f'(--odom-rate {slower:g} keeps it below)', file=sys.stderr)
+        print('carmen_to_bag: the time is assumed, not measured: speed and yaw-rate limits '
+              'measure nothing on it (run icp_matcher with rate_limits:=false)')
+    if summary['scans_on_previous_stamp']:
+        print(f"carmen_to_bag: warning: {summary['scans_on_previous_stamp']} scans carry the "
+              'stamp of the scan before them: the nodes skip a repeated stamp and sensing_eval '
+              'scores one pose a stamp', file=sys.stderr)
 
 
 if __name__ == '__main__':

@@ -25,20 +25,39 @@ import sys
 from pathlib import Path
 
 from sensing_nodes.bags.sensor_streams import SensorBagError, stderr_progress
-from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, plural
 from sensing_nodes.doctor.diagnosis import EXIT_BAD_INPUT, PROG, Diagnosis
 from sensing_nodes.doctor.run import diagnose, write_outputs
 from sensing_nodes.paths import config_file
 
 
 def print_summary(d: Diagnosis, out: Path, status: int) -> None:
+    """The verdict first (usable with params.yaml, the fused figures), then the problems
+    params.yaml fixes apart from those it cannot, the warnings, the counts and the files."""
+    from sensing_nodes.doctor.fused import figures
+    from sensing_nodes.doctor.report import verdict
+
+    v = verdict(d)
+    answer = {True: 'yes', False: 'no', None: 'not run'}[v['usable_with_params_yaml']]
+    print(f'{PROG}: usable with {out / "params.yaml"}: {answer} ({v["why"]})')
+    for name, f in v['fused_against'].items():
+        why = v['distrusted'].get(name)
+        print(f'  fused against {name}: {figures(f)}' + (f' (not followed: {why})' if why else ''))
+    problems = [c for c in d.checks if c.verdict == PROBLEM and c.name != 'fused']
+    for title, group in (('fixed by params.yaml', [c for c in problems if c.fix]),
+                         ('not fixable by params.yaml', [c for c in problems if not c.fix])):
+        if group:
+            print(f'{plural(len(group), "problem")} {title}:')
+        for c in group:
+            print(f'  PROBLEM {c.subject}: {c.name}: {c.advice}'
+                  + (f' -> {c.fix}' if c.fix and 'params.yaml' not in c.advice else ''))
     for c in d.checks:
-        if c.verdict in (WARNING, PROBLEM):
-            print(f'{c.verdict.upper():8} {c.subject}: {c.name}: {c.advice}')
+        if c.verdict == WARNING:
+            print(f'  WARNING {c.subject}: {c.name}: {c.advice}')
     counts = {v: sum(c.verdict == v for c in d.checks) for v in (PROBLEM, WARNING, OK, SKIPPED)}
-    print(f'{PROG}: {counts[PROBLEM]} problems, {counts[WARNING]} warnings, {counts[OK]} ok, '
-          f'{counts[SKIPPED]} not judged; wrote {out / "report.html"}, {out / "report.json"}, '
-          f'{out / "params.yaml"} (exit {status})')
+    print(f'{PROG}: {plural(counts[PROBLEM], "problem")}, {plural(counts[WARNING], "warning")}, '
+          f'{counts[OK]} ok, {counts[SKIPPED]} not judged; wrote {out / "report.html"}, '
+          f'{out / "report.json"}, {out / "params.yaml"} (exit {status})')
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -84,7 +84,9 @@ def _read_odometry(reader, topics: list[str]) -> dict[str, Trajectory]:
             pose, _ = odometry_pose(msg)
             rows[topic][stamp_to_ns(msg.header.stamp)] = pose  # a later message at a stamp wins
     except Exception as exc:
-        raise EvalError(f'{bag}: cannot read the bag ({type(exc).__name__}: {exc}); '
+        from sensing_nodes.bags.storage import failure_reason
+
+        raise EvalError(f'{bag}: cannot read the bag ({failure_reason(exc)}); '
                         'truncated?') from None
     out = {}
     for topic, by_stamp in rows.items():

@@ -53,7 +53,8 @@ def odometry_covariance_check(topic: str, pose_var: NDArray[np.float64],
     return Check('covariance', topic, WARNING, float(pose_var[-1, :2].sum()), 'm^2',
                  f'the pose covariance is {note} and the twist covariance {twist}: a static '
                  'pose covariance says nothing of how far the estimate has drifted; fuse its '
-                 'velocities or increments with the noise model measured here (params.yaml)',
+                 'velocities or its increments, not its pose (params.yaml does, where it fuses '
+                 'this odometry)',
                  'growing', details)
 
 
@@ -66,7 +67,8 @@ def imu_covariance_check(topic: str, orientation_var: NDArray[np.float64],
     if gyro == 'zero':
         return Check('covariance', topic, WARNING, 0.0, '(rad/s)^2',
                      'angular velocity covariance all zero: REP 145 reads that as unknown; the '
-                     'nodes use their own noise figures (gyro_noise_density, measured here)',
+                     'nodes use their own noise figures (gyro_noise_density: params.yaml carries '
+                     'the one measured where the IMU stands still 10 s)',
                      'non-zero', details)
     return Check('covariance', topic, OK, float(gyro_var[0, 2]), '(rad/s)^2',
                  f'angular velocity covariance {gyro}' + (

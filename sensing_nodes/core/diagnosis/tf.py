@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core.diagnosis.check import OK, PROBLEM, Check
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, Check, plural
 
 
 def publishers_check(pair: str, stamps_ns: NDArray[np.int64], xyyaw: NDArray[np.float64],
@@ -56,6 +56,7 @@ def static_check(pair: str, translations: NDArray[np.float64],
     return Check('tf_static', pair, PROBLEM if differ else OK, spread_m, 'm',
                  f'{pair} is declared {len(translations)} times, {spread_m:.3f} m and '
                  f'{spread_deg:.2f} deg apart: two publishers disagree on the mount; keep one'
-                 if differ else f'{pair} declared {len(translations)} time(s), consistently',
+                 if differ else f'{pair} declared {plural(len(translations), "time")}, '
+                 'consistently',
                  '< 1 mm, < 0.1 deg', {'declarations': len(translations),
                                        'spread_deg': spread_deg})

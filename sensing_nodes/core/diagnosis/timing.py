@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from sensing_nodes.core.diagnosis.check import OK, PROBLEM, WARNING, Check, graded
+from sensing_nodes.core.diagnosis.check import OK, PROBLEM, WARNING, Check, graded, plural
 from sensing_nodes.core.evaluation.calibration import grid_minimum
 
 # Gap beyond which the nodes restart an integration (wheel_odometry, gyro_integrator,
@@ -30,7 +30,7 @@ def stream_checks(topic: str, kind: str, header_ns: NDArray[np.int64],
     t = np.asarray(header_ns, dtype=np.int64)
     if t.size < 3:
         return [Check('rate', topic, WARNING, float(t.size), 'messages',
-                      'too few messages to judge the timing')]
+                      f'{plural(int(t.size), "message")} only: too few to judge the timing')]
     step = np.diff(t) * 1e-9
     forward = step[step > 0]
     period = float(np.median(forward)) if forward.size else float('nan')
@@ -45,13 +45,14 @@ def stream_checks(topic: str, kind: str, header_ns: NDArray[np.int64],
 
 
 def _rate(topic: str, kind: str, t: NDArray[np.int64], period: float) -> Check:
-    rate = 1.0 / period if period > 0 else float('nan')
+    rate = 1.0 / period if period > 0 else 0.0
     span = (t.max() - t.min()) * 1e-9
     minimum = MIN_RATE_HZ.get(kind)
     verdict = OK if minimum is None or rate >= minimum else WARNING
     advice = (f'{t.size} messages over {span:.1f} s' if verdict == OK else
               f'{rate:.1f} Hz is slow for this input (>= {minimum:g} Hz expected of {kind}): '
-              'check the driver\'s rate or the recorder dropping messages')
+              'check the driver\'s rate or the recorder dropping messages' if rate > 0 else
+              'the stamps never advance: no rate (stamps_repeated)')
     return Check('rate', topic, verdict, rate, 'Hz', advice,
                  f'>= {minimum:g} Hz' if minimum else '',
                  {'messages': int(t.size), 'span_s': span, 'median_period_s': period})
@@ -75,9 +76,10 @@ def _gaps(topic: str, kind: str, forward: NDArray[np.float64], period: float) ->
     longest = float(forward.max())
     verdict = WARNING if gaps.size else OK
     advice = ('no gap' if verdict == OK else
-              f'{gaps.size} gap(s) longer than {limit:g} s (longest {longest:.2f} s): the nodes '
-              'restart their integration after one (max_gap_s); check the driver and the '
-              'recorder (dropped messages, a paused recording)')
+              f'{plural(int(gaps.size), "gap")} longer than {limit:g} s (longest '
+              f'{longest:.2f} s): the nodes restart their integration after one '
+              '(max_gap_s); check the driver and the recorder (dropped messages, a paused '
+              'recording)')
     return Check('gaps', topic, verdict, longest, 's', advice, f'<= {limit:g} s',
                  {'gaps': int(gaps.size)})
 
@@ -88,7 +90,7 @@ def _order(topic: str, step: NDArray[np.float64], has_header: bool) -> list[Chec
     same = int((step == 0).sum())
     back_check = Check(
         'stamps_backwards', topic, PROBLEM if back else OK, float(back), 'messages',
-        f'{stamps} go backwards {back} time(s) (largest step back '
+        f'{stamps} go backwards {plural(back, "time")} (largest step back '
         f'{-float(step.min()):.3f} s): nodes restart their estimates at each; fix the driver\'s '
         'clock or the bag (a looping or merged recording)' if back else f'{stamps} never go back',
         '0')
@@ -96,7 +98,8 @@ def _order(topic: str, step: NDArray[np.float64], has_header: bool) -> list[Chec
     same_check = Check(
         'stamps_repeated', topic, OK if not same else (PROBLEM if share > 0.01 else WARNING),
         float(same), 'messages',
-        f'{same} message(s) repeat the previous stamp ({100 * share:.2f} %): the nodes skip a '
+        f'{plural(same, "message repeats", "messages repeat")} the previous stamp '
+        f'({100 * share:.2f} %): the nodes skip a '
         'repeated stamp (no time passed); the driver should stamp each measurement'
         if same else 'no repeated stamp', '0 (problem above 1 %)')
     return [back_check, same_check]
@@ -205,14 +208,22 @@ def solve_offsets(names: list[str], reference: str,
 
 
 def offset_check(name: str, reference: str, offset: float,
-                 pairs: dict[tuple[str, str], tuple[float, float]]) -> Check:
-    """The verdict on one source's offset against the reference, with the pairs behind it."""
+                 pairs: dict[tuple[str, str], tuple[float, float]],
+                 corrected: bool = True) -> Check:
+    """The verdict on one source's offset against the reference, with the pairs behind it;
+    corrected: the preset sets the fusion's delay_s from it (against an external reference,
+    scan matching; between proprioceptive sources alone it cannot tell whose stamps to
+    correct)."""
     verdict = graded(abs(offset), OFFSET_WARN_S, OFFSET_PROBLEM_S)
     advice = (f'{name} and {reference} agree in time' if verdict == OK else
               f'{name} shows the motion {1000 * abs(offset):.0f} ms '
               f'{"after" if offset > 0 else "before"} {reference} does: correct the driver '
-              'stamping late (or early), or set the fusion\'s <input>.delay_s (params.yaml '
-              'carries it)')
+              'stamping late (or early); ' + (
+                  f'params.yaml sets the fusion\'s delay_s of {name} to {offset:.3f} s'
+                  if corrected else
+                  f'params.yaml sets no delay_s: without a laser it cannot tell whether {name} '
+                  f'or {reference} is late' if reference != 'scan matching' else
+                  f'the preset does not fuse {name}'))
     used = {f'{a} vs {b}': {'offset_s': o, 'increments': int(w)}
             for (a, b), (o, w) in pairs.items() if name in (a, b)}
     return Check('time_offset', f'{name} vs {reference}', verdict, offset, 's', advice,
