@@ -766,8 +766,7 @@ def _odometry_noise(d: Diagnosis, ref) -> None:
 
 
 def _wheel_noise(d: Diagnosis, t0, t1, motion, moving) -> None:
-    """The wheels' variance per metre along the path and across, per radian turned, and the
-    tail of their normalised errors (the scan-match gate)."""
+    """The wheels' variance per metre along the path and across, and per radian turned."""
     path = np.abs(motion[moving, 0]).sum()
     turned = np.abs(motion[moving, 2]).sum()
     if 'wheels' not in d.pose_tracks or path <= 1.0:
@@ -780,15 +779,6 @@ def _wheel_noise(d: Diagnosis, t0, t1, motion, moving) -> None:
     if turned > 1.0:
         d.noise['wheel_yaw_variance_per_rad'] = float((err[ok, 2] ** 2).sum() / turned)
     d.noise['wheel_yaw_error_sum_sq'] = float((err[ok, 2] ** 2).sum())
-    # How far the wheels' increments stray from scan matching in units of that model, over
-    # intervals that drive at least 0.1 m/s (in place, the matcher's own noise, which does
-    # not shrink with the distance, would dominate).
-    dist = np.abs(motion[moving, 0])[ok]
-    driving = dist >= 0.1 * (t1 - t0)[moving][ok] * 1e-9
-    if driving.sum() >= 20:
-        normalised = (err[ok, 0] ** 2 + err[ok, 1] ** 2)[driving] / (
-            d.noise['wheel_variance_per_m'] * dist[driving])
-        d.noise['wheel_error_chi2_p99'] = float(np.percentile(normalised, 99))
 
 
 def noise_section(d: Diagnosis) -> None:

@@ -13,6 +13,7 @@ from sensing_nodes.core.diagnosis import covariance as cov_checks
 from sensing_nodes.core.diagnosis import imu as imu_checks
 from sensing_nodes.core.diagnosis import timing
 from sensing_nodes.core.diagnosis.check import PROBLEM, SKIPPED, Check
+from sensing_nodes.core.fusion.ekf import EkfSettings
 from sensing_nodes.doctor.diagnosis import (
     PROG,
     Diagnosis,
@@ -63,7 +64,7 @@ def _imu_fusion_preset(d: Diagnosis, integrated: bool) -> dict[str, Any]:
     has_cov = bool(np.any(d.imu.orientation_cov[:, 2] > 0))
     return {'topic': d.imu.topic, 'source': 'orientation', 'pose_mode': 'absolute',
             'mask': ['yaw', 'vyaw'], 'covariance': 'message' if has_cov else 'model',
-            'gate_chi2': 0.0, 'heading_delay_s': 0.0, 'delay_s': _delay(d, d.imu.topic),
+            'heading_delay_s': 0.0, 'delay_s': _delay(d, d.imu.topic),
             **angles}
 
 
@@ -148,13 +149,26 @@ def _fusion_preset(d: Diagnosis, orientation_only: bool) -> dict[str, Any]:
     if slowest > 0.5:       # sparse logs (a scan a metre): wait for inputs that long
         fusion.update({'max_gap_s': round(10 * slowest, 1),
                        'input_timeout_s': round(10 * slowest, 1)})
-    if d.scan is not None and 'wheel_error_chi2_p99' in d.noise:
-        # The default gate (25) holds for Gaussian wheel errors, whose normalised squared
-        # error over two axes stays below 9.21 in 99 % of intervals; heavier tails (slip)
-        # widen it by as much, or it refuses the right matches after each slip.
-        tail = d.noise['wheel_error_chi2_p99'] / 9.21
-        fusion['scan_match'] = {'gate_chi2': float(round(min(400.0, 25.0 * max(1.0, tail))))}
+    fusion.update(_motion_range(d))
     return fusion
+
+
+def _motion_range(d: Diagnosis) -> dict[str, dict[str, float]]:
+    """The spread of the robot's speeds the fusion gates its dead reckoning against, where
+    the bag shows faster motion than the default's (a hand-turned IMU, a fast robot): its
+    99.9th-percentile yaw rate (the gyro's) and speed (the odometry's twist) over 3, so that
+    they lie inside the gate."""
+    ekf, defaults = {}, EkfSettings()
+    if d.imu is not None and d.imu.gyro.size:
+        fastest = float(np.percentile(np.abs(d.imu.gyro[:, 2]), 99.9))
+        if fastest / 3.0 > defaults.yaw_rate_std_rad_s:
+            ekf['yaw_rate_std_rad_s'] = round(fastest / 3.0, 2)
+    speeds = [np.abs(o.twist[:, 0]) for o in d.odoms if o.twist.size]
+    if speeds:
+        fastest = float(np.percentile(np.concatenate(speeds), 99.9))
+        if fastest / 3.0 > defaults.speed_std_m_s:
+            ekf['speed_std_m_s'] = round(fastest / 3.0, 2)
+    return {'ekf': ekf} if ekf else {}
 
 
 def build_preset(d: Diagnosis) -> None:

@@ -121,6 +121,13 @@ def _ekf_parameters() -> dict[str, Parameter]:
                                           'gyro bias random walk (rad/s/sqrt(s))', 0.0),
         'ekf.initial_bias_std': Parameter(defaults.initial_bias_std,
                                           'gyro bias std before any input (rad/s)', 0.0),
+        'ekf.speed_std_m_s': Parameter(
+            defaults.speed_std_m_s, "the spread of the robot's speeds (m/s): its velocity's "
+            'uncertainty grows no further, and dead reckoning faster than the gate allows is '
+            'refused', 1e-3, 1e3),
+        'ekf.yaw_rate_std_rad_s': Parameter(
+            defaults.yaw_rate_std_rad_s, "the spread of the robot's yaw rates (rad/s), as "
+            'speed_std_m_s', 1e-3, 1e3),
         'ekf.fault_isolation': Parameter(
             defaults.fault_isolation, 'a refused scan match is checked against the state '
             'replayed without each other input since the last fused match: an input the match '
@@ -270,8 +277,8 @@ def session_config(params: Mapping[str, Any]) -> SessionConfig:
         inputs = _ekf_inputs(v, enabled, imu_source)
         ekf = EkfSettings(**{key: v[f'ekf.{key}'] for key in (
             'accel_noise_density', 'angular_accel_noise_density', 'bias_random_walk',
-            'initial_bias_std', 'fault_isolation', 'reacquire_after_s', 'adaptive_noise',
-            'adaptive_max_scale')},
+            'initial_bias_std', 'speed_std_m_s', 'yaw_rate_std_rad_s', 'fault_isolation',
+            'reacquire_after_s', 'adaptive_noise', 'adaptive_max_scale')},
             reacquire_after_matches=int(v['ekf.reacquire_after_matches']),
             adaptive_window=int(v['ekf.adaptive_window']))
     complementary = FusionSettings(

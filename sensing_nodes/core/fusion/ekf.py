@@ -37,12 +37,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core.fusion.filter import FusedState
-from sensing_nodes.core.fusion.integrity import InputHealth, gate_threshold, tail_probability
 from sensing_nodes.core.fusion.increments import (
     compounded_increment_covariance,
     increment_covariance,
 )
 from sensing_nodes.core.fusion.inputs import RANK, InputConfig, Reading
+from sensing_nodes.core.fusion.integrity import InputHealth, gate_threshold, tail_probability
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.geometry.se2 import Pose2
 
