@@ -175,8 +175,8 @@ def fused_check(d: Diagnosis, outputs: int) -> Check:
     for name, v in far.items():
         if imu_alone and name.endswith('(gyro_integrator\'s heading)'):
             parts.append(f'it departs from {name} ({figures(v)}), the only heading it fuses: the '
-                         'fusion refuses part of that input (its outlier gate, imu.gate_probability; '
-                         'the refusals are counted on its /diagnostics)')
+                         'fusion refuses part of that input (its outlier gate, '
+                         'imu.gate_probability; the refusals are counted on its /diagnostics)')
         else:
             parts.append(f'it departs from {name} ({figures(v)}) and no check says why: the '
                          'inputs disagree; compare them in the plots before trusting either')
