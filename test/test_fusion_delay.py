@@ -60,7 +60,7 @@ def _fused_x_at(delay_s: float, at_ns: int) -> tuple[int, float]:
     at t - 0.1 s, x = t - 100 s); absolute poses, fused with wheel_odom.delay_s = delay_s. The
     stamp of the last state, and the state predicted (constant velocity) to at_ns."""
     cfg = input_config(WHEEL, {'pose_mode': 'absolute', 'covariance': 'message',
-                               'delay_s': delay_s, 'gate_chi2': 0.0})
+                               'delay_s': delay_s})
     converter = ReadingConverter('ekf', {WHEEL: cfg})
     ekf = EkfFusion((cfg,), EkfSettings(initial_velocity_std=10.0))
     record = InputRecord(WHEEL)

@@ -91,7 +91,7 @@ def stream(count):
 
 # publish_rate_hz 0: an output per wheel and scan input (the tests wait for the last one)
 PARAMS = {'imu.source': 'orientation', 'imu.pose_mode': 'relative', 'imu.covariance': 'message',
-          'imu.mount_roll_rad': math.pi, 'imu.gate_chi2': 0.0,
+          'imu.mount_roll_rad': math.pi,
           'reorder_window_s': 0.5, 'flush_after_s': 3.0, 'publish_rate_hz': 0.0}
 
 
@@ -198,7 +198,7 @@ def test_set_pose_moves_the_output(graph):
     assert node.alive()
 
 
-RATE_PARAMS = {'imu.source': 'rate', 'imu.mask': ['vyaw'], 'imu.gate_chi2': 0.0,  # 'y': quoted
+RATE_PARAMS = {'imu.source': 'rate', 'imu.mask': ['vyaw'],  # 'y': quoted
                'wheel_odom.mask': ["'x'", "'y'"], 'use_scan_match_position': False,
                'use_scan_match_heading': False, 'reorder_window_s': 0.5, 'flush_after_s': 3.0,
                'publish_rate_hz': 0.0}
@@ -348,7 +348,7 @@ def test_a_late_imu_mount_restarts_the_orientation_input_without_a_jump():
         '--ros-args', '--params-file', str(config_file('complementary_fusion.yaml')),
         '-p', 'publish_rate_hz:=0.0',   # an output per wheel input, which the test reads
         '-p', 'imu.source:=orientation', '-p', 'imu.pose_mode:=relative',
-        '-p', 'imu.covariance:=message', '-p', 'imu.gate_chi2:=0.0',
+        '-p', 'imu.covariance:=message',
         '-p', "wheel_odom.mask:=['x', 'y']", '-p', 'use_scan_match_position:=false',
         '-p', 'use_scan_match_heading:=false'], use_global_arguments=False)
     try:

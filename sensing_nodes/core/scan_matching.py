@@ -163,6 +163,37 @@ class ScanStep:
         return self.status != 'repeated'
 
 
+def with_prediction_error(result: icp.MatchResult, model_error_rms: float, share: float,
+                          reach_m: float) -> icp.MatchResult:
+    """The match with the share of its prediction's error it keeps in its covariance: plus
+    (share x the recent RMS deviation between prediction and match, m)² in x and y, and that
+    over the scan's median range reach_m (at least 1 m), squared, in yaw
+    (ScanMatcherSettings.prediction_error_share)."""
+    if share <= 0.0 or not model_error_rms > 0.0:
+        return result
+    variance = (share * model_error_rms) ** 2
+    reach = max(reach_m, 1.0)
+    return replace(result, covariance=result.covariance
+                   + np.diag([variance, variance, variance / reach ** 2]))
+
+
+def prediction_deviation(predicted: Pose2, matched: Pose2, reach_m: float) -> float:
+    """How far a match lies from its prediction (m): the translation plus the arc a yaw
+    difference moves a correspondence at the scan's median range."""
+    deviation = between(predicted, matched)
+    return math.hypot(deviation[0], deviation[1]) + 2.0 * reach_m * abs(
+        math.sin(0.5 * deviation[2]))
+
+
+def scan_reach(points: NDArray[np.float64]) -> float:
+    """The scan's median range (m): how far a yaw error moves a typical correspondence."""
+    if points.shape[0] == 0:
+        return 0.0
+    squared = np.einsum('ij,ij->i', points, points)
+    middle = squared.size // 2
+    return math.sqrt(float(np.partition(squared, middle)[middle]))
+
+
 def mount_transform(relative_base: Pose2, laser_pose: Pose2) -> Pose2:
     """Motion of base_link (in the earlier base frame) -> the same motion seen by the laser."""
     return compose(compose(inverse(laser_pose), relative_base), laser_pose)
@@ -243,6 +274,7 @@ class KeyframeScanMatcher:
         self.keyframe_pose: Pose2 = ZERO
         self.keyframe_covariance = np.zeros((3, 3))
         self.keyframe_stamp_ns: int | None = None
+        self.model_errors = RecentValues(self.settings.model_error_window)
 
     def _set_keyframe(self, points: NDArray[np.float64], stamp_ns: int) -> None:
         self.keyframe = icp.prepare_target(points, search=self.settings.search)
@@ -298,6 +330,11 @@ class KeyframeScanMatcher:
         guess_laser = mount_transform(guess_base, s.laser_pose)
         result = icp.match(points, self.keyframe, guess_laser, options=s.icp_options)
         points_usable = result.source_points >= s.icp_options.correspondences.min_points
+        reach = scan_reach(points)
+        if result.converged:
+            result = with_prediction_error(
+                result, self.model_errors.rms if self.model_errors else 0.0,
+                s.prediction_error_share, reach)
 
         reason = self._rejection(result, guess_laser)
         previous = self.pose
@@ -313,6 +350,7 @@ class KeyframeScanMatcher:
             new_keyframe = points_usable
             motion_cov = fallback_cov
         else:
+            self.model_errors.add(prediction_deviation(guess_laser, result.pose, reach))
             relative, rel_cov = unmount_transform(result.pose, result.covariance, s.laser_pose)
             self.pose, self.covariance = compose_with_covariance(
                 self.keyframe_pose, self.keyframe_covariance, relative, rel_cov)
@@ -543,10 +581,8 @@ class LocalMapScanMatcher:
             base, base_cov = remove_offset(mid, mid_cov, half)
             self.alignment_errors.add(result.error)
             if 'reacquired' not in events:
-                deviation = between(predicted_mid, mid)
-                self.model_errors.add(math.hypot(deviation[0], deviation[1])
-                                         + 2.0 * self._reach(points)
-                                         * abs(math.sin(0.5 * deviation[2])))
+                self.model_errors.add(prediction_deviation(predicted_mid, mid,
+                                                           scan_reach(points)))
             self.map_pose, self.mid_pose = base, mid
             target_pose = base
             status = 'matched'
@@ -625,7 +661,9 @@ class LocalMapScanMatcher:
         result = icp.match(points, self.map.target(), guess, options=options)
         if not result.converged:
             return result, f'not converged: {result.reason}'
-        result = self._with_prediction_error(result, points)
+        result = with_prediction_error(
+            result, self.model_errors.rms if self.model_errors else 0.0,
+            s.prediction_error_share, scan_reach(points))
         if self.alignment_errors:
             # Never below the ICP's own floor on residuals: noiseless scans align to ~0.
             typical = max(self.alignment_errors.median, s.icp_options.min_residual_std)
@@ -640,28 +678,6 @@ class LocalMapScanMatcher:
                 return result, (f'match {math.hypot(jump[0], jump[1]):.2f} m / '
                                 f'{math.degrees(abs(jump[2])):.1f} deg from the prediction')
         return result, ''
-
-    def _with_prediction_error(self, result: icp.MatchResult,
-                               points: NDArray[np.float64]) -> icp.MatchResult:
-        """The match with the share of its prediction's error it keeps in its covariance
-        (prediction_error_share x the recent RMS model error: x, y in m; yaw over the scan's
-        median range)."""
-        share = self.settings.prediction_error_share
-        if share <= 0.0 or not self.model_errors:
-            return result
-        variance = (share * self.model_errors.rms) ** 2
-        reach = max(self._reach(points), 1.0)
-        covariance = result.covariance + np.diag([variance, variance, variance / reach ** 2])
-        return replace(result, covariance=covariance)
-
-    @staticmethod
-    def _reach(points: NDArray[np.float64]) -> float:
-        """The scan's median range (m): how far a yaw error moves a typical correspondence."""
-        if points.shape[0] == 0:
-            return 0.0
-        squared = np.einsum('ij,ij->i', points, points)
-        middle = squared.size // 2
-        return math.sqrt(float(np.partition(squared, middle)[middle]))
 
     def _maybe_insert(self, points: NDArray[np.float64], base: Pose2,
                       events: list[str]) -> None:

@@ -439,12 +439,13 @@ class EkfFusion:
             self.p[at:at + 3, at:at + 3] += (a * (variance_per_m * distance)) @ a.T
 
     def _correct(self, residual: NDArray, h: NDArray, r: NDArray, cfg: InputConfig,
-                 dry: bool = False, spread: NDArray | None = None) -> Outcome:
+                 dry: bool = False, partial: bool = False) -> Outcome:
         """EKF update with innovation `residual` (angle rows already wrapped), Jacobian h over
         the whole state and noise r; refused when the squared Mahalanobis distance exceeds the
-        input's gate (the chi-square quantile of its gate_probability for these rows),
-        measured with `spread` added to the innovation covariance where given. dry: only the
-        distance (without the spread), nothing changed."""
+        input's gate (the chi-square quantile of its gate_probability for these rows). With
+        `partial` (velocities: independent quantities), a reading refused as a whole is fused
+        without its worst rows where the rest passes (_partial). dry: only the distance,
+        nothing changed."""
         scale = self.noise_scale[cfg.name]
         if scale != 1.0:
             r = r * scale
@@ -459,14 +460,15 @@ class EkfFusion:
         gate = self._gates[cfg.name][dof]
         if dry:
             return Outcome(gated=not d2 <= gate, distance2=d2, dof=dof, note='tested only')
-        if spread is not None:
-            d2 = float(residual @ np.linalg.solve(s + spread, residual))
         if self.settings.adaptive_noise and cfg.keyframes and not self._replaying:
             self._adapt(min(d2, 10.0 * gate) / dof)
         if not d2 <= gate:
-            return Outcome(gated=True, distance2=d2, dof=dof,
-                           note=f'squared Mahalanobis distance {d2:.1f} > {gate:.1f} (gate at '
-                                f'{cfg.gate_probability:g} for {dof} rows)')
+            refused = Outcome(gated=True, distance2=d2, dof=dof,
+                              note=f'squared Mahalanobis distance {d2:.1f} > {gate:.1f} (gate at '
+                                   f'{cfg.gate_probability:g} for {dof} rows)')
+            if partial and dof > 1:
+                return self._partial(residual, h, r, cfg, s, refused)
+            return refused
         k = ph @ s_inv
         if cfg.keyframes:
             # A scan match corrects where the robot is, not how fast it moves: taken as
@@ -484,6 +486,19 @@ class EkfFusion:
             self._step_cross -= k @ (h @ self._step_cross)     # (I - KH)·c, any gain
         self.updates += 1
         return Outcome(fused=True, distance2=d2, dof=dof)
+
+    def _partial(self, residual: NDArray, h: NDArray, r: NDArray, cfg: InputConfig,
+                 s: NDArray, refused: Outcome) -> Outcome:
+        """A dead-reckoning reading without the row that strays furthest (its residual over
+        its standard deviation), fused when the rest passes the gate (a skid-steer base's yaw
+        rate against the gyro's, its speeds right), else the refusal."""
+        worst = int(np.argmax(residual * residual / np.diag(s)))
+        keep = np.array([i for i in range(residual.size) if i != worst])
+        outcome = self._correct(residual[keep], h[keep], r[np.ix_(keep, keep)], cfg,
+                                partial=True)
+        if outcome.gated:
+            return refused
+        return replace(outcome, note=f'row {worst} of {residual.size} refused ({refused.note})')
 
     def _adapt(self, ratio: float) -> None:
         """Move the dead reckoning's noise scale towards what the matches' innovations show:
@@ -868,15 +883,12 @@ class EkfFusion:
         short = noise * _SHORT_TERM
         outcome = self._relative_update(cfg, slot, increment, short, dt, dry)
         if not dry:
-            outcome = self._after_refusal(
+            outcome, restart = self._after_refusal(
                 cfg, outcome, (reading.stamp_ns - slot.stamp_ns) * 1e-9,
                 lambda: self._relative_update(cfg, slot, increment, short, dt))
             if outcome.fused:
                 self._drift(increment, (noise - short) * self.noise_scale[cfg.name])
-            # A refused increment is measured again with the next reading, from the last
-            # accepted one: a reading whose pose or stamp is off drops out, its motion does
-            # not (the input restarts only when that span grows beyond its max_gap_s).
-            if not outcome.gated or dt > cfg.max_gap_s:
+            if not outcome.gated or restart or dt > cfg.max_gap_s:
                 self._clone(slot, reading=reading)
         return outcome
 
@@ -888,20 +900,30 @@ class EkfFusion:
         self.p[:3, :3] += turn @ covariance @ turn.T
 
     def _after_refusal(self, cfg: InputConfig, outcome: Outcome, span_s: float,
-                       retry) -> Outcome:
-        """A dead-reckoning input refused twice in a row contradicts the velocity the motion
-        model extrapolates (a burst in the input, taken as velocity by an earlier correction):
-        the velocity is forgotten (zero, as uncertain as the robot's speeds), the motion over
-        the refused span (span_s, since the input's last accepted reading) as uncertain as
-        that makes it, and the reading is tried again."""
+                       retry) -> tuple[Outcome, bool]:
+        """What follows a dead-reckoning reading's outcome, and whether the input restarts from
+        it. Refused once, the next reading is measured from the last accepted one (a reading
+        whose pose or stamp is off drops out, its motion does not). Refused again, that span
+        contradicts the state: where every dead-reckoning input is refused, it is the velocity
+        the motion model extrapolates (a burst taken as velocity by an earlier correction),
+        which is forgotten (zero, as uncertain as the robot's speeds, the motion over the span
+        span_s as uncertain as that makes it) and the reading tried again (refused still, the
+        span goes on until the input's max_gap_s); where another one is accepted, it is this
+        input (a gyro integrator's drift before its calibration), which restarts from this
+        reading."""
         name = cfg.name
         if not outcome.gated:
             self._refusals[name] = 0
-            return outcome
+            return outcome, False
         self._refusals[name] = self._refusals.get(name, 0) + 1
         if self._refusals[name] < 2:
-            return outcome
+            return outcome, False
         self._refusals[name] = 0
+        others = [n for n, c in self.inputs.items() if n != name and not c.keyframes
+                  and n in self._last_seen]
+        if others and not all(self._refusals.get(n, 0) for n in others):
+            note = '; refused twice in a row while the other dead reckoning is not: restarted'
+            return replace(outcome, note=outcome.note + note), True
         self.x[VX:WZ + 1] = 0.0
         self.p[VX:WZ + 1, :] = 0.0
         self.p[:, VX:WZ + 1] = 0.0
@@ -911,7 +933,7 @@ class EkfFusion:
             self._step_cross[VX:WZ + 1] = 0.0
         again = retry()
         note = 'refused twice in a row: the velocity forgotten'
-        return replace(again, note=f'{again.note}; {note}' if again.note else note)
+        return replace(again, note=f'{again.note}; {note}' if again.note else note), False
 
     def _relative_update(self, cfg: InputConfig, slot: _Clone, measured: Pose2,
                          noise: NDArray, dt: float = 0.0, dry: bool = False) -> Outcome:
@@ -929,19 +951,11 @@ class EkfFusion:
         residual = np.array([measured[0] - predicted[0], measured[1] - predicted[1],
                              _wrap(measured[2] - yaw)])
         selection = self._rows[cfg.name][0]
-        spread = None
-        if not cfg.keyframes:
-            # Dead reckoning is gated against the motion the robot can make in its interval
-            # (its velocities' spread over dt) besides the motion model's prediction: stamps
-            # jitter, and the increment carries the motion whatever the model expected.
-            spread = np.diag(self._velocity_variance * dt * dt)
-            if selection is not None:
-                spread = spread[selection[1]]
-            if not dry:
-                implausible = self._implausible(cfg, measured, dt, selection)
-                if implausible is not None:
-                    return implausible
-        return self._correct(*self._masked(selection, residual, h, noise), cfg, dry, spread)
+        if not cfg.keyframes and not dry:
+            implausible = self._implausible(cfg, measured, dt, selection)
+            if implausible is not None:
+                return implausible
+        return self._correct(*self._masked(selection, residual, h, noise), cfg, dry)
 
     def _implausible(self, cfg: InputConfig, measured: Pose2, dt: float,
                      selection) -> Outcome | None:
@@ -1033,12 +1047,12 @@ class EkfFusion:
             h[2, BG] = 1.0
         residual = np.asarray(reading.twist, dtype=float) - h @ self.x
         outcome = self._correct(*self._masked(self._rows[cfg.name][1], residual, h, cov),
-                                cfg, dry)
+                                cfg, dry, partial=True)
         if dry:
             return outcome
         return self._after_refusal(cfg, outcome, 0.0, lambda: self._correct(
             *self._masked(self._rows[cfg.name][1], np.asarray(reading.twist, dtype=float)
-                          - h @ self.x, h, cov), cfg))
+                          - h @ self.x, h, cov), cfg, partial=True))[0]
 
 
 def _with_heading_delay(cfg: InputConfig, reading: Reading) -> Reading:
