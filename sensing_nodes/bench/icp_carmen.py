@@ -38,7 +38,8 @@ PIPELINE_ARGUMENTS = (
     '--params-file', str(config_file('fusion_carmen.yaml')), '--no-progress')
 # ... and for a log whose time carmen_to_bag rebuilt from the line order (freiburg-campus):
 # speed and yaw-rate limits measure nothing on an assumed time.
-ASSUMED_TIME_ARGUMENTS = ('--param', 'icp_matcher:rate_limits:=false')
+ASSUMED_TIME_ARGUMENTS = ('--param', 'icp_matcher:rate_limits:=false',
+                          '--param', 'complementary_fusion:ekf.hold_back_max_s:=0.0')
 FAR_M, FAR_RAD = 1.0, math.radians(30.0)
 
 

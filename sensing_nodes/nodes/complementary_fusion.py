@@ -277,9 +277,19 @@ class ComplementaryFusionProcessor:
             diag.values[f'{name}_received'] = str(record.received)
             diag.values[f'{name}_age_s'] = f'{age:.3f}'
             diag.values[f'{name}_rate_hz'] = f'{record.rate_hz():.2f}'
-            diag.values[f'{name}_gated'] = str(session.fusion.gated.get(name, 0))
             if age > session.config.input_timeout_s:
                 missing.append(name)
+        distrusted = []
+        for name, figures in session.integrity().items():
+            diag.values[f'{name}_fused'] = str(figures['fused'])
+            diag.values[f'{name}_refused'] = str(figures['refused'])
+            diag.values[f'{name}_blamed'] = str(figures['blamed'])
+            diag.values[f'{name}_reacquired'] = str(figures['reacquired'])
+            diag.values[f'{name}_refused_share'] = f"{figures['refused_share']:.3f}"
+            diag.values[f'{name}_noise_scale'] = f"{figures['noise_scale']:.3g}"
+            diag.values[f'{name}_last_problem'] = figures['last_problem'] or 'none'
+            if figures['distrusted']:
+                distrusted.append(f"{name} ({figures['last_problem']})")
         diag.values['method'] = session.config.method
         # The outputs' rate and how far they trail the newest input (stamp time): the reorder
         # buffer's hold, the output period, inputs that give no output.
@@ -290,8 +300,10 @@ class ComplementaryFusionProcessor:
         diag.values['output_lag_max_s'] = f'{most:.3f}'
         diag.values['fusion_updates'] = str(session.fusion.updates)
         diag.values['late_dropped_total'] = str(session.buffer.late)
-        if missing:
-            diag.level, diag.message = DiagnosticStatus.WARN, 'missing: ' + ', '.join(missing)
+        if missing or distrusted:
+            parts = (['missing: ' + ', '.join(missing)] if missing else []) + \
+                (['distrusted: ' + '; '.join(distrusted)] if distrusted else [])
+            diag.level, diag.message = DiagnosticStatus.WARN, ' | '.join(parts)
         else:
             diag.level, diag.message = DiagnosticStatus.OK, 'all enabled inputs present'
 

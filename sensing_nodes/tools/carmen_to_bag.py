@@ -19,12 +19,12 @@ all 0; or fewer distinct stamps than half the ODOM or FLASER lines, written to t
 a time base is rebuilt from the order of the lines (`--time-base auto`, the default): every
 ODOM line one tick of an assumed rate (`--odom-rate`, 10 Hz), every scan at its preceding ODOM
 line's time; the output and the bag's metadata.yaml (custom_data `carmen_to_bag.time_base`) say
-so, with the speed the odometry then has and the matcher's setting for an assumed time
-(`rate_limits:=false`). Stamps that go backwards, are negative, wrapped or stand still (many
-consecutive lines on one stamp) are refused with a message naming the first line: rebuilding
-would throw away the time that is sound; `--time-base lines` rebuilds a time base for those
-too. A line order that cannot time the scans (fewer ODOM lines between them than scans) is
-refused too.
+so, with the speed the odometry then has and the settings for an assumed time (icp_matcher's
+`rate_limits:=false`, complementary_fusion's `ekf.hold_back_max_s:=0.0`). Stamps that go
+backwards, are negative, wrapped or stand still (many consecutive lines on one stamp) are
+refused with a message naming the first line: rebuilding would throw away the time that is
+sound; `--time-base lines` rebuilds a time base for those too. A line order that cannot
+time the scans (fewer ODOM lines between them than scans) is refused too.
 """
 
 from __future__ import annotations
@@ -377,7 +377,8 @@ def _report(log: str, out: Path, summary: dict) -> None:
                   f'robot declares ({top:.2f} > {declared:g} m/s): its rate is likely lower '
                   f'(--odom-rate {slower:g} keeps it below)', file=sys.stderr)
         print('carmen_to_bag: the time is assumed, not measured: speed and yaw-rate limits '
-              'measure nothing on it (run icp_matcher with rate_limits:=false)')
+              'measure nothing on it (run icp_matcher with rate_limits:=false, and '
+              'complementary_fusion with ekf.hold_back_max_s:=0.0)')
     if summary['scans_on_previous_stamp']:
         print(f"carmen_to_bag: warning: {summary['scans_on_previous_stamp']} scans carry the "
               'stamp of the scan before them: the nodes skip a repeated stamp and sensing_eval '

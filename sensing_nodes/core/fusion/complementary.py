@@ -306,6 +306,8 @@ class ComplementaryMethod:
     def __init__(self, settings: FusionSettings) -> None:
         self._filter = ComplementaryFusion(settings)
         self.gated: dict[str, int] = {}   # (this filter has no gate)
+        self.health: dict = {}
+        self.noise_scale: dict = {}
 
     def reset(self) -> None:
         self._filter.reset()

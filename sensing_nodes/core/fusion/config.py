@@ -138,6 +138,10 @@ def _ekf_parameters() -> dict[str, Parameter]:
         'ekf.reacquire_after_matches': Parameter(
             float(defaults.reacquire_after_matches), '... and refused at least this many '
             'matches in a row', 1.0, 1e6),
+        'ekf.hold_back_max_s': Parameter(
+            defaults.hold_back_max_s, "an input blamed at a scan match is held back until the "
+            'next match vouches for it where matches come at most this far apart (s; 0: never, '
+            'for stamps whose time is assumed)', 0.0, 60.0),
         'ekf.adaptive_noise': Parameter(
             defaults.adaptive_noise, "scale each input's noise by what its innovations show "
             '(bounded, windowed; the scales on /diagnostics)'),
@@ -278,7 +282,7 @@ def session_config(params: Mapping[str, Any]) -> SessionConfig:
         ekf = EkfSettings(**{key: v[f'ekf.{key}'] for key in (
             'accel_noise_density', 'angular_accel_noise_density', 'bias_random_walk',
             'initial_bias_std', 'speed_std_m_s', 'yaw_rate_std_rad_s', 'fault_isolation',
-            'reacquire_after_s', 'adaptive_noise', 'adaptive_max_scale')},
+            'reacquire_after_s', 'hold_back_max_s', 'adaptive_noise', 'adaptive_max_scale')},
             reacquire_after_matches=int(v['ekf.reacquire_after_matches']),
             adaptive_window=int(v['ekf.adaptive_window']))
     complementary = FusionSettings(

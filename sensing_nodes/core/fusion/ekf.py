@@ -92,6 +92,9 @@ class EkfSettings:
     reacquire_after_matches: int = 3
     # Readings kept since the last fused match for fault isolation, at most.
     isolation_log: int = 20000
+    # A blamed input's next readings are held back until the next match vouches for them
+    # where matches come at most this far apart (s).
+    hold_back_max_s: float = 0.5
     # The dead reckoning's noise (every input but the scan matches) scaled by what the scan
     # matches' innovations show of it: the scale follows the mean of the last adaptive_window
     # matches' squared Mahalanobis distances per row (each capped at ten times the gate),
@@ -196,6 +199,7 @@ class _Saved:
     origin: dict
     initialized: bool
     refusals: dict
+    held: set
     updates: int
     step_cross: NDArray[np.float64] | None
     step_variance: float
@@ -277,6 +281,7 @@ class EkfFusion:
         self._origin: dict[str, Pose2] = {}      # relative mode: source pose -> fused pose
         self._initialized = False                # an absolute reading has set the state
         self._refusals: dict[str, int] = {}      # each dead-reckoning input's refusals in a row
+        self._held: set[str] = set()             # inputs blamed at the last match, held back
         self.updates = 0
         self.health = {name: InputHealth() for name in self.inputs}
         # Each input's noise scale (adaptive_noise: the dead reckoning's, from the matches).
@@ -573,6 +578,14 @@ class EkfFusion:
                 log.append((name, reading))
             else:
                 self._checkpoint = None           # too long since the last match to replay
+                self._held.clear()
+        if name in self._held:
+            # Blamed at the last match: held back until the next one vouches for it (_vouch).
+            if self._checkpoint is not None:
+                self.health[name].refused_at(reading.stamp_ns, 'held back: blamed at the last '
+                                                               'scan match')
+                return Outcome(gated=True, note='held back until the next scan match')
+            self._held.discard(name)
         outcome = self._update(cfg, reading)
         if outcome is not _HELD:
             self._record(name, outcome, reading.stamp_ns)
@@ -646,6 +659,8 @@ class EkfFusion:
         """A scan match (or a map's or keyframe's start) through its gate; refused, the
         readings of the other inputs since the last fused match are checked (_isolate), and a
         source refused long enough is taken back (_reacquire)."""
+        if self._held and self._checkpoint is not None:
+            self._vouch(cfg, reading)
         outcome = self._update(cfg, reading)
         if outcome.gated and self.settings.fault_isolation and self._checkpoint is not None:
             outcome = self._isolate(cfg, reading, outcome)
@@ -656,7 +671,7 @@ class EkfFusion:
                     reading.stamp_ns - health.streak_start_ns \
                     >= self.settings.reacquire_after_s * 1e9:
                 outcome = self._reacquire(cfg, reading, health.streak)
-                health.reanchored += 1
+                health.reacquired += 1
                 health.streak, health.streak_start_ns = 0, None
         elif outcome.fused:
             health.accepted(reading.stamp_ns)
@@ -702,10 +717,60 @@ class EkfFusion:
         if not outcome.fused:              # cannot happen: the dry test passed
             self._restore(after)
             return refused
+        self._velocity_from_matches(saved)
         problem = (f'{count} readings since the last fused scan match disagreed with the match '
                    'and the motion model: dropped')
+        # Held back until the next match vouches for it where that match is near: between
+        # matches seconds apart (a CARMEN log's) the motion model alone cannot carry the pose.
+        if saved.stamp_ns is not None and \
+                (reading.stamp_ns - saved.stamp_ns) * 1e-9 <= self.settings.hold_back_max_s:
+            self._held.add(name)
+            problem += ', the next held back until a match vouches for them'
         self.health[name].blamed_for(count, reading.stamp_ns, problem)
         return replace(outcome, blamed=name, note=f'{name} blamed: {problem}')
+
+    def _vouch(self, cfg: InputConfig, reading: Reading) -> None:
+        """Before a scan match: the readings held back since the last one (inputs blamed
+        there) replayed in; kept, and their inputs used again, where the match then passes its
+        gate, else dropped (their inputs restart from their latest reading, still held back
+        when the match is fused)."""
+        saved, log = self._checkpoint
+        current = self._save()
+        self._restore(saved)
+        self._replaying = True
+        try:
+            for n, r in log:
+                self._update(self.inputs[n], r)
+            match = self._dry(cfg, reading)
+        finally:
+            self._replaying = False
+        if match is not None and match[0] <= self._gates[cfg.name][match[1]]:
+            self._held.clear()             # vouched for: in use again
+            return
+        self._restore(current)
+        self._replaying = True
+        try:
+            for name in list(self._held):
+                latest = [r for n, r in log if n == name]
+                if latest:
+                    self._restart_from(self.inputs[name], latest[-1])
+        finally:
+            self._replaying = False
+
+    def _velocity_from_matches(self, saved: _Saved) -> None:
+        """After a blame: the velocities from the pose's motion since the last fused match
+        (the blamed input had driven them), as uncertain as the robot's speeds allow."""
+        dt = (self.stamp_ns - saved.stamp_ns) * 1e-9 if saved.stamp_ns is not None else 0.0
+        if dt <= 0.0:
+            return
+        motion = se2.between((float(saved.x[X]), float(saved.x[Y]), float(saved.x[YAW])),
+                             self.pose)
+        self.x[VX:WZ + 1] = (motion[0] / dt, motion[1] / dt, motion[2] / dt)
+        self.p[VX:WZ + 1, :] = 0.0
+        self.p[:, VX:WZ + 1] = 0.0
+        self.p[VX:WZ + 1, VX:WZ + 1] = np.diag(self._velocity_variance) * 0.01
+        if self._step_cross is not None:
+            self._step_cross[VX:WZ + 1] = 0.0
 
     def _restart_from(self, cfg: InputConfig, reading: Reading) -> tuple[float, int] | None:
         """Fault isolation: how far the input's latest reading (its increment since its clone,
@@ -773,7 +838,7 @@ class EkfFusion:
         return _Saved(self.x.copy(), self.p.copy(), self.stamp_ns,
                       [(c.stamp_ns, c.key, c.reading, c.map) for c in self._slots.values()],
                       dict(self._pending), dict(self._last_seen), dict(self._origin),
-                      self._initialized, dict(self._refusals), self.updates,
+                      self._initialized, dict(self._refusals), set(self._held), self.updates,
                       None if self._step_cross is None else self._step_cross.copy(),
                       self._step_variance)
 
@@ -784,6 +849,7 @@ class EkfFusion:
         self._pending, self._last_seen = dict(saved.pending), dict(saved.last_seen)
         self._origin, self._initialized = dict(saved.origin), saved.initialized
         self._refusals = dict(saved.refusals)
+        self._held = set(saved.held)
         self.updates = saved.updates
         self._step_cross = None if saved.step_cross is None else saved.step_cross.copy()
         self._step_variance = saved.step_variance

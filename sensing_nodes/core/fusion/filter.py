@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core.fusion.inputs import Reading
+from sensing_nodes.core.fusion.integrity import InputHealth
 from sensing_nodes.core.geometry.se2 import Pose2
 
 
@@ -34,6 +35,9 @@ class FusionFilter(Protocol):
 
     updates: int                 # measurements fused so far
     gated: dict[str, int]        # readings refused by the filter's gate, per input
+    health: dict[str, InputHealth]   # per input, what the filter refused and blamed (may be
+                                     # empty: a filter without gates)
+    noise_scale: dict[str, float]    # per input, its noise's adaptive scale (1: none)
 
     def update(self, name: str, reading: Reading) -> object:
         """Fuse one reading of input `name` (stamps never go backwards)."""

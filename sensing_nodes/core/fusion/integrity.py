@@ -45,7 +45,7 @@ class InputHealth:
     fused: int = 0
     refused: int = 0
     blamed: int = 0
-    reanchored: int = 0
+    reacquired: int = 0
     streak: int = 0
     streak_start_ns: int | None = None
     last_problem: str = ''

@@ -84,6 +84,10 @@ class FusionSession:
         self.outputs = InputRecord('output')   # the outputs released (rate_hz: stamp time)
         self._lag_max_ns = 0
         self._on_output = on_output   # called with each output as it is made (evaluation)
+        # Inputs told distrusted (a refused or blamed reading within DISTRUST_HOLD_S), and the
+        # stamp of each input's last problem seen.
+        self._distrusted: set[str] = set()
+        self._problem_ns: dict[str, int | None] = {name: None for name in INPUTS}
         self._clear_timeline()
 
     def _clear_timeline(self) -> None:
@@ -117,6 +121,8 @@ class FusionSession:
         self.counts['resets'] += 1
         out = self._process(self.buffer.flush())   # what was held: the old timeline
         self.fusion.reset()
+        self._distrusted.clear()
+        self._problem_ns = dict.fromkeys(INPUTS)
         self.buffer.clear()
         for r in self._record_list:
             r.clear()
@@ -227,6 +233,7 @@ class FusionSession:
             else:
                 self.records[name].processed_at(stamp)
                 self.fusion.update(name, reading)
+                self._tell_episodes(stamp)
                 # The IMU alone publishes only when no input gives a position.
                 wanted = wanted or name != IMU or self._imu_publishes
                 match = match or name == SCAN
@@ -236,6 +243,34 @@ class FusionSession:
                 self._output(stamp, match, out)
             wanted = match = False
         return out
+
+    def _tell_episodes(self, stamp: int) -> None:
+        """Once per episode: an input the filter starts to refuse or blame (a warning with
+        why), and one it uses again (how many of its readings were refused and blamed)."""
+        for name, health in self.fusion.health.items():
+            if health.last_problem_ns != self._problem_ns[name]:
+                self._problem_ns[name] = health.last_problem_ns
+                if name not in self._distrusted:
+                    self._distrusted.add(name)
+                    self.notices.append(Notice('warn', (
+                        f'{name} distrusted at {stamp * 1e-9:.3f} s: {health.last_problem}'),
+                        f'{name}_distrusted'))
+            elif name in self._distrusted and not health.distrusted(stamp):
+                self._distrusted.discard(name)
+                self.notices.append(Notice('info', (
+                    f'{name} in use again at {stamp * 1e-9:.3f} s ({health.refused} of its '
+                    f'readings refused, {health.blamed} blamed so far)')))
+
+    def integrity(self) -> dict[str, dict[str, object]]:
+        """Per input the filter gates: fused, refused and blamed readings, the share refused
+        of its recent ones, its noise scale, whether it is distrusted now (a refused or blamed
+        reading within the last second of stamps) and its last problem (/diagnostics)."""
+        now = self.buffer.newest_ns or 0
+        return {name: {'fused': h.fused, 'refused': h.refused, 'blamed': h.blamed,
+                       'reacquired': h.reacquired, 'refused_share': h.refused_share,
+                       'noise_scale': self.fusion.noise_scale.get(name, 1.0),
+                       'distrusted': h.distrusted(now), 'last_problem': h.last_problem}
+                for name, h in self.fusion.health.items()}
 
     def _output(self, stamp: int, match: bool, out: list[FusedOutput]) -> None:
         """The state after the readings at `stamp`, when the rate lets it out."""
