@@ -106,6 +106,10 @@ class ScanMatcherSettings:
     reacquire_after: int = 1
     reacquire_window_m: float = 1.0
     reacquire_window_rad: float = math.pi
+    # A match not to join the map: re-acquired, or further from its prediction than this many
+    # x the recent RMS model error (0: no such test); this many doubted in a row join it.
+    doubt_deviations: float = 4.0
+    doubt_streak: int = 3
     # A match keeps part of its prediction's error (the correspondences are chosen from the
     # guess; in weakly constrained directions it stays near it), which its residuals do not
     # show: its covariance is the registration's plus (this x the recent RMS deviation between
@@ -451,6 +455,7 @@ class LocalMapScanMatcher:
         self.sweep_errors = RecentValues(self.settings.model_error_window)
         self.sweep_yaw_errors = RecentValues(self.settings.model_error_window)
         self.failures = 0
+        self.doubts = 0                         # doubted matches in a row (not in the map)
         self._inserted_at: Pose2 | None = None
         self._options: dict[float, icp.IcpOptions] = {}
 
@@ -580,6 +585,7 @@ class LocalMapScanMatcher:
             map_pose, map_cov = mid, mid_cov
             base, base_cov = remove_offset(mid, mid_cov, half)
             self.alignment_errors.add(result.error)
+            doubt = self._doubt(predicted_mid, mid, points, events)
             if 'reacquired' not in events:
                 self.model_errors.add(prediction_deviation(predicted_mid, mid,
                                                            scan_reach(points)))
@@ -607,7 +613,10 @@ class LocalMapScanMatcher:
             _, self.covariance = compose_with_covariance(self.anchor_pose,
                                                          self.anchor_covariance, relative, rel_cov)
             motion_cov = 2.0 * rel_cov
-            self._maybe_insert(points, mid, events)
+            if doubt:
+                events.append('not_inserted')
+            else:
+                self._maybe_insert(points, mid, events)
             new_anchor = math.hypot(base[0] - self.anchor_pose[0],
                                     base[1] - self.anchor_pose[1]) > s.anchor_distance_m
         # The published pose moves towards the map pose, never further from the odometry's
@@ -678,6 +687,28 @@ class LocalMapScanMatcher:
                 return result, (f'match {math.hypot(jump[0], jump[1]):.2f} m / '
                                 f'{math.degrees(abs(jump[2])):.1f} deg from the prediction')
         return result, ''
+
+    def _doubt(self, predicted: Pose2, matched: Pose2, points: NDArray[np.float64],
+               events: list[str]) -> str:
+        """Why a match should not join the map ('' when it may): a re-acquired match, or one
+        further from its prediction than doubt_deviations x the recent RMS model error, waits
+        until the next match agrees with it (doubt_streak doubted matches in a row join: the
+        prediction, not the matches, was wrong). A wrong match in the map would be the
+        reference of the next ones."""
+        s = self.settings
+        reason = ''
+        if 'reacquired' in events:
+            reason = 're-acquired'
+        elif self.model_errors and s.doubt_deviations > 0.0:
+            deviation = prediction_deviation(predicted, matched, scan_reach(points))
+            limit = max(s.doubt_deviations * self.model_errors.rms, s.min_gate_m)
+            if deviation > limit:
+                reason = f'{deviation:.3f} m from its prediction (> {limit:.3f} m)'
+        self.doubts = self.doubts + 1 if reason else 0
+        if reason and self.doubts >= s.doubt_streak:
+            self.doubts = 0
+            return ''
+        return reason
 
     def _maybe_insert(self, points: NDArray[np.float64], base: Pose2,
                       events: list[str]) -> None:
