@@ -39,13 +39,14 @@ BRUTE_FORCE_PAIRS = 8000
 NORMAL_WINDOW = 8
 
 _METHODS = ('point_to_line', 'point_to_point')
-_SEARCHES = ('bearing', 'kd_tree')
+SEARCHES = ('bearing', 'kd_tree')
 _ROBUST = ('trim', 'adaptive', 'none')
 
 
-def _require(ok: bool, message: str) -> None:
-    if not ok:
-        raise ValueError(message)
+def _refuse_problems(settings) -> None:
+    """ValueError for the first of settings.problems() (its checks, made at construction)."""
+    for name, problem, value in settings.problems():
+        raise ValueError(f'{name} {problem}, got {value!r}')
 
 
 @dataclass(frozen=True)
@@ -61,9 +62,16 @@ class Convergence:
     stall_iterations: int = 5
 
     def __post_init__(self) -> None:
-        _require(self.max_iterations >= 1 and self.tolerance > 0,
-                 f'max_iterations >= 1 and tolerance > 0 required, got {self.max_iterations} '
-                 f'and {self.tolerance}')
+        _refuse_problems(self)
+
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting the loop cannot run with."""
+        out: list[tuple[str, str, object]] = []
+        if not self.max_iterations >= 1:
+            out.append(('max_iterations', 'must be >= 1', self.max_iterations))
+        if not self.tolerance > 0:
+            out.append(('tolerance', 'must be > 0', self.tolerance))
+        return out
 
 
 @dataclass(frozen=True)
@@ -85,11 +93,23 @@ class Correspondences:
     min_inlier_fraction: float = 0.2
 
     def __post_init__(self) -> None:
-        _require(self.robust in _ROBUST, f'robust must be one of {_ROBUST}, got {self.robust!r}')
-        _require(self.max_correspondence_distance > 0 and 0 < self.trim_fraction <= 1
-                 and self.adaptive_factor > 0 and self.min_points >= 3,
-                 'max_correspondence_distance > 0, 0 < trim_fraction <= 1, adaptive_factor > 0 '
-                 'and min_points >= 3 required')
+        _refuse_problems(self)
+
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting the pairing cannot run with."""
+        out: list[tuple[str, str, object]] = []
+        if self.robust not in _ROBUST:
+            out.append(('robust', f'must be one of {_ROBUST}', self.robust))
+        if not self.max_correspondence_distance > 0:
+            out.append(('max_correspondence_distance', 'must be > 0',
+                        self.max_correspondence_distance))
+        if not 0 < self.trim_fraction <= 1:
+            out.append(('trim_fraction', 'must be in (0, 1]', self.trim_fraction))
+        if not self.adaptive_factor > 0:
+            out.append(('adaptive_factor', 'must be > 0', self.adaptive_factor))
+        if not self.min_points >= 3:
+            out.append(('min_points', 'must be >= 3', self.min_points))
+        return out
 
 
 @dataclass(frozen=True)
@@ -124,8 +144,18 @@ class IcpOptions:
     yaw_search: YawSearch = YawSearch()
 
     def __post_init__(self) -> None:
-        _require(self.method in _METHODS,
-                 f'method must be one of {_METHODS}, got {self.method!r}')
+        _refuse_problems(self)
+
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each option match() cannot run with (its parts' as
+        'convergence.max_iterations', ...)."""
+        out: list[tuple[str, str, object]] = []
+        if self.method not in _METHODS:
+            out.append(('method', f'must be one of {_METHODS}', self.method))
+        for part in ('convergence', 'correspondences'):
+            out += [(f'{part}.{name}', problem, value)
+                    for name, problem, value in getattr(self, part).problems()]
+        return out
 
     def updated(self, **keywords) -> IcpOptions:
         """A copy with flat keywords (match's call form) set in the part that holds each name;
@@ -451,9 +481,9 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     Non-finite rows are dropped (counted in `dropped`); ValueError on a wrong shape or bad
     settings."""
     if not (normal_neighbours >= 2 and normal_radius > 0 and 0 <= min_planarity <= 1
-            and 0 <= tangent_weight <= 1 and search in _SEARCHES):
+            and 0 <= tangent_weight <= 1 and search in SEARCHES):
         raise ValueError('normal_neighbours >= 2, normal_radius > 0, 0 <= min_planarity <= 1, '
-                         f'0 <= tangent_weight <= 1 and search in {_SEARCHES} required')
+                         f'0 <= tangent_weight <= 1 and search in {SEARCHES} required')
     array, dropped = _as_points(points, 'target')
     if array.shape[0] == 0:
         return Target(array, np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)), dropped,

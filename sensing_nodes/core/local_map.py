@@ -39,10 +39,17 @@ class LocalMapSettings:
     min_planarity: float = 0.5
 
     def __post_init__(self) -> None:
-        if not (self.cell_m > 0 and self.max_points_per_cell >= 1 and self.radius_m > 0
-                and self.max_cells >= 1 and 0 <= self.min_planarity <= 1):
-            raise ValueError('cell_m > 0, max_points_per_cell >= 1, radius_m > 0, '
-                             'max_cells >= 1 and 0 <= min_planarity <= 1 required')
+        for name, problem, value in self.problems():
+            raise ValueError(f'{name} {problem}, got {value!r}')
+
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting a map cannot be kept with."""
+        checks = (('cell_m', self.cell_m > 0, 'must be > 0'),
+                  ('max_points_per_cell', self.max_points_per_cell >= 1, 'must be >= 1'),
+                  ('radius_m', self.radius_m > 0, 'must be > 0'),
+                  ('max_cells', self.max_cells >= 1, 'must be >= 1'),
+                  ('min_planarity', 0 <= self.min_planarity <= 1, 'must be in [0, 1]'))
+        return [(name, problem, getattr(self, name)) for name, ok, problem in checks if not ok]
 
 
 class LocalMap:
