@@ -295,6 +295,18 @@ def _check(p: Parameter, value: Any) -> None:
         raise ParameterError(p.name, problem, value)
 
 
+class CheckedAtConstruction:
+    """Base of a settings dataclass that refuses at construction (ValueError) the first of its
+    problems(): the checks its parameters are refused by."""
+
+    def __post_init__(self) -> None:
+        for field, problem, value in self.problems():
+            raise ValueError(f'{field} {problem}, got {value!r}')
+
+    def problems(self) -> list[tuple[str, str, object]]:
+        return []
+
+
 def flatten(params: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
     """{'imu': {'source': 'rate'}} -> {'imu.source': 'rate'}: dotted names, as ROS 2 reads a
     parameter file's nesting; already dotted names pass unchanged."""

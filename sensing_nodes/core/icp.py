@@ -16,6 +16,8 @@ from numpy.lib.stride_tricks import as_strided
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from sensing_nodes.parameters import CheckedAtConstruction
+
 # Variance (m², rad²) put on the diagonal of a failed match's covariance: large enough that any
 # fusion ignores it, finite so arithmetic stays sane.
 FAILED_VARIANCE = 1.0e6
@@ -43,14 +45,10 @@ SEARCHES = ('bearing', 'kd_tree')
 _ROBUST = ('trim', 'adaptive', 'none')
 
 
-def _refuse_problems(settings) -> None:
-    """ValueError for the first of settings.problems() (its checks, made at construction)."""
-    for name, problem, value in settings.problems():
-        raise ValueError(f'{name} {problem}, got {value!r}')
 
 
 @dataclass(frozen=True)
-class Convergence:
+class Convergence(CheckedAtConstruction):
     """When the ICP loop stops. Converged: the increment (m, yaw as arc length at the source's RMS
     radius) fell below `tolerance`, or the mean error changed by less than `error_tolerance`
     (relative), or it has not improved on its best for `stall_iterations` (correspondences
@@ -60,9 +58,6 @@ class Convergence:
     tolerance: float = 1e-4
     error_tolerance: float = 0.001
     stall_iterations: int = 5
-
-    def __post_init__(self) -> None:
-        _refuse_problems(self)
 
     def problems(self) -> list[tuple[str, str, object]]:
         """(field, problem, value) for each setting the loop cannot run with."""
@@ -75,7 +70,7 @@ class Convergence:
 
 
 @dataclass(frozen=True)
-class Correspondences:
+class Correspondences(CheckedAtConstruction):
     """Which nearest-neighbour pairs enter the estimate (distances in m).
 
     The gate starts at max_correspondence_distance and, with robust='adaptive', shrinks each
@@ -92,24 +87,15 @@ class Correspondences:
     min_points: int = 3
     min_inlier_fraction: float = 0.2
 
-    def __post_init__(self) -> None:
-        _refuse_problems(self)
-
     def problems(self) -> list[tuple[str, str, object]]:
         """(field, problem, value) for each setting the pairing cannot run with."""
-        out: list[tuple[str, str, object]] = []
-        if self.robust not in _ROBUST:
-            out.append(('robust', f'must be one of {_ROBUST}', self.robust))
-        if not self.max_correspondence_distance > 0:
-            out.append(('max_correspondence_distance', 'must be > 0',
-                        self.max_correspondence_distance))
-        if not 0 < self.trim_fraction <= 1:
-            out.append(('trim_fraction', 'must be in (0, 1]', self.trim_fraction))
-        if not self.adaptive_factor > 0:
-            out.append(('adaptive_factor', 'must be > 0', self.adaptive_factor))
-        if not self.min_points >= 3:
-            out.append(('min_points', 'must be >= 3', self.min_points))
-        return out
+        checks = (('robust', self.robust in _ROBUST, f'must be one of {_ROBUST}'),
+                  ('max_correspondence_distance', self.max_correspondence_distance > 0,
+                   'must be > 0'),
+                  ('trim_fraction', 0 < self.trim_fraction <= 1, 'must be in (0, 1]'),
+                  ('adaptive_factor', self.adaptive_factor > 0, 'must be > 0'),
+                  ('min_points', self.min_points >= 3, 'must be >= 3'))
+        return [(name, problem, getattr(self, name)) for name, ok, problem in checks if not ok]
 
 
 @dataclass(frozen=True)
@@ -130,7 +116,7 @@ class YawSearch:
 
 
 @dataclass(frozen=True)
-class IcpOptions:
+class IcpOptions(CheckedAtConstruction):
     """Everything match() can be told, validated once: the residual (`method`), source
     downsampling (voxel_size, m; 0 = off), the degeneracy test (eigenvalue ratio) and the floor
     of the residual standard deviation (m) used for the covariance, and one part per concern."""
@@ -142,9 +128,6 @@ class IcpOptions:
     convergence: Convergence = Convergence()
     correspondences: Correspondences = Correspondences()
     yaw_search: YawSearch = YawSearch()
-
-    def __post_init__(self) -> None:
-        _refuse_problems(self)
 
     def problems(self) -> list[tuple[str, str, object]]:
         """(field, problem, value) for each option match() cannot run with (its parts' as

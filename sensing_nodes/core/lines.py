@@ -27,6 +27,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from sensing_nodes.parameters import CheckedAtConstruction
+
 # cos²(incidence) is floored here: at grazing incidence the real error is dominated by beam width
 # and mixed returns, not by the range noise (which would give a vanishing distance variance).
 _MIN_COS2 = 0.05
@@ -422,7 +424,7 @@ def _beams(angles: NDArray[np.float64]) -> _Beams:
 
 
 @dataclass(frozen=True)
-class LineOptions:
+class LineOptions(CheckedAtConstruction):
     """Settings of extract_lines, checked once (ValueError for values that make no sense).
 
     split_distance: a segment is split while a point is farther than this from its fit (m);
@@ -442,10 +444,6 @@ class LineOptions:
     max_range: float = np.inf
     range_sigma: float = 0.01
     merge_chi2: float = 9.21
-
-    def __post_init__(self) -> None:
-        for name, problem, value in self.problems():
-            raise ValueError(f'{name} {problem}, got {value!r}')
 
     def problems(self) -> list[tuple[str, str, object]]:
         """(field, problem, value) for each setting that makes no sense."""

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core import icp
+from sensing_nodes.parameters import CheckedAtConstruction
 
 # Cell (ix, iy) -> one int64 key (ix + OFFSET) · STRIDE + (iy + OFFSET): sorted keys group a
 # column of cells, and a neighbour's key is the key plus dx · STRIDE + dy.
@@ -28,7 +29,7 @@ _STRIDE = 1 << 31
 
 
 @dataclass(frozen=True)
-class LocalMapSettings:
+class LocalMapSettings(CheckedAtConstruction):
     """Cell size (m), how many points a cell takes, how far from the robot cells are kept (m)
     and how many at most, and the planarity from which a cell's block counts as a line."""
 
@@ -37,10 +38,6 @@ class LocalMapSettings:
     radius_m: float = 30.0
     max_cells: int = 60_000
     min_planarity: float = 0.5
-
-    def __post_init__(self) -> None:
-        for name, problem, value in self.problems():
-            raise ValueError(f'{name} {problem}, got {value!r}')
 
     def problems(self) -> list[tuple[str, str, object]]:
         """(field, problem, value) for each setting a map cannot be kept with."""
