@@ -243,38 +243,59 @@ def _live_type_hash(probe, type_name: str) -> str:
 
 @pytest.mark.parametrize('compress', [False, True])
 @pytest.mark.parametrize('chunk_s', [None, 0.2])
-def test_bag_writer_writes_what_rosbags_writer_writes(written_bags, tmp_path, monkeypatch,
-                                                      compress, chunk_s):
-    """BagWriter stores messages itself (records, indexes, statistics, chunk closes) instead of
-    through rosbags' Writer.write: the files must be the ones rosbags' own write gives, byte for
-    byte; and rows of canonical_topics are stored as given."""
+def test_bag_writer_writes_what_rosbags_writer_writes(written_bags, tmp_path, compress, chunk_s):
+    """BagWriter writes its MCAP through the mcap package's writer: rosbags reads from it what
+    rosbags' own Writer stores for the same rows (topics, types, definitions, type hashes,
+    offered QoS, every message's bag time and canonical bytes, metadata.yaml's counts and
+    times); with chunk_s no chunk spans more bag time; and rows of canonical_topics are stored
+    as given."""
+    from mcap.reader import make_reader
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
+    from sensing_nodes.bags.storage import CANONICAL_KEY, TYPESTORE, bag_qos
+
     source = BagReader(written_bags['sensor_sim'])
     rows = [(t, raw, s) for t, s, raw in source.raw()]
     assert len(rows) > 400
+    with BagWriter(tmp_path / 'ours', compress=compress, chunk_s=chunk_s) as bag:
+        for topic, info in source.topics.items():
+            bag.add_topic(topic, info.msgtype, list(info.qos) or None)
+        bag.write_raw_many(rows[:200])
+        bag.write_raw_many(rows[200:])
+    with Writer(tmp_path / 'rosbags', version=9, storage_plugin=StoragePlugin.MCAP) as bag:
+        connections = {topic: bag.add_connection(
+            topic, info.msgtype, typestore=TYPESTORE,
+            offered_qos_profiles=[bag_qos(q) for q in info.qos])
+            for topic, info in source.topics.items()}
+        for topic, raw, stamp in rows:
+            bag.write(connections[topic], stamp,
+                      canonical_cdr(raw, connections[topic].msgtype))
 
-    def through_rosbags(self, batch, canonical_topics):
-        for topic, data, stamp_ns in batch:
-            connection = self._connections[topic]
-            self._writer.write(connection, int(stamp_ns), canonical_cdr(data, connection.msgtype))
-            self.counts[topic] += 1
-            if self._chunk_ns is not None:
-                self._chunk_after(int(stamp_ns))
+    def content(path):
+        with Reader(path) as reader:
+            kinds = [(c.topic, c.msgtype, c.msgdef, c.digest, c.msgcount,
+                      c.ext.offered_qos_profiles) for c in reader.connections]
+            return kinds, [(c.topic, stamp, bytes(raw)) for c, stamp, raw in reader.messages()]
 
-    files = []
-    for name in ('ours', 'rosbags'):
-        if name == 'rosbags':
-            monkeypatch.setattr(BagWriter, '_append', through_rosbags)
-        (tmp_path / name).mkdir()
-        with BagWriter(tmp_path / name / 'bag', compress=compress, chunk_s=chunk_s) as bag:
-            for topic, info in source.topics.items():
-                bag.add_topic(topic, info.msgtype, list(info.qos) or None)
-            bag.write_raw_many(rows[:200])
-            bag.write_raw_many(rows[200:])
-        files.append(tmp_path / name / 'bag')
-    ours, theirs = files
-    assert (ours / 'bag.mcap').read_bytes() == (theirs / 'bag.mcap').read_bytes()
-    assert (ours / 'metadata.yaml').read_text() == (theirs / 'metadata.yaml').read_text()
-    monkeypatch.undo()
+    assert content(tmp_path / 'ours') == content(tmp_path / 'rosbags')
+    ours, theirs = (_metadata(tmp_path / name) for name in ('ours', 'rosbags'))
+    assert ours.pop('custom_data') == {CANONICAL_KEY: 'canonical'}   # BagWriter says so
+    assert theirs.pop('custom_data') is None
+    for info in (ours, theirs):
+        info.pop('ros_distro')
+        info['relative_file_paths'] = [p.rsplit('.', 1)[1] for p in info['relative_file_paths']]
+        for entry in info['files']:
+            entry['path'] = entry['path'].rsplit('.', 1)[1]
+    assert ours == theirs
+    with (tmp_path / 'ours' / 'ours.mcap').open('rb') as handle:
+        chunks = make_reader(handle).get_summary().chunk_indexes
+    assert len(chunks) >= (1 if chunk_s is None else 4)     # 1 s of bag time
+    assert {c.compression for c in chunks} == {'zstd' if compress else ''}
+    if chunk_s is not None:    # closed by the first message chunk_s after the chunk's first
+        stamps = sorted(s for _, _, s in rows)
+        step = max(b - a for a, b in zip(stamps, stamps[1:]))
+        assert all(c.message_end_time - c.message_start_time <= chunk_s * 1e9 + step
+                   for c in chunks)
     # Rows of canonical_topics are not made canonical (here: bytes after the last field kept).
     with BagWriter(tmp_path / 'as_given') as bag:
         bag.add_topic('/imu/data_raw', 'sensor_msgs/msg/Imu')

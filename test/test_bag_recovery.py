@@ -69,7 +69,7 @@ def _read(bag: Path) -> list[tuple[str, int, bytes]]:
 
 @pytest.fixture(scope='module')
 def plain_nominal(tmp_path_factory) -> Path:
-    """bags/nominal rewritten with plain 1 MiB chunks (rosbags' own, written at close)."""
+    """bags/nominal rewritten with plain 1 MiB chunks (written at close)."""
     source = BagReader(NOMINAL)
     path = tmp_path_factory.mktemp('plain') / 'plain'
     with BagWriter(path, chunk_s=None) as bag:
@@ -197,7 +197,7 @@ def test_a_bag_with_nothing_readable_exits_2_saying_why(cuts, tmp_path, tool, ex
 def test_an_unclosed_writer_loses_at_most_the_last_second(tmp_path):
     """BagWriter's file while it is still open (what kill -9 leaves): every message more than
     chunk_s (1 s) of bag time before the last one written is in it; after flush() all are.
-    With rosbags' own chunks (chunk_s=None) the first MiB is still in memory: nothing."""
+    With 1 MiB chunks only (chunk_s=None) the first MiB is still in memory: nothing."""
     from std_msgs.msg import String
 
     stamps = [1_000_000_000 + k * 10_000_000 for k in range(500)]    # 5 s at 100 Hz

@@ -9,7 +9,7 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Imu, JointState
 
-from sensing_nodes.bags.storage import canonical_cdr
+from sensing_nodes.bags.storage import canonical_cdr, type_name
 from sensing_nodes.ros.cdr import cdr_decoder, imu_cdr, odometry_cdr
 from sensing_nodes.ros.conversions import make_odometry, ros_covariance_to_planar
 
@@ -155,10 +155,11 @@ def _varied_messages(rng):
 
 
 def test_canonical_cdr_is_rosbags_round_trip():
-    """canonical_cdr walks the bytes instead of decoding and encoding them; the result (or the
-    failure) must be the round trip's, also on bytes it should not take: padding left as rclpy
-    left it, trailing bytes, truncations, and single bytes changed (a bool of 2, a string
-    without its terminator, a signalling NaN float32, an impossible sequence length)."""
+    """canonical_cdr decodes through rosbags' public decoder (which refuses bytes after the last
+    field: it cuts them) and encodes again; the result (or the failure) must be the round
+    trip's, also on bytes it should not take: padding left as rclpy left it, trailing bytes,
+    truncations, and single bytes changed (a bool of 2, a string without its terminator, a
+    signalling NaN float32, an impossible sequence length)."""
     from sensing_nodes.bags.storage import TYPESTORE, type_name
 
     rng = np.random.default_rng(15)
@@ -179,6 +180,21 @@ def test_canonical_cdr_is_rosbags_round_trip():
                 _outcome(_rosbags_round_trip, variant, msgtype), (msgtype, variant.hex())
             checked += 1
     assert checked == 60 * 7 * 12
+
+
+def test_message_cdr_is_the_canonical_form_of_rclpys_bytes():
+    """An rclpy message encoded by rosbags' typestore (message_cdr, what BagWriter.write
+    stores) gives the bytes canonical_cdr makes of what rclpy serialises: the same message,
+    padding zero, for every shape the bags hold."""
+    from sensing_nodes.bags.storage import message_cdr
+
+    rng = np.random.default_rng(16)
+    checked = 0
+    for msg in _varied_messages(rng):
+        raw = serialize_message(msg)
+        assert message_cdr(msg) == canonical_cdr(raw, type_name(msg)), type_name(msg)
+        checked += 1
+    assert checked == 60 * 7
 
 
 def _same_message(got, expected, msgtype: str, path: str = '') -> None:

@@ -16,7 +16,8 @@ import pytest
 from sensing_nodes.core.evaluation import fusion as fe
 from sensing_nodes.core.fusion.config import default_config
 from sensing_nodes.core.sim.inputs import simulated_inputs
-from sensing_nodes.core.sim.simulator import SimParams, load_params_file, params_from_dict
+from sensing_nodes.core.sim.simulator import SimParams, params_from_dict
+from sensing_nodes.parameters import load_parameters
 from sensing_nodes.paths import config_file
 
 
@@ -33,7 +34,8 @@ def _run(inputs, config=None):
 
 @pytest.fixture(scope='module')
 def strong_errors():
-    params = params_from_dict(load_params_file(config_file('bags_strong_errors.yaml')))
+    params = params_from_dict(load_parameters('sensor_sim',
+                                              config_file('bags_strong_errors.yaml')))
     return [_run(simulated_inputs(seed, params)) for seed in range(8)]
 
 

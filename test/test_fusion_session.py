@@ -17,17 +17,13 @@ from sensor_msgs.msg import Imu
 from sensing_nodes.bags.input_bag import load_bag
 from sensing_nodes.bags.storage import topic_counts
 from sensing_nodes.core.evaluation.fusion import run_session
-from sensing_nodes.core.fusion.config import (
-    ConfigError,
-    default_config,
-    load_params,
-    session_config,
-)
+from sensing_nodes.core.fusion.config import NODE_NAME, default_config, session_config
 from sensing_nodes.core.fusion.inputs import IMU, INPUTS, SCAN, WHEEL, Reading
 from sensing_nodes.core.fusion.session import FusionSession
 from sensing_nodes.core.fusion.timeline import InputRecord
 from sensing_nodes.graph import pipeline
 from sensing_nodes.graph.compare import compare_outputs, output_messages
+from sensing_nodes.parameters import ParameterError, load_parameters
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.cdr import cdr_decoder
 from sensing_nodes.ros.conversions import odometry_pose, stamp_to_ns
@@ -277,13 +273,13 @@ def test_scan_position_and_heading_switches_apply_offline_as_in_the_node():
       'use_scan_match_heading': False}, 'use_*'),
 ])
 def test_bad_parameters_are_refused_naming_them(params, name):
-    with pytest.raises(ConfigError) as error:
+    with pytest.raises(ParameterError) as error:
         session_config(params)
     assert error.value.name == name and f"'{name}'" in str(error.value)
 
 
 def test_parameter_files_layer_as_the_node_reads_them():
-    params = load_params(config_file('complementary_fusion.yaml'),
+    params = load_parameters(NODE_NAME, config_file('complementary_fusion.yaml'),
                          config_file('fusion_jackal_test2.yaml'))
     assert params['wheel_odom.covariance_scale'] == 10.0      # from the first file
     assert params['wheel_odom.mask'] == ['vx', 'vy', 'vyaw']  # the second's over it

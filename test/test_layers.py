@@ -10,8 +10,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'sensing_nodes'
 # Lower number = lower layer; a module may import its own layer or any lower one.
-LAYERS = {'topics': 0, 'paths': 0, 'core': 1, 'bags': 2, 'ros': 3, 'nodes': 4, 'graph': 5,
-          'doctor': 6, 'tools': 7, 'bench': 7}
+LAYERS = {'topics': 0, 'paths': 0, 'parameters': 0, 'core': 1, 'bags': 2, 'ros': 3, 'nodes': 4,
+          'graph': 5, 'doctor': 6, 'tools': 7, 'bench': 7}
 ROS_PACKAGES = ('rclpy', 'rosbags', 'mcap', 'sensor_msgs', 'nav_msgs', 'geometry_msgs',
                 'std_msgs', 'tf2_msgs', 'diagnostic_msgs', 'visualization_msgs', 'rosgraph_msgs',
                 'rcl_interfaces', 'builtin_interfaces')

@@ -11,6 +11,7 @@ from sensing_nodes.core.geometry.se2 import wrap_angle
 from sensing_nodes.core.sim import simulator as sim
 from sensing_nodes.core.sim.route import Route, parse_leg
 from sensing_nodes.core.sim.world import load_world, raycast, world_from_dict
+from sensing_nodes.parameters import ParameterError, load_parameters
 from sensing_nodes.paths import config_file
 
 DEFAULT_WORLD = load_world(config_file('default_world.yaml'))
@@ -45,8 +46,8 @@ def point_segment_distance(points, segments):
 # --- defaults -------------------------------------------------------------------------------
 
 def test_simparams_defaults_equal_config_file():
-    values = sim.load_params_file(config_file('sensor_sim.yaml'))
-    names = {f.name for f in sim.param_fields()}
+    values = load_parameters('sensor_sim', config_file('sensor_sim.yaml'))
+    names = {f.name for f in dataclasses.fields(sim.SimParams)}
     assert names <= set(values), f'missing in config/sensor_sim.yaml: {names - set(values)}'
     from_file = sim.params_from_dict(values)
     for name in names:
@@ -398,20 +399,20 @@ def test_commanded_motion_ramps_to_the_command_and_stops_on_timeout():
     ('scan_beams', 360.0), ('wheel_radius_m', '0.05'),
 ])
 def test_bad_parameters_are_refused_naming_the_parameter(name, value):
-    with pytest.raises(sim.SimParameterError) as info:
+    with pytest.raises(ParameterError) as info:
         sim.validate(dataclasses.replace(sim.SimParams(), **{name: value}))
     assert info.value.name == name
     assert f"'{name}'" in str(info.value)
 
 
 def test_params_file_errors_name_the_file(tmp_path):
-    with pytest.raises(sim.SimParameterError, match='params_file'):
-        sim.load_params_file(tmp_path / 'missing.yaml')
+    with pytest.raises(ParameterError, match='params_file'):
+        load_parameters('sensor_sim', tmp_path / 'missing.yaml')
     bad = tmp_path / 'bad.yaml'
     bad.write_text('sensor_sim: [unclosed\n')
-    with pytest.raises(sim.SimParameterError, match='not valid YAML'):
-        sim.load_params_file(bad)
-    with pytest.raises(sim.SimParameterError, match='route'):
+    with pytest.raises(ParameterError, match='not valid YAML'):
+        load_parameters('sensor_sim', bad)
+    with pytest.raises(ParameterError, match='route'):
         sim.params_from_dict({'route': 'wait 3'})
 
 

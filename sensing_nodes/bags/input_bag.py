@@ -117,11 +117,12 @@ def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types
     """The input bag's topics (all but the graph's outputs) plus what the graph published, each
     with the QoS it was offered with (`offered`: topic -> profiles; else the input bag's).
     canonical_outputs: the outputs are canonical CDR already (sensing_pipeline's), stored as
-    they are."""
-    from sensing_nodes.bags.storage import BagWriter
+    they are; so are the input bag's messages where its writer said they are canonical
+    (metadata.yaml's custom_data, CANONICAL_KEY: BagWriter's bags)."""
+    from sensing_nodes.bags.storage import CANONICAL_KEY, BagWriter
 
     offered = offered or {}
-    # Written in one go from memory: rosbags' own chunks (a crash leaves no output anyway).
+    # Written in one go from memory: 1 MiB chunks (a crash leaves no output anyway).
     with BagWriter(path, compress=compress, chunk_s=None) as out:
         for key, value in bag.custom_data.items():
             out.set_custom_data(key, value)
@@ -134,8 +135,10 @@ def write_output_bag(path: Path, bag: InputBag, result: PassResult, output_types
         merged += [(s, 1, t, raw) for t in sorted(result.outputs) for s, raw in result.outputs[t]]
         # Outputs after the input of the same stamp; each topic keeps its arrival order.
         merged.sort(key=itemgetter(0, 1))
-        out.write_raw_many(((topic, raw, stamp) for stamp, _, topic, raw in merged),
-                           frozenset(result.outputs) if canonical_outputs else frozenset())
+        canonical = set(result.outputs) if canonical_outputs else set()
+        if bag.custom_data.get(CANONICAL_KEY) == 'canonical':
+            canonical |= set(bag.types)
+        out.write_raw_many(((topic, raw, stamp) for stamp, _, topic, raw in merged), canonical)
         return dict(out.counts)
 
 

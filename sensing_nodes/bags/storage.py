@@ -1,41 +1,39 @@
-"""rosbag2 bags of rclpy messages, written (MCAP) and read (MCAP or sqlite3, and ROS 1 .bag
-files) with rosbags.
+"""rosbag2 bags of rclpy messages, written (MCAP, through the `mcap` package's writer) and read
+(MCAP or sqlite3, and ROS 1 .bag files, with rosbags).
 
 Every message is written in canonical CDR: the fields exactly as rclpy/DDS serialise them, but
 with every alignment padding byte zero and no bytes after the last field (`canonical_cdr`).
 rclpy's serialiser leaves padding uninitialised (process memory) and appends 4 alignment bytes
 after a trailing empty sequence of 8-byte elements (JointState's `effort`), which rosbags'
 strict reader rejects; canonical bytes make same-seed recordings byte-identical and decode with
-rosbags, mcap-ros2-support and rclpy alike.
+rosbags, mcap-ros2-support and rclpy alike. Only public names of rosbags and mcap are used
+(test_public_api.py).
 """
 
 from __future__ import annotations
 
+import array
 import heapq
 import importlib
 import itertools
 import os
 import re
 import signal
-import struct
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
 from rclpy.serialization import deserialize_message, serialize_message
-from rosbags.rosbag2 import (
-    CompressionFormat,
-    CompressionMode,
-    Reader,
-    StoragePlugin,
-    Writer,
-    WriterError,
-)
+from rosbags.rosbag2 import Reader
+from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
 from sensing_nodes.bags.recovery import (
@@ -50,11 +48,10 @@ from sensing_nodes.bags.recovery import (
 _DEFERRED_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 _SIGNAL_BATCH = 5000   # messages written with the signals held off (a few ms)
 CHUNK_S = 1.0          # bag time an MCAP chunk spans at most: what a crash can lose
-# rosbags' MCAP writer (pinned in requirements.txt): a Message record (opcode, record length,
-# channel id, sequence, log time, publish time, then the data) and the chunk size past which it
-# closes a chunk; BagWriter._append writes what its write() writes.
-_MESSAGE_RECORD = struct.Struct('<BQHIQQ')
-_MCAP_CHUNK_BYTES = 2**20
+MCAP_CHUNK_BYTES = 2**20   # a chunk is closed past this size too (rosbag2's default)
+# metadata.yaml's custom_data key by which BagWriter says every message is canonical CDR: a
+# bag copied from such a bag (sensing_pipeline's inputs) need not be made canonical again.
+CANONICAL_KEY = 'sensing_nodes.cdr'
 FSYNC_INTERVAL_S = 1.0  # wall time between two fsyncs at most: what a power cut can lose more
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -83,189 +80,90 @@ def failure_reason(exc: BaseException) -> str:
 
 def canonical_cdr(raw: bytes | memoryview, msgtype: str) -> bytes:
     """CDR bytes of a 'pkg/msg/Name' message -> the same message in canonical CDR (same byte
-    order and values, padding zero, nothing after the last field): what rosbags' typestore
-    gives when it decodes and encodes the message again, found by walking the bytes instead
-    (`_padding_walker`), with the round trip itself for what the walk does not vouch for."""
-    msgdef = TYPESTORE.get_msgdef(msgtype)
+    order and values, padding zero, nothing after the last field): what rosbags' typestore gives
+    when it decodes the message and encodes it again. Bytes that are no message of the type
+    raise what its decoder raises (ValueError for a wrong encapsulation header)."""
     if len(raw) < 4 or bytes(raw[:2]) not in (b'\x00\x00', b'\x00\x01'):
         raise ValueError(f'{msgtype}: not a CDR message (encapsulation header {bytes(raw[:4])!r})')
-    little_endian = bool(raw[1])
-    walk = _WALKERS.get((msgtype, little_endian))
-    if walk is None:
-        walk = _WALKERS[msgtype, little_endian] = _padding_walker(msgtype, little_endian)
-    body = memoryview(raw)[4:]
-    try:
-        end, gaps = walk(body)
-    except (_NotPlain, IndexError, struct.error, UnicodeDecodeError):
-        end = -1   # rosbags decides (and raises for what it cannot read)
-    if 0 <= end <= len(body):
-        out = bytearray(raw[:4 + end])
-        out[2:4] = b'\x00\x00'     # rosbags writes no encapsulation options
-        for i in range(0, len(gaps), 2):
-            out[4 + gaps[i]:4 + gaps[i + 1]] = _ZEROS[:gaps[i + 1] - gaps[i]]
-        return bytes(out)
-    decode = msgdef.deserialize_cdr_le if little_endian else msgdef.deserialize_cdr_be
-    # Bytes after the last field are dropped: Fast-CDR aligns before the (absent) elements of
-    # each empty sequence of doubles, so an all-empty JointState ends in 8 such bytes.
-    message, _ = decode(body, 0, msgdef.cls, TYPESTORE)
-    return bytes(TYPESTORE.serialize_cdr(message, msgtype, little_endian=little_endian))
+    message = _decode_cdr(raw, msgtype)
+    return bytes(TYPESTORE.serialize_cdr(message, msgtype, little_endian=bool(raw[1])))
 
 
-class _NotPlain(Exception):
-    """A message whose bytes rosbags' round trip would change (or refuse) beyond its padding."""
+def message_cdr(msg: Any) -> bytes:
+    """An rclpy message as canonical CDR (little endian), encoded by rosbags' typestore (padding
+    zero by construction): the message itself where rosbags can read its fields (rosbags' encoder
+    reads attributes; a type without numeric sequences), else its rosbags copy (to_rosbags: an
+    rclpy numeric sequence is an array.array, which rosbags does not take); rclpy's serialiser
+    and the round trip where neither will do (a byte field). The first that works for a type is
+    remembered."""
+    msgtype, kind = type_name(msg), type(msg)
+    way = _ENCODING.get(kind, 0)
+    while True:
+        try:
+            data = _ENCODINGS[way](msg, msgtype)
+        except Exception:  # noqa: BLE001 - a field this way cannot encode: the next way
+            if way == len(_ENCODINGS) - 1:
+                raise
+            way += 1
+            continue
+        _ENCODING[kind] = way
+        return data
 
 
-_WALKERS: dict[tuple[str, bool], Callable] = {}
-_ZEROS = bytes(16)
+_ENCODINGS = (
+    lambda msg, msgtype: bytes(TYPESTORE.serialize_cdr(msg, msgtype, little_endian=True)),
+    lambda msg, msgtype: bytes(TYPESTORE.serialize_cdr(to_rosbags(msg), msgtype,
+                                                       little_endian=True)),
+    lambda msg, msgtype: canonical_cdr(serialize_message(msg), msgtype),
+)
+_ENCODING: dict[type, int] = {}   # per rclpy message class: the first of _ENCODINGS that works
 
 
-def _padding_walker(msgtype: str, little_endian: bool) -> Callable:
-    """A function of a CDR message body (bytes after the encapsulation header) -> (end of its
-    last field, [start, end, start, end, ...] of its alignment padding), positions from the
-    body's start, as rosbags' generated CDR decoder reads the body and its encoder writes it
-    back (rosbags.serde.cdr: the same alignment decisions, field by field, so the canonical
-    message is the body up to `end` with the padding zeroed). It raises _NotPlain where the
-    round trip would change a value's bytes or fail: a bool byte other than 0 or 1, a float32
-    NaN (widened to a Python float: a signalling NaN comes back quiet), a string without its
-    terminator, a sequence longer than the bytes left."""
-    source = _WalkerSource()
-    try:
-        source.fields(TYPESTORE.get_msgdef(msgtype).fields, ' ')
-    except _NotPlain:   # a type the walk does not cover (float128): always the round trip
-        return _never_plain
-    return source.compile(msgtype, little_endian)
+# array.array type codes -> numpy dtypes (rosbags encodes numeric sequences from numpy arrays).
+_ARRAY_DTYPES = {'b': 'int8', 'B': 'uint8', 'h': 'int16', 'H': 'uint16', 'i': 'int32',
+                 'I': 'uint32', 'l': 'int64', 'L': 'uint64', 'q': 'int64', 'Q': 'uint64',
+                 'f': 'float32', 'd': 'float64'}
+_ROSBAGS_CLASSES: dict[type, tuple[type, tuple[str, ...]]] = {}
 
 
-def _never_plain(raw):
-    raise _NotPlain
+def to_rosbags(msg: Any) -> Any:
+    """An rclpy message as rosbags' message of the same type, field by field (numeric sequences
+    as numpy arrays over the same memory, no copy): what rosbags' typestore encodes."""
+    entry = _ROSBAGS_CLASSES.get(type(msg))
+    if entry is None:
+        entry = _ROSBAGS_CLASSES[type(msg)] = (
+            TYPESTORE.types[type_name(msg)], tuple(type(msg).get_fields_and_field_types()))
+    cls, names = entry
+    values = []
+    for name in names:
+        value = getattr(msg, name)
+        if isinstance(value, array.array):
+            value = np.frombuffer(value, _ARRAY_DTYPES[value.typecode])
+        elif hasattr(value, 'get_fields_and_field_types'):
+            value = to_rosbags(value)
+        elif isinstance(value, list) and value and \
+                hasattr(value[0], 'get_fields_and_field_types'):
+            value = [to_rosbags(item) for item in value]
+        values.append(value)
+    return cls(*values)
 
 
-class _WalkerSource:
-    """The Python source of a padding walker, generated field by field as rosbags generates its
-    CDR decoder (rosbags.serde.cdr: the same branches, in the same order, with the same
-    alignment decisions); `aligned` is the alignment known at the current position."""
+def _decode_cdr(raw: bytes | memoryview, msgtype: str) -> object:
+    """rosbags' message of CDR bytes, any bytes after the last field dropped.
 
-    def __init__(self) -> None:
-        from rosbags.interfaces import Nodetype
-        from rosbags.serde.utils import SIZEMAP, align, align_after
-
-        self._node, self._size = Nodetype, SIZEMAP
-        self._align = lambda desc: align(desc, TYPESTORE)
-        self._align_after = lambda desc: align_after(desc, TYPESTORE)
-        self.lines = ['def walk(raw):', ' size = len(raw)', ' pos = 0', ' gaps = []']
-        self._names = itertools.count()
-
-    def compile(self, msgtype: str, little_endian: bool) -> Callable:
-        """The walker function of the lines so far."""
-        order = '<' if little_endian else '>'
-        scope = {'_NotPlain': _NotPlain, 'u32': struct.Struct(order + 'I').unpack_from,
-                 'f32': struct.Struct(order + 'f').unpack_from}
-        source = '\n'.join([*self.lines, ' return pos, gaps'])
-        exec(compile(source, f'<canonical_cdr walker of {msgtype}>', 'exec'), scope)
-        return scope['walk']
-
-    def fields(self, desc_fields, indent: str) -> None:
-        """Lines reading a message's fields, each followed by the padding up to the next."""
-        for current, following in zip(desc_fields, [*desc_fields[1:], None]):
-            aligned = self._field(current[1], indent)
-            if following is not None and aligned < (before := self._align(following[1])):
-                self.pad(before, indent)
-
-    def _field(self, desc, indent: str) -> int:
-        """Lines reading one field; the alignment known after it."""
-        if desc[0] == self._node.NAME:
-            self.fields(TYPESTORE.get_msgdef(desc[1]).fields, indent)
-            return self._align_after(desc)
-        if desc[0] == self._node.BASE:
-            return self._base(desc[1][0], indent)
-        if desc[0] == self._node.ARRAY:
-            return self._array(*desc[1], indent)
-        return self._sequence(desc[1][0], indent)
-
-    def _base(self, kind: str, indent: str) -> int:
-        if kind == 'string':
-            self.string(indent)
-            return 1
-        self.scalar(kind, indent)
-        return self._size[kind]
-
-    def _array(self, sub, length: int, indent: str) -> int:
-        """A fixed-size array: strings, plain values, or messages."""
-        if sub[0] == self._node.BASE and sub[1][0] == 'string':
-            for index in range(length):
-                if index:
-                    self.pad(4, indent)
-                self.string(indent)
-            return 1
-        if sub[0] == self._node.BASE:
-            self._check_plain(sub[1][0])
-            # numpy arrays in the round trip: their bytes come back as they were
-            self.lines.append(f'{indent}pos += {length * self._size[sub[1][0]]}')
-            return self._size[sub[1][0]]
-        before, after = self._align(sub), self._align_after(sub)
-        for _ in range(length):
-            if before > after:
-                self.pad(before, indent)
-            self.fields(TYPESTORE.get_msgdef(sub[1]).fields, indent)
-        return after
-
-    def _sequence(self, sub, indent: str) -> int:
-        """A sequence: its count, checked against the bytes left, then its elements."""
-        count = f'n{next(self._names)}'
-        self.lines.extend([f'{indent}{count} = u32(raw, pos)[0]', f'{indent}pos += 4'])
-        string = sub[0] == self._node.BASE and sub[1][0] == 'string'
-        least = 5 if string else self._size.get(sub[1][0], 16) if sub[0] == self._node.BASE \
-            else 1
-        most = TYPESTORE.max_sequence_length
-        self.lines.extend([f'{indent}if pos + {count} * {least} > size or {count} > {most}:',
-                           f'{indent} raise _NotPlain'])
-        if string:
-            self.lines.append(f'{indent}for _ in range({count}):')
-            self.pad(4, indent + ' ')
-            self.string(indent + ' ')
-            return 1
-        if sub[0] == self._node.BASE:
-            self._check_plain(sub[1][0])
-            before = self._align(sub)
-            if 4 < before:     # the count leaves the position 4-aligned
-                self.lines.append(f'{indent}if {count}:')
-                self.pad(before, indent + ' ')
-            self.lines.append(f'{indent}pos += {count} * {self._size[sub[1][0]]}')
-            return min(4, before)
-        self.lines.append(f'{indent}for _ in range({count}):')
-        self.pad(self._align(sub), indent + ' ')
-        self.fields(TYPESTORE.get_msgdef(sub[1]).fields, indent + ' ')
-        return min(4, self._align_after(sub))
-
-    def _check_plain(self, kind: str) -> None:
-        if kind not in self._size or kind == 'float128':
-            raise _NotPlain
-
-    def pad(self, to: int, indent: str) -> None:
-        """Lines moving pos to the next multiple of `to`, recording the gap."""
-        self.lines.extend([f'{indent}new = (pos + {to - 1}) & -{to}',
-                           f'{indent}if new != pos:',
-                           f'{indent} gaps.append(pos)', f'{indent} gaps.append(new)',
-                           f'{indent} pos = new'])
-
-    def string(self, indent: str) -> None:
-        """Lines reading a string: its length, its bytes (UTF-8), its terminator."""
-        self.lines.extend([f'{indent}n = u32(raw, pos)[0]',
-                           f'{indent}if n < 1 or pos + 4 + n > size or raw[pos + 3 + n]:',
-                           f'{indent} raise _NotPlain',
-                           f'{indent}str(raw[pos + 4:pos + 3 + n], "utf-8")',
-                           f'{indent}pos += 4 + n'])
-
-    def scalar(self, kind: str, indent: str) -> None:
-        """Lines reading a plain value: a bool 0 or 1, a float32 not NaN."""
-        if kind == 'bool':
-            self.lines.extend([f'{indent}if raw[pos] > 1:', f'{indent} raise _NotPlain'])
-        elif kind == 'float32':
-            self.lines.extend([f'{indent}v = f32(raw, pos)[0]',
-                               f'{indent}if v != v:', f'{indent} raise _NotPlain'])
-        else:
-            self._check_plain(kind)
-        self.lines.append(f'{indent}pos += {self._size[kind]}')
+    rosbags' decoder refuses more than 3 bytes after the last field, which rclpy's serialiser
+    leaves (Fast-CDR aligns before the absent elements of a trailing empty sequence of doubles:
+    an all-empty JointState ends in 8 such bytes): the message is decoded again without the last
+    4, 8, ... bytes until no more than 3 are left over (a cut never reaches a field the decoder
+    read). What the decoder raises for bytes it cannot read is raised as it is."""
+    cut = 0
+    while True:
+        try:
+            return TYPESTORE.deserialize_cdr(raw[:len(raw) - cut], msgtype)
+        except SerdeError as error:
+            if 'size mismatch' not in str(error):
+                raise (error.__cause__ or error) from None
+        cut += 4
 
 
 def type_name(msg_or_class: Any) -> str:
@@ -306,9 +204,40 @@ def bag_qos(profile: Any) -> Any:
                bool(profile.avoid_ros_namespace_conventions))
 
 
+def _qos_dicts(profiles: list) -> list[dict]:
+    """rosbags QoS records -> offered_qos_profiles as rosbag2 (metadata version 9) writes them."""
+    def time(t) -> dict:
+        return {'sec': t.sec, 'nsec': t.nsec}
+
+    return [{'history': q.history.name.lower(), 'depth': q.depth,
+             'reliability': q.reliability.name.lower(),
+             'durability': q.durability.name.lower(), 'deadline': time(q.deadline),
+             'lifespan': time(q.lifespan), 'liveliness': q.liveliness.name.lower(),
+             'liveliness_lease_duration': time(q.liveliness_lease_duration),
+             'avoid_ros_namespace_conventions': q.avoid_ros_namespace_conventions}
+            for q in profiles]
+
+
+def _yaml(data: Any) -> str:
+    return yaml.safe_dump(data, default_flow_style=False, sort_keys=False)
+
+
+@dataclass
+class _Topic:
+    """A topic of a bag being written: its channel, type, offered QoS and message count."""
+
+    channel: int
+    msgtype: str
+    qos: list
+    count: int = 0
+
+
 class BagWriter:
-    """Writes rclpy messages to a new rosbag2 (format 9, MCAP storage) at `path`; with
-    `compress`, MCAP chunks are zstd-compressed (storage-level, as rosbag2's MCAP presets do).
+    """Writes rclpy messages to a new rosbag2 (format 9, MCAP storage) at `path`: the MCAP file
+    through the `mcap` package's writer (profile ros2, each type's definition as its schema,
+    each topic's offered QoS in its channel's metadata, the bag's metadata in a `rosbag2`
+    record), and metadata.yaml; with `compress`, MCAP chunks are zstd-compressed (storage-level,
+    as rosbag2's MCAP presets do).
 
     What a crash (power loss, kill -9) can take: the file holds every closed chunk, and its
     footer, summary and metadata.yaml are written at close, so an unclosed bag is read up to
@@ -316,48 +245,100 @@ class BagWriter:
     messages span that much bag time, then handed to the operating system (fsync at most once
     per wall second), and whenever flush() is called (with an fsync; the live recorder: every
     wall second): a crash of the process loses at most the open chunk, a power cut at most the
-    last wall second more. None: rosbags' own chunks of 1 MiB, all written at close (bags
-    written in one go, where a crash leaves nothing to keep).
+    last wall second more. None: chunks of 1 MiB, the open one written at close (bags written
+    in one go, where a crash leaves nothing to keep).
     """
 
     def __init__(self, path: str | Path, compress: bool = False,
                  chunk_s: float | None = CHUNK_S) -> None:
         self.path = Path(path)
-        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        if compress:
-            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        self._connections: dict[str, Any] = {}
-        self.counts: dict[str, int] = {}
+        if self.path.exists():
+            raise BagError(f'{self.path} exists already, not overwriting')
+        self._compress = compress
+        self._topics: dict[str, _Topic] = {}
+        self._schemas: dict[str, int] = {}
+        self._custom_data: dict[str, str] = {CANONICAL_KEY: 'canonical'}
+        self._first_ns, self._last_ns = 2**63 - 1, 0
         self._chunk_ns = None if chunk_s is None else int(chunk_s * 1e9)
         self._chunk_first_ns: int | None = None   # bag time of the open chunk's first message
         self._synced = time.monotonic()
+        self._file = None
+        self._mcap: McapWriter | None = None
+
+    @property
+    def _storage(self) -> Path:
+        return self.path / f'{self.path.name}.mcap'
 
     def __enter__(self) -> BagWriter:
-        self._writer.open()
+        self.path.mkdir(mode=0o755, parents=True)
+        self._file = self._storage.open('xb')
+        self._mcap = McapWriter(self._file, chunk_size=MCAP_CHUNK_BYTES, compression=(
+            CompressionType.ZSTD if self._compress else CompressionType.NONE))
+        self._mcap.start(profile='ros2', library='sensing_nodes BagWriter')
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        self._writer.close()
+        with _signals_held():
+            info = self._metadata()
+            self._mcap.add_metadata('rosbag2', {'serialized_metadata': _yaml(info).strip()})
+            self._mcap.finish()
+            self._file.close()
+            self._mcap = None
+            metadata = self.path / 'metadata.yaml'
+            staged = metadata.with_suffix('.yaml.tmp')
+            staged.write_text(_yaml({'rosbag2_bagfile_information': info}))
+            staged.replace(metadata)
+
+    def _metadata(self) -> dict:
+        """metadata.yaml's rosbag2_bagfile_information (version 9) of what was written."""
+        start, duration = self._first_ns, max(0, self._last_ns - self._first_ns)
+        count = sum(topic.count for topic in self._topics.values())
+
+        def span() -> dict:    # a new dict per use: YAML writes no anchors
+            return {'starting_time': {'nanoseconds_since_epoch': start},
+                    'duration': {'nanoseconds': duration}}
+
+        return {
+            'version': 9, 'storage_identifier': 'mcap',
+            'relative_file_paths': [self._storage.name], **span(), 'message_count': count,
+            'topics_with_message_count': [
+                {'topic_metadata': {'name': name, 'type': topic.msgtype,
+                                    'serialization_format': 'cdr',
+                                    'offered_qos_profiles': _qos_dicts(topic.qos),
+                                    'type_description_hash': TYPESTORE.hash_rihs01(
+                                        topic.msgtype)},
+                 'message_count': topic.count} for name, topic in self._topics.items()],
+            'compression_format': '', 'compression_mode': '',
+            'files': [{'path': self._storage.name, **span(), 'message_count': count}],
+            'custom_data': dict(self._custom_data) or None,
+            'ros_distro': 'jazzy',
+        }
 
     def set_custom_data(self, key: str, value: str) -> None:
         """A key of metadata.yaml's custom_data (what the bag's producer wants said)."""
-        self._writer.set_custom_data(key, value)
+        self._custom_data[key] = value
 
     def add_topic(self, topic: str, msg_type: str, qos: Any = None) -> None:
         """Register a topic up front, so it is in the bag even when no message arrives; `qos`
         (an rclpy QoSProfile, or a list of them) is stored as its offered QoS, which
         `ros2 bag play` publishes with."""
-        if topic not in self._connections:
-            profiles = [] if qos is None else [qos] if not isinstance(qos, (list, tuple)) else qos
-            self._connections[topic] = self._writer.add_connection(
-                topic, msg_type, typestore=TYPESTORE,
-                offered_qos_profiles=[bag_qos(p) for p in profiles])
-            self.counts[topic] = 0
+        if topic in self._topics:
+            return
+        if msg_type not in self._schemas:
+            definition, _ = TYPESTORE.generate_msgdef(msg_type, ros_version=2)
+            encoding = 'ros2idl' if definition.startswith('=' * 80 + '\nIDL: ') else 'ros2msg'
+            self._schemas[msg_type] = self._mcap.register_schema(msg_type, encoding,
+                                                                 definition.encode())
+        profiles = [] if qos is None else [qos] if not isinstance(qos, (list, tuple)) else qos
+        records = [bag_qos(p) for p in profiles]
+        channel = self._mcap.register_channel(topic, 'cdr', self._schemas[msg_type], {
+            'offered_qos_profiles': _yaml(_qos_dicts(records)).strip()})
+        self._topics[topic] = _Topic(channel, msg_type, records)
 
     def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
-        """Append one message, with `stamp_ns` as its bag (receive) time."""
+        """Append one rclpy message, with `stamp_ns` as its bag (receive) time."""
         self.add_topic(topic, type_name(msg))
-        self.write_raw(topic, serialize_message(msg), stamp_ns)
+        self.write_raw_many(((topic, message_cdr(msg), stamp_ns),), canonical_topics={topic})
 
     def write_raw(self, topic: str, data: bytes, stamp_ns: int) -> None:
         """Append one CDR-serialised message (as rclpy or DDS gave it) of a topic registered
@@ -375,58 +356,34 @@ class BagWriter:
             if not batch:
                 return
             with _signals_held():
-                self._append(batch, canonical_topics)
+                self._add(batch, canonical_topics)
 
-    def _append(self, batch: list[tuple[str, bytes, int]], canonical_topics) -> None:
-        """Store messages as rosbags' Writer.write and its MCAP storage's write do, message by
-        message (the same records, indexes, statistics and chunk closes: test_storage compares
-        the files byte for byte), without their per-call checks and record buffers: their
-        ~4 us per message were most of sensing_pipeline's writing. The connections are this
-        writer's own and compression is per chunk (never per message), which the checks were
-        for."""
-        writer, connections, counts = self._writer, self._connections, self.counts
-        storage = writer.storage
-        if storage is None:
-            raise WriterError('Bag was not opened.')
-        written, stats, record = writer.counts, storage.channel_stats, _MESSAGE_RECORD.pack
-        chunk = storage.chunk
-        for topic, data, stamp_ns in batch:
-            connection = connections[topic]
+    def _add(self, batch: list[tuple[str, bytes, int]], canonical_topics) -> None:
+        add, topics, chunk_ns = self._mcap.add_message, self._topics, self._chunk_ns
+        first, last = self._first_ns, self._last_ns
+        for topic, data, stamp in batch:
+            entry = topics[topic]
             if topic not in canonical_topics:
-                data = canonical_cdr(data, connection.msgtype)
-            stamp, cid = int(stamp_ns), connection.id
-            if stamp < writer.min_timestamp:
-                writer.min_timestamp = stamp
-            if stamp > writer.max_timestamp:
-                writer.max_timestamp = stamp
-            if stamp < storage.message_start_time:
-                storage.message_start_time = stamp
-            if stamp > storage.message_end_time:
-                storage.message_end_time = stamp
-            stats[cid] += 1
-            if stamp < chunk.message_start_time:
-                chunk.message_start_time = stamp
-            if stamp > chunk.message_end_time:
-                chunk.message_end_time = stamp
-            bio = chunk.bio
-            chunk.msgs[cid].append((stamp, bio.tell()))
-            bio.write(record(0x05, 22 + len(data), cid, 0, stamp, stamp))
-            bio.write(data)
-            if bio.tell() > _MCAP_CHUNK_BYTES:
-                storage.close_chunk()
-                chunk = storage.chunk
-            written[cid] += 1
-            counts[topic] += 1
-            if self._chunk_ns is not None:
-                self._chunk_after(stamp)
-                chunk = storage.chunk
+                data = canonical_cdr(data, entry.msgtype)
+            stamp = int(stamp)
+            add(entry.channel, stamp, data, stamp)
+            entry.count += 1
+            if stamp < first:
+                first = stamp
+            if stamp > last:
+                last = stamp
+            if chunk_ns is not None:
+                # Close the open chunk once its messages span chunk_s of bag time.
+                if self._chunk_first_ns is None:
+                    self._chunk_first_ns = stamp
+                elif abs(stamp - self._chunk_first_ns) >= chunk_ns:
+                    self._close_chunk()
+        self._first_ns, self._last_ns = first, last
 
-    def _chunk_after(self, stamp_ns: int) -> None:
-        """Close the open chunk once its messages span chunk_s of bag time."""
-        if self._chunk_first_ns is None:
-            self._chunk_first_ns = stamp_ns
-        elif abs(stamp_ns - self._chunk_first_ns) >= self._chunk_ns:
-            self._close_chunk()
+    @property
+    def counts(self) -> dict[str, int]:
+        """Messages written per topic."""
+        return {name: topic.count for name, topic in self._topics.items()}
 
     def flush(self) -> None:
         """Close the open chunk and hand the file to the disk (fsync): a crash or a power cut
@@ -435,19 +392,13 @@ class BagWriter:
             self._close_chunk(sync=True)
 
     def _close_chunk(self, sync: bool = False) -> None:
-        # rosbags' MCAP writer (pinned in requirements.txt) keeps the open chunk in memory
-        # (storage.chunk) and closes it only at 1 MiB: its close_chunk() writes the chunk and its
-        # message indexes to storage.bio, the file.
-        storage = self._writer.storage
-        if storage is None:
+        if self._mcap is None:
             return
-        if storage.chunk.bio.tell():
-            storage.close_chunk()
-        storage.bio.flush()
+        self._mcap.flush()     # the open chunk and its message indexes, into the file
         self._chunk_first_ns = None
         now = time.monotonic()
         if sync or now - self._synced >= FSYNC_INTERVAL_S:
-            os.fsync(storage.bio.fileno())
+            os.fsync(self._file.fileno())
             self._synced = now
 
 
@@ -548,7 +499,7 @@ class BagReader:
             raise BagError(f'{self.path}: no such bag')
         self._ros1: Ros1Bag | None = None
         self.damage = ''              # what an unclosed recording lost ('' for a closed bag)
-        self.custom_data: dict[str, str] = {}   # metadata.yaml's custom_data
+        self.custom_data: dict[str, str] = {}   # metadata.yaml's custom_data (CANONICAL_KEY)
         if self.path.is_file() and self.path.suffix not in STORAGE_SUFFIXES:
             self._ros1 = Ros1Bag(self.path)
             self.topics = self._ros1.topics

@@ -1,8 +1,9 @@
 """What crash safety costs the bag writer, and what reading an unclosed bag costs the reader.
 
-One stream of messages (the simulated robot's sensors, as `sensor_sim --record` writes them) is
-written by BagWriter with 1 s chunks (chunk_s=1.0, the default: a crash loses at most the open
-chunk) and with rosbags' own 1 MiB chunks written at close (chunk_s=None), plain and
+One stream of messages (the simulated robot's sensors, encoded as `sensor_sim --record` encodes
+them: message_cdr, canonical CDR) is written by BagWriter with 1 s chunks (chunk_s=1.0, the
+default: a crash loses at most the open chunk) and with 1 MiB chunks written at close
+(chunk_s=None), plain and
 zstd-compressed: CPU time per simulated second and file size, side by side from one run (best of
 3 on a shared machine); the wall time of the live recorder's flush (the chunk closed, written
 and fsynced) per second of data. Then the bag is read whole through BagReader, closed and cut in
@@ -18,9 +19,9 @@ from pathlib import Path
 
 
 def _stream(duration_s: float) -> tuple[list[tuple[str, bytes, int]], dict[str, str]]:
-    """(topic, CDR bytes, bag time ns) of duration_s simulated seconds, and topic -> type."""
-    from rclpy.serialization import serialize_message
-
+    """(topic, canonical CDR bytes, bag time ns) of duration_s simulated seconds, and topic ->
+    type."""
+    from sensing_nodes.bags.storage import message_cdr
     from sensing_nodes.core.sim import simulator as core
     from sensing_nodes.core.sim.world import load_world
     from sensing_nodes.paths import config_file
@@ -34,7 +35,7 @@ def _stream(duration_s: float) -> tuple[list[tuple[str, bytes, int]], dict[str, 
     while sim.time_ns < end_ns:
         for t, kind, msg in convert.messages(sim.advance()):
             if t <= end_ns:
-                rows.append((TOPICS[kind][0], serialize_message(msg), t))
+                rows.append((TOPICS[kind][0], message_cdr(msg), t))
     return rows, {topic: kind for topic, kind in TOPICS.values()}
 
 
@@ -49,7 +50,7 @@ def _write(folder: Path, rows, types, chunk_s, compress) -> tuple[float, int]:
         with BagWriter(path, compress=compress, chunk_s=chunk_s) as bag:
             for topic, kind in types.items():
                 bag.add_topic(topic, kind)
-            bag.write_raw_many(rows)
+            bag.write_raw_many(rows, canonical_topics=set(types))
         best = min(best, time.process_time() - started)
         size = (path / f'{path.name}.mcap').stat().st_size
     return best, size
@@ -66,7 +67,7 @@ def _flush_ms(folder: Path, rows, types, duration_s: float) -> float:
         for topic, kind in types.items():
             bag.add_topic(topic, kind)
         for start in range(0, len(rows), per_second):
-            bag.write_raw_many(rows[start:start + per_second])
+            bag.write_raw_many(rows[start:start + per_second], canonical_topics=set(types))
             started = time.perf_counter()
             bag.flush()
             times.append(time.perf_counter() - started)

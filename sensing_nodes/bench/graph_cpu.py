@@ -25,18 +25,16 @@ import tempfile
 import time
 from pathlib import Path
 
-import yaml
-
 from sensing_nodes.graph.processes import ONE_PROCESS, pid_domain_id
+from sensing_nodes.parameters import load_parameters
 from sensing_nodes.paths import config_file
 from sensing_nodes.topics import PROCESSING_NODES
 
 
 def input_rates(sim_overrides: dict[str, float] | None = None) -> dict[str, float]:
     """Messages per simulated second each node takes in, from sensor_sim's parameter file."""
-    params = yaml.safe_load(config_file('sensor_sim.yaml').read_text())['sensor_sim'][
-        'ros__parameters']
-    params.update(sim_overrides or {})
+    params = {**load_parameters('sensor_sim', config_file('sensor_sim.yaml')),
+              **(sim_overrides or {})}
     joints, imu, scan = (float(params[k]) for k in ('joint_rate_hz', 'imu_rate_hz',
                                                      'scan_rate_hz'))
     return {

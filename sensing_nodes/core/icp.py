@@ -16,6 +16,8 @@ from numpy.lib.stride_tricks import as_strided
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from sensing_nodes.parameters import CheckedAtConstruction
+
 # Variance (m², rad²) put on the diagonal of a failed match's covariance: large enough that any
 # fusion ignores it, finite so arithmetic stays sane.
 FAILED_VARIANCE = 1.0e6
@@ -39,17 +41,14 @@ BRUTE_FORCE_PAIRS = 8000
 NORMAL_WINDOW = 8
 
 _METHODS = ('point_to_line', 'point_to_point')
-_SEARCHES = ('bearing', 'kd_tree')
+SEARCHES = ('bearing', 'kd_tree')
 _ROBUST = ('trim', 'adaptive', 'none')
 
 
-def _require(ok: bool, message: str) -> None:
-    if not ok:
-        raise ValueError(message)
 
 
 @dataclass(frozen=True)
-class Convergence:
+class Convergence(CheckedAtConstruction):
     """When the ICP loop stops. Converged: the increment (m, yaw as arc length at the source's RMS
     radius) fell below `tolerance`, or the mean error changed by less than `error_tolerance`
     (relative), or it has not improved on its best for `stall_iterations` (correspondences
@@ -60,14 +59,18 @@ class Convergence:
     error_tolerance: float = 0.001
     stall_iterations: int = 5
 
-    def __post_init__(self) -> None:
-        _require(self.max_iterations >= 1 and self.tolerance > 0,
-                 f'max_iterations >= 1 and tolerance > 0 required, got {self.max_iterations} '
-                 f'and {self.tolerance}')
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting the loop cannot run with."""
+        out: list[tuple[str, str, object]] = []
+        if not self.max_iterations >= 1:
+            out.append(('max_iterations', 'must be >= 1', self.max_iterations))
+        if not self.tolerance > 0:
+            out.append(('tolerance', 'must be > 0', self.tolerance))
+        return out
 
 
 @dataclass(frozen=True)
-class Correspondences:
+class Correspondences(CheckedAtConstruction):
     """Which nearest-neighbour pairs enter the estimate (distances in m).
 
     The gate starts at max_correspondence_distance and, with robust='adaptive', shrinks each
@@ -84,12 +87,15 @@ class Correspondences:
     min_points: int = 3
     min_inlier_fraction: float = 0.2
 
-    def __post_init__(self) -> None:
-        _require(self.robust in _ROBUST, f'robust must be one of {_ROBUST}, got {self.robust!r}')
-        _require(self.max_correspondence_distance > 0 and 0 < self.trim_fraction <= 1
-                 and self.adaptive_factor > 0 and self.min_points >= 3,
-                 'max_correspondence_distance > 0, 0 < trim_fraction <= 1, adaptive_factor > 0 '
-                 'and min_points >= 3 required')
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting the pairing cannot run with."""
+        checks = (('robust', self.robust in _ROBUST, f'must be one of {_ROBUST}'),
+                  ('max_correspondence_distance', self.max_correspondence_distance > 0,
+                   'must be > 0'),
+                  ('trim_fraction', 0 < self.trim_fraction <= 1, 'must be in (0, 1]'),
+                  ('adaptive_factor', self.adaptive_factor > 0, 'must be > 0'),
+                  ('min_points', self.min_points >= 3, 'must be >= 3'))
+        return [(name, problem, getattr(self, name)) for name, ok, problem in checks if not ok]
 
 
 @dataclass(frozen=True)
@@ -110,7 +116,7 @@ class YawSearch:
 
 
 @dataclass(frozen=True)
-class IcpOptions:
+class IcpOptions(CheckedAtConstruction):
     """Everything match() can be told, validated once: the residual (`method`), source
     downsampling (voxel_size, m; 0 = off), the degeneracy test (eigenvalue ratio) and the floor
     of the residual standard deviation (m) used for the covariance, and one part per concern."""
@@ -123,9 +129,16 @@ class IcpOptions:
     correspondences: Correspondences = Correspondences()
     yaw_search: YawSearch = YawSearch()
 
-    def __post_init__(self) -> None:
-        _require(self.method in _METHODS,
-                 f'method must be one of {_METHODS}, got {self.method!r}')
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each option match() cannot run with (its parts' as
+        'convergence.max_iterations', ...)."""
+        out: list[tuple[str, str, object]] = []
+        if self.method not in _METHODS:
+            out.append(('method', f'must be one of {_METHODS}', self.method))
+        for part in ('convergence', 'correspondences'):
+            out += [(f'{part}.{name}', problem, value)
+                    for name, problem, value in getattr(self, part).problems()]
+        return out
 
     def updated(self, **keywords) -> IcpOptions:
         """A copy with flat keywords (match's call form) set in the part that holds each name;
@@ -452,9 +465,9 @@ def prepare_target(points: ArrayLike, normal_neighbours: int = 7, normal_radius:
     Non-finite rows are dropped (counted in `dropped`); ValueError on a wrong shape or bad
     settings."""
     if not (normal_neighbours >= 2 and normal_radius > 0 and 0 <= min_planarity <= 1
-            and 0 <= tangent_weight <= 1 and search in _SEARCHES):
+            and 0 <= tangent_weight <= 1 and search in SEARCHES):
         raise ValueError('normal_neighbours >= 2, normal_radius > 0, 0 <= min_planarity <= 1, '
-                         f'0 <= tangent_weight <= 1 and search in {_SEARCHES} required')
+                         f'0 <= tangent_weight <= 1 and search in {SEARCHES} required')
     array, dropped = _as_points(points, 'target')
     if array.shape[0] == 0:
         return Target(array, np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)), dropped,

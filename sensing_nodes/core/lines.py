@@ -27,6 +27,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from sensing_nodes.parameters import CheckedAtConstruction
+
 # cos²(incidence) is floored here: at grazing incidence the real error is dominated by beam width
 # and mixed returns, not by the range noise (which would give a vanishing distance variance).
 _MIN_COS2 = 0.05
@@ -422,7 +424,7 @@ def _beams(angles: NDArray[np.float64]) -> _Beams:
 
 
 @dataclass(frozen=True)
-class LineOptions:
+class LineOptions(CheckedAtConstruction):
     """Settings of extract_lines, checked once (ValueError for values that make no sense).
 
     split_distance: a segment is split while a point is farther than this from its fit (m);
@@ -443,22 +445,23 @@ class LineOptions:
     range_sigma: float = 0.01
     merge_chi2: float = 9.21
 
-    def __post_init__(self) -> None:
-        positive = {'split_distance': self.split_distance, 'max_line_gap': self.max_line_gap,
-                    'range_sigma': self.range_sigma, 'merge_chi2': self.merge_chi2}
-        for name, value in positive.items():
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting that makes no sense."""
+        out: list[tuple[str, str, object]] = []
+        for name in ('split_distance', 'max_line_gap', 'range_sigma', 'merge_chi2'):
+            value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f'{name} must be a finite number > 0, got {value!r}')
+                out.append((name, 'must be a finite number > 0', value))
         if not (math.isfinite(self.min_line_length) and self.min_line_length >= 0.0):
-            raise ValueError('min_line_length must be a finite number >= 0, got '
-                             f'{self.min_line_length!r}')
+            out.append(('min_line_length', 'must be a finite number >= 0',
+                        self.min_line_length))
         if int(self.min_line_points) != self.min_line_points or self.min_line_points < 2:
-            raise ValueError('min_line_points must be an integer >= 2, got '
-                             f'{self.min_line_points!r}')
-        if not (math.isfinite(self.min_range) and self.min_range >= 0.0
-                and self.max_range > self.min_range):
-            raise ValueError(f'need 0 <= min_range < max_range, got {self.min_range!r} and '
-                             f'{self.max_range!r}')
+            out.append(('min_line_points', 'must be an integer >= 2', self.min_line_points))
+        if not (math.isfinite(self.min_range) and self.min_range >= 0.0):
+            out.append(('min_range', 'must be a finite number >= 0', self.min_range))
+        elif not self.max_range > self.min_range:
+            out.append(('max_range', 'must be greater than min_range', self.max_range))
+        return out
 
 
 _DEFAULT_OPTIONS = LineOptions()

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core import icp
+from sensing_nodes.parameters import CheckedAtConstruction
 
 # Cell (ix, iy) -> one int64 key (ix + OFFSET) · STRIDE + (iy + OFFSET): sorted keys group a
 # column of cells, and a neighbour's key is the key plus dx · STRIDE + dy.
@@ -28,7 +29,7 @@ _STRIDE = 1 << 31
 
 
 @dataclass(frozen=True)
-class LocalMapSettings:
+class LocalMapSettings(CheckedAtConstruction):
     """Cell size (m), how many points a cell takes, how far from the robot cells are kept (m)
     and how many at most, and the planarity from which a cell's block counts as a line."""
 
@@ -38,11 +39,14 @@ class LocalMapSettings:
     max_cells: int = 60_000
     min_planarity: float = 0.5
 
-    def __post_init__(self) -> None:
-        if not (self.cell_m > 0 and self.max_points_per_cell >= 1 and self.radius_m > 0
-                and self.max_cells >= 1 and 0 <= self.min_planarity <= 1):
-            raise ValueError('cell_m > 0, max_points_per_cell >= 1, radius_m > 0, '
-                             'max_cells >= 1 and 0 <= min_planarity <= 1 required')
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting a map cannot be kept with."""
+        checks = (('cell_m', self.cell_m > 0, 'must be > 0'),
+                  ('max_points_per_cell', self.max_points_per_cell >= 1, 'must be >= 1'),
+                  ('radius_m', self.radius_m > 0, 'must be > 0'),
+                  ('max_cells', self.max_cells >= 1, 'must be >= 1'),
+                  ('min_planarity', 0 <= self.min_planarity <= 1, 'must be in [0, 1]'))
+        return [(name, problem, getattr(self, name)) for name, ok, problem in checks if not ok]
 
 
 class LocalMap:

@@ -118,6 +118,23 @@ class ScanMatcherSettings:
     # (docs/real-data.md) and halves the simulated strong_errors route's overconfidence.
     prediction_error_share: float = 0.05
 
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting the matcher cannot run with (its ICP
+        options' and local map's as 'icp_options.method', 'local_map.cell_m', ...)."""
+        out: list[tuple[str, str, object]] = []
+        if self.mode not in MODES:
+            out.append(('mode', f'must be one of {MODES}', self.mode))
+        if self.search not in icp.SEARCHES:
+            out.append(('search', f'must be one of {icp.SEARCHES}', self.search))
+        if not all(math.isfinite(v) for v in self.laser_pose):
+            out.append(('laser_pose', 'must be finite', self.laser_pose))
+        if not self.max_gap_s > 0.0:
+            out.append(('max_gap_s', 'must be > 0', self.max_gap_s))
+        for part in ('icp_options', 'local_map'):
+            out += [(f'{part}.{name}', problem, value)
+                    for name, problem, value in getattr(self, part).problems()]
+        return out
+
 
 @dataclass
 class ScanStep:

@@ -6,14 +6,15 @@ from __future__ import annotations
 import argparse
 import math
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from sensing_nodes.bags.sensor_streams import SensorBagError
 from sensing_nodes.bags.survey import ImuStream, JointStream, OdomStream, Survey
+from sensing_nodes.core.config.gyro_integrator import GYRO_INTEGRATOR_PARAMETERS
+from sensing_nodes.core.config.icp_matcher import ICP_MATCHER_PARAMETERS
+from sensing_nodes.core.config.wheel_odometry import WHEEL_ODOMETRY_PARAMETERS
 from sensing_nodes.core.diagnosis import covariance as cov_checks
 from sensing_nodes.core.diagnosis import cross, timing, wheels
 from sensing_nodes.core.diagnosis import imu as imu_checks
@@ -27,6 +28,7 @@ from sensing_nodes.core.geometry.quaternion import to_rpy
 from sensing_nodes.core.gyro import integrate_rate
 from sensing_nodes.core.scan_matching import KeyframeScanMatcher, ScanMatcherSettings
 from sensing_nodes.core.wheel_odometry import integrate_path
+from sensing_nodes.parameters import ParameterError, load_parameters
 from sensing_nodes.paths import config_file
 from sensing_nodes.topics import FUSED, GROUND_TRUTH, IMU, IMU_RAW, JOINT_STATES, SCAN
 
@@ -158,41 +160,27 @@ def find_inputs(d: Diagnosis) -> None:
                  'duration_s': s.duration_s, 'notes': s.notes[:100]}))
 
 
-def _section(data: Any, node: str) -> dict[str, Any]:
-    for key in (node, '/' + node, '/**'):
-        section = data.get(key) if isinstance(data, dict) else None
-        if isinstance(section, dict) and isinstance(section.get('ros__parameters'), dict):
-            return section['ros__parameters']
-    return {}
-
-
 def read_declared(d: Diagnosis) -> None:
     """The nodes' parameters (config/ defaults, then each --params-file) and /tf_static."""
-    params: dict[str, dict[str, Any]] = {}
-    for node in ('wheel_odometry', 'icp_matcher', 'gyro_integrator'):
-        files = [config_file(f'{node}.yaml')] + list(d.args.params_file)
-        params[node] = {}
-        for f in files:
-            try:
-                params[node].update(_section(yaml.safe_load(Path(f).read_text()) or {}, node))
-            except (OSError, yaml.YAMLError) as exc:
-                raise SensorBagError(f'cannot read the parameters {f}: {exc}') from None
+    try:
+        params = {node: load_parameters(node, config_file(f'{node}.yaml'), *d.args.params_file)
+                  for node in ('wheel_odometry', 'icp_matcher', 'gyro_integrator')}
+        wheel = WHEEL_ODOMETRY_PARAMETERS.config(params['wheel_odometry'])
+        icp = ICP_MATCHER_PARAMETERS.config(params['icp_matcher'])
+        gyro = GYRO_INTEGRATOR_PARAMETERS.config(params['gyro_integrator'])
+    except ParameterError as exc:
+        raise SensorBagError(f'cannot use the parameters: {exc}') from None
     origin = ', '.join(str(f) for f in d.args.params_file) or 'the package\'s config/'
-    w, icp = params['wheel_odometry'], params['icp_matcher']
-    radius = float(w.get('wheel_radius_m', 0.05))
-    laser = [float(icp.get(k, 0.0)) for k in ('laser_x_m', 'laser_y_m', 'laser_yaw_rad')]
+    laser = list(icp.matcher.laser_pose)
     laser_from = origin
     static = _static_transform(d, d.scan.frame_id if d.scan is not None else '')
     if static is not None:
         laser = [static[0][0], static[0][1], to_rpy(static[1])[2]]
         laser_from = '/tf_static'
         d.laser_on_tf_static = True
-    geometry = cal.Geometry(radius * float(w.get('left_radius_multiplier', 1.0)),
-                            radius * float(w.get('right_radius_multiplier', 1.0)),
-                            float(w.get('wheel_separation_m', 0.30)), *laser)
-    g = params['gyro_integrator']
-    mount = mount_rotation(*(float(g.get(f'mount_{a}_rad', 0.0)) for a in
-                             ('roll', 'pitch', 'yaw')))
+    odometry = wheel.odometry
+    geometry = cal.Geometry(*odometry.radii, odometry.wheel_separation_m, *laser)
+    mount = mount_rotation(*gyro.mount_rpy)
     mount_from = origin
     imu_frame = d.imu.frame_id.lstrip('/') if d.imu is not None else ''
     static = _static_transform(d, imu_frame)
@@ -201,8 +189,8 @@ def read_declared(d: Diagnosis) -> None:
     elif imu_frame == d.base_frame:
         mount, mount_from = np.eye(3), f'the IMU\'s frame is {d.base_frame}'
     d.declared = Declared(geometry, f'{origin}; laser from {laser_from}',
-                          str(w.get('left_wheel_joint', '')), str(w.get('right_wheel_joint', '')),
-                          mount, mount_from, params)
+                          wheel.left_wheel_joint, wheel.right_wheel_joint, mount, mount_from,
+                          params)
 
 
 def _static_transform(d: Diagnosis, child: str):

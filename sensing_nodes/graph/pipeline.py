@@ -203,7 +203,7 @@ class _Driver:
         """Depth first: an output reaches its consumers before the next output, as a lockstep
         replay waits for one input's outputs (and lets them land) first. Outputs are recorded
         in canonical CDR: the nodes' own packing (ros/cdr.py) writes nothing else, an rclpy
-        message is serialised and made canonical here (as the bag writer would)."""
+        message is encoded here as the bag writer encodes one (message_cdr)."""
         recorded, wiring = self.result.outputs, self.wiring
         for topic, msg in produced:
             if isinstance(msg, bytes):     # packed by the node itself (ros/cdr.py)
@@ -211,12 +211,9 @@ class _Driver:
                 if topic in wiring.handlers:
                     self.receive(topic, msg, stamp_ns)
                 continue
-            from rclpy.serialization import serialize_message
+            from sensing_nodes.bags.storage import message_cdr
 
-            from sensing_nodes.bags.storage import canonical_cdr
-
-            # now: a node may refill its message in place
-            raw = canonical_cdr(serialize_message(msg), wiring.output_types[topic])
+            raw = message_cdr(msg)     # now: a node may refill its message in place
             recorded[topic].append((wiring.stamp_of[topic](raw, stamp_ns), raw))
             for handler, _ in wiring.handlers.get(topic, ()):
                 self.deliver(handler(msg), stamp_ns)

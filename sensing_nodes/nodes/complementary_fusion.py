@@ -1,10 +1,10 @@
 """complementary_fusion: /wheel/odom + /imu/data + scan matching -> /odometry/filtered.
 
 The node declares its parameters (core/fusion/config.py's tables), builds the fusion's
-configuration from their values as the offline tools do (`session_config`), and runs the
-fusion's timeline (core/fusion/session.py: the EKF of core/fusion/ekf.py by default, or the
-seed's complementary filter) through its processor: message conversion (ros/fusion_readings.py),
-the IMU mount from /tf_static, and publishing.
+configuration from their values as the offline tools do (`FusionParameters.session_config`),
+and runs the fusion's timeline (core/fusion/session.py: the EKF of core/fusion/ekf.py by
+default, or the seed's complementary filter) through its processor: message conversion
+(ros/fusion_readings.py), the IMU mount from /tf_static, and publishing.
 """
 
 from __future__ import annotations
@@ -24,36 +24,46 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 from tf2_msgs.msg import TFMessage
 
-from sensing_nodes.core.fusion.config import (
-    PARAMETERS,
-    ConfigError,
-    Parameter,
-    parameters_of,
-    session_config,
-)
+from sensing_nodes.core.fusion.config import FUSION_PARAMETERS
 from sensing_nodes.core.fusion.inputs import IMU, INPUTS, SCAN, WHEEL
 from sensing_nodes.core.fusion.session import FusedOutput, FusionSession
 from sensing_nodes.core.geometry.transform import Transform
+from sensing_nodes.parameters import ParameterError
 from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
 from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_planar
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.fusion_readings import ReadingConverter, unit_quaternion
 from sensing_nodes.ros.logging import ThrottledWarnings
-from sensing_nodes.ros.params import ParameterError, declare
+from sensing_nodes.ros.params import declare, declare_config
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TF_TOPIC, ImuMount, imu_mount
 
 
+def retired_gates(node: Node) -> None:
+    """ParameterError where a parameter file or override still sets an input's gate_chi2 (its
+    gate is set by gate_probability now, and cannot be off): a value left unread would be a
+    gate silently different from the one the user asked for."""
+    for name in INPUTS:
+        parameter = node.declare_parameter(
+            f'{name}.gate_chi2', None, ParameterDescriptor(
+                description='retired: use gate_probability', dynamic_typing=True))
+        if parameter.value is not None:
+            raise ParameterError(f'{name}.gate_chi2', 'is gone: every input has a gate, set by '
+                                 'its gate_probability (the chi-square quantile of its rows; '
+                                 '0.999 by default)', parameter.value)
+
+
 class ComplementaryFusionNode(Node):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('complementary_fusion', **node_options)
-        try:
-            config = session_config(self._declare_parameters())
-        except ConfigError as error:
-            raise ParameterError(error.name, error.problem, error.value) from None
+        # The parameters of the method the `method` parameter names.
+        method = declare(self, FUSION_PARAMETERS['ekf']['method'])
+        retired_gates(self)
+        config = declare_config(self, FUSION_PARAMETERS.get(
+            method, FUSION_PARAMETERS['ekf'])).session_config()
         self.diagnostics = Diagnostics(self, update=self._update_diagnostics)
         session = FusionSession(config, counts=self.diagnostics.counts)
         converter = ReadingConverter.for_config(config)
@@ -82,21 +92,6 @@ class ComplementaryFusionNode(Node):
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f'method {config.method}; inputs: ' + ', '.join(
             f'{name} ({config.topics[name]})' for name in INPUTS if config.enabled[name]))
-
-    def _declare_parameters(self) -> dict[str, Any]:
-        """Declare the parameters of the method the `method` parameter names (read-only, with
-        descriptions and ranges); their values by name."""
-        method = self._declare('method', PARAMETERS['method'])
-        return {name: method if name == 'method' else self._declare(name, parameter)
-                for name, parameter in parameters_of(method).items()}
-
-    def _declare(self, name: str, parameter: Parameter) -> Any:
-        if name == 'alpha':   # a number or 'auto'
-            return self.declare_parameter(name, parameter.default, ParameterDescriptor(
-                description=parameter.description, dynamic_typing=True,
-                read_only=True)).value
-        return declare(self, name, parameter.default, parameter.description,
-                       minimum=parameter.minimum, maximum=parameter.maximum)
 
     def _arrival(self, handler: Callable[[Any], Outputs]) -> Callable[[Any], Outputs]:
         """The handler, noting the wall time of each input (the idle flush's clock)."""

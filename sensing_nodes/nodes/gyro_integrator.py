@@ -11,6 +11,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger
 
+from sensing_nodes.core.config.gyro_integrator import GYRO_INTEGRATOR_PARAMETERS
 from sensing_nodes.core.geometry import quaternion
 from sensing_nodes.core.geometry.imu_mount import to_base
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
@@ -19,7 +20,7 @@ from sensing_nodes.ros.cdr import imu_cdr
 from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
-from sensing_nodes.ros.params import Param, declare, declare_config
+from sensing_nodes.ros.params import declare_config
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
@@ -28,68 +29,25 @@ from sensing_nodes.topics import IMU, IMU_RAW, WHEEL_ODOM
 
 _HEADING_ONLY = (0.0,) * 8   # orientation covariance: only yaw's variance (last) is known
 
-# The integrator's parameters: GyroConfig's fields, with their defaults.
-GYRO_PARAMS = (
-    Param('bias_estimation', 'estimate the gyro bias whenever the robot stands still'),
-    Param('stillness_window_s', 'stillness is decided over this trailing window (s)'),
-    Param('gyro_std_threshold_rad_s',
-          'still only if every gyro axis std over the window is below this (rad/s)'),
-    Param('accel_std_threshold_m_s2',
-          'still only if every accelerometer axis std over the window is below this (m/s^2)'),
-    Param('max_gyro_bias_rad_s',
-          'still only if every gyro axis mean over the window is within this (rad/s)'),
-    Param('noise_density', 'white rate noise density (rad/s/sqrt(Hz)): sample std * sqrt(dt)',
-          name='gyro_noise_density'),
-    Param('bias_random_walk', 'bias random walk density (rad/s/sqrt(s))'),
-    Param('initial_bias_sigma_rad_s', 'std of the bias before any calibration (rad/s)'),
-    Param('initial_bias_z_rad_s',
-          'z bias estimate before the first stillness (rad/s; sensing_calibrate writes it)',
-          minimum=-1.0, maximum=1.0),
-    Param('max_gap_s', 'a stamp gap longer than this (s) is not integrated across'),
-    Param('wheel_timeout_s',
-          '/wheel/odom counts as available while its newest stamp is this close (s)'),
-    Param('wheel_still_linear_m_s', '/wheel/odom reports zero motion when |vx| is at most this '
-          '(m/s)'),
-    Param('wheel_still_angular_rad_s',
-          '/wheel/odom reports zero motion when |wz| is at most this (rad/s)'),
-)
-
 
 class GyroIntegratorNode(Node):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('gyro_integrator', **node_options)
-        config = declare_config(self, GyroConfig(), GYRO_PARAMS)
-        self._restart_on_backwards = declare(
-            self, 'restart_on_backwards', True,
-            'a stamp going backwards (looping bag) restarts the integrator from scratch, bias '
-            'estimate included, so a replayed bag gives its first outputs again; false: reset '
-            'the heading only and keep the bias estimate')
-        use_wheels = declare(self, 'use_wheel_odom', True,
-                             'veto stillness while /wheel/odom reports motion (slow turns)')
-        mount = [declare(self, f'mount_{axis}_rad', 0.0,
-                         f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi',
-                         minimum=-2 * math.pi, maximum=2 * math.pi)
-                 for axis in ('roll', 'pitch', 'yaw')]
-        scale_error = declare(self, 'gyro_scale_error', 0.0,
-                              'the z rate reads (1 + this) x the true rate; readings are divided '
-                              'by it (sensing_calibrate writes it)', minimum=-0.5, maximum=0.5)
-        base_frame = declare(self, 'base_frame', 'base_link',
-                             "the robot's base frame: /tf_static's base_frame -> the IMU's "
-                             'frame_id gives the mount where it is published (else mount_*_rad)')
-        frame_id = declare(self, 'frame_id', '',
-                           'frame of the output; empty: keep the input frame (base_frame when '
-                           'the mount rotates: the output is about its axes)')
+        parameters = declare_config(self, GYRO_INTEGRATOR_PARAMETERS)
+        config, use_wheels = parameters.integrator, parameters.use_wheel_odom
+        self._restart_on_backwards = parameters.restart_on_backwards
         # A rotated IMU: rates and accelerations are turned into base_link's axes before
         # anything else, so stillness, bias and heading are about base_link's z.
-        mount_source = imu_mount(self, base_frame, tuple(mount), frame_id,
+        mount_source = imu_mount(self, parameters.base_frame, parameters.mount_rpy,
+                                 parameters.frame_id,
                                  on_update=lambda: self.processor.mount_changed())
 
         self.diagnostics = Diagnostics(self, update=self._refresh_diagnostics)
         self.processor = GyroIntegratorProcessor(
             config,
             mount_source,
-            scale_error,
+            parameters.gyro_scale_error,
             self._restart_on_backwards,
             use_wheels,
             self.diagnostics,

@@ -15,12 +15,10 @@ from rclpy.node import Node
 from sensor_msgs.msg import LaserScan
 from tf2_msgs.msg import TFMessage
 
+from sensing_nodes.core.config.icp_matcher import ICP_MATCHER_PARAMETERS
 from sensing_nodes.core.geometry.scan import scan_to_points
 from sensing_nodes.core.geometry.transform import Transform
-from sensing_nodes.core.icp import Convergence, Correspondences, IcpOptions
-from sensing_nodes.core.local_map import LocalMapSettings
 from sensing_nodes.core.scan_matching import (
-    MODES,
     ZERO,
     OdometryBuffer,
     ScanMatcherSettings,
@@ -38,7 +36,7 @@ from sensing_nodes.ros.conversions import (
 )
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
-from sensing_nodes.ros.params import declare, require
+from sensing_nodes.ros.params import declare_config
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
@@ -79,21 +77,18 @@ class IcpMatcherNode(Node):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('icp_matcher', **node_options)
-        odom_topic = declare(self, 'odom_topic', '',
-                             "odometry for the initial guess (e.g. /wheel/odom); '' = constant "
-                             'velocity model')
-        self._odom_frame = declare(self, 'odom_frame', 'odom', 'frame of the published pose')
-        self._base_frame = declare(self, 'base_frame', 'base_link', 'child frame (robot base)')
-        settings = self._declare_settings()
+        parameters = declare_config(self, ICP_MATCHER_PARAMETERS)
+        settings, odom_topic = parameters.matcher, parameters.odom_topic
+        self._base_frame, self._deskew = parameters.base_frame, parameters.deskew
         # The laser mount: /tf_static's base_frame -> <scan frame> where it is published, else
         # the laser_* parameters.
         mount = SensorMount(self, StaticTransformBuffer(self), self._base_frame,
                             Transform.from_planar(*settings.laser_pose), 'laser')
         self.diagnostics = Diagnostics(self)
         self.processor = IcpMatcherProcessor(
-            settings, odom_topic, self._odom_extrapolation_s, self._min_points, self._odom_frame,
-            self._base_frame, self._publish_tf, mount, self.diagnostics, ThrottledWarnings(self),
-            self._odom_delay_s, self._deskew)
+            settings, odom_topic, parameters.odom_max_extrapolation_s, parameters.min_points,
+            parameters.odom_frame, self._base_frame, parameters.publish_tf, mount,
+            self.diagnostics, ThrottledWarnings(self), parameters.odom_delay_s, self._deskew)
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.diagnostics.values['prediction'] = odom_topic or 'constant_velocity'
         laser, options = settings.laser_pose, settings.icp_options
@@ -112,156 +107,6 @@ class IcpMatcherNode(Node):
                 'rate limits off (rate_limits: false): max_speed_m_s and max_yaw_rate_rad_s do '
                 "not bound the matches, as the stamps' time is assumed (e.g. rebuilt from a "
                 "log's line order)")
-
-    # long: a parameter table (descriptors, ranges) in its documented order.
-    def _declare_settings(self) -> ScanMatcherSettings:
-        """Declare and check the parameters after the frames (mode, laser mount, keyframes,
-        local map, ICP, acceptance gates, limits, fallback, odometry use) in their documented
-        order: a parameter table, hence its length."""
-        mode = declare(self, 'mode', 'local_map',
-                       "'local_map': each scan against a map of the recent surroundings; "
-                       "'keyframe': each scan against one keyframe")
-        laser = (declare(self, 'laser_x_m', 0.10, 'laser mount x in base_link (m)'),
-                 declare(self, 'laser_y_m', 0.0, 'laser mount y in base_link (m)'),
-                 declare(self, 'laser_yaw_rad', 0.0, 'laser mount yaw in base_link (rad)',
-                         minimum=-math.pi, maximum=math.pi))
-        kf_distance = declare(self, 'keyframe_distance_m', 0.10,
-                              'new keyframe after moving this far from the last one (m)',
-                              minimum=0.0, maximum=10.0)
-        kf_angle = declare(self, 'keyframe_angle_rad', math.radians(10.0),
-                           'new keyframe after turning this much from the last one (rad)',
-                           minimum=0.0, maximum=math.pi)
-        local = LocalMapSettings(
-            cell_m=declare(self, 'map_cell_m', 0.10, 'local map: side of its cells (m)',
-                           minimum=0.01, maximum=1.0),
-            max_points_per_cell=declare(self, 'map_points_per_cell', 20,
-                                        'local map: points a cell takes before it is full',
-                                        minimum=1, maximum=10_000),
-            radius_m=declare(self, 'map_radius_m', 30.0,
-                             'local map: cells further than this from the robot are dropped (m)',
-                             minimum=0.1, maximum=1000.0),
-            max_cells=declare(self, 'map_max_cells', 60_000,
-                              'local map: at most this many cells (the furthest dropped)',
-                              minimum=1, maximum=10_000_000))
-        anchor_distance = declare(self, 'anchor_distance_m', 5.0,
-                                  "local map: /scan_match/odom's covariance is built from an "
-                                  'anchor renewed after the robot moved this far from it (m)',
-                                  minimum=0.0, maximum=1000.0)
-        insert_distance = declare(self, 'insert_distance_m', 0.10,
-                                  'local map: insert a matched scan after moving this far (m)',
-                                  minimum=0.0, maximum=10.0)
-        insert_angle = declare(self, 'insert_angle_rad', math.radians(10.0),
-                               '... or turning this much (rad) since the last insertion',
-                               minimum=0.0, maximum=math.pi)
-        min_gate = declare(self, 'min_gate_m', 0.10,
-                           'local map: the correspondence gate (3 x the recent RMS model error)'
-                           ' is at least this (m)', minimum=0.01, maximum=10.0)
-        degeneracy = declare(self, 'map_degeneracy_ratio', 0.03,
-                             'local map: a direction whose information is below this share of '
-                             'the strongest is degenerate (kept from the prediction, variance '
-                             'inflated)', minimum=0.0, maximum=1.0)
-        max_error_ratio = declare(self, 'max_error_ratio', 3.0,
-                                  'local map: a mean alignment error above this many times the '
-                                  'recent median fails the match', minimum=1.0)
-        reacquire_after = declare(self, 'reacquire_after', 1,
-                                  'local map: failed matches in a row after which a scan is '
-                                  'searched for over a wide window', minimum=1, maximum=1000)
-        reacquire_window = declare(self, 'reacquire_window_m', 1.0,
-                                   'local map: that window, x and y each way (m)',
-                                   minimum=0.0, maximum=10.0)
-        reacquire_window_rad = declare(self, 'reacquire_window_rad', math.pi,
-                                       '... and yaw each way (rad)', minimum=0.0,
-                                       maximum=math.pi)
-        velocity_decay = declare(self, 'velocity_decay_s', 0.5,
-                                 'without odometry, a failed match leaves the velocity decaying '
-                                 'with this time constant (s)', minimum=1e-3)
-        max_speed = declare(self, 'max_speed_m_s', 2.0,
-                            "no published step further from the odometry's motion than this x "
-                            'the time since the previous scan (m/s)', minimum=1e-3)
-        max_yaw_rate = declare(self, 'max_yaw_rate_rad_s', 3.0,
-                               "no published step turning further from the odometry's than "
-                               'this x the time since the previous scan (rad/s)', minimum=1e-3)
-        rate_limits = declare(self, 'rate_limits', True,
-                              'max_speed_m_s and max_yaw_rate_rad_s on; false where the stamps '
-                              "carry no measured time (a log's rebuilt from its line order)")
-        self._deskew = declare(self, 'deskew', True,
-                               "move each beam to the scan's stamp by the motion during the "
-                               'sweep, where the scan gives time_increment')
-        method = declare(self, 'method', 'point_to_line', "'point_to_line' or 'point_to_point'")
-        robust = declare(self, 'robust', 'adaptive',
-                         "outlier rule: 'adaptive' (3 x robust std of residuals), 'trim', 'none'")
-        search = declare(self, 'search', 'bearing',
-                         "nearest neighbours from the scan's bearing order ('bearing') or a "
-                         "k-d tree ('kd_tree'): the same neighbours, the bearing order faster")
-        max_iterations = declare(self, 'max_iterations', 50, 'ICP iterations at most',
-                                 minimum=1, maximum=1000)
-        max_corr = declare(self, 'max_correspondence_distance_m', 1.0,
-                           'initial correspondence gate (m); shrinks with the residuals',
-                           minimum=0.01, maximum=10.0)
-        voxel = declare(self, 'voxel_size_m', 0.0,
-                        'downsample each scan to one point per voxel of this size (m); 0 = off',
-                        minimum=0.0, maximum=1.0)
-        min_inliers = declare(self, 'min_inlier_fraction', 0.3,
-                              'fewer matched points than this fraction: failed match',
-                              minimum=0.0, maximum=1.0)
-        max_error = declare(self, 'max_error_m', 0.05,
-                            'mean alignment error above this: failed match (m)', minimum=0.0)
-        max_jump = declare(self, 'max_jump_m', 0.5,
-                           'a match further than this from the prediction is rejected (m)',
-                           minimum=0.0)
-        max_jump_rad = declare(self, 'max_jump_rad', math.radians(30.0),
-                               'a match turned further than this from the prediction is rejected',
-                               minimum=0.0, maximum=math.pi)
-        fallback_std_m = declare(self, 'fallback_std_m', 0.05,
-                                 'std added to x and y per fallback step (m)', minimum=0.0)
-        fallback_std_rad = declare(self, 'fallback_std_rad', math.radians(3.0),
-                                   'std added to yaw per fallback step (rad)', minimum=0.0)
-        max_gap = declare(self, 'max_gap_s', 1.0,
-                          'scans further apart than this restart the keyframe (s)', minimum=0.0)
-        self._odom_extrapolation_s = declare(
-            self, 'odom_max_extrapolation_s', 0.1,
-            'use odometry up to this far past its newest message (s)', minimum=0.0, maximum=1.0)
-        self._odom_delay_s = declare(
-            self, 'odom_delay_s', 0.0,
-            "how far the odometry's stamps lag the robot (s): a message stamped t is read as the "
-            'pose at t - this (< 0: stamps early)', minimum=-1.0, maximum=1.0)
-        self._min_points = declare(self, 'min_points', 20,
-                                   'scans with fewer valid points are not matched', minimum=3)
-        self._publish_tf = declare(self, 'publish_tf', False,
-                                   'broadcast odom_frame -> base_frame on /tf (one owner per '
-                                   'tree: the fusion broadcasts it by default)')
-
-        require(mode in MODES, 'mode', "must be 'local_map' or 'keyframe'", mode)
-        require(method in ('point_to_line', 'point_to_point'), 'method',
-                "must be 'point_to_line' or 'point_to_point'", method)
-        require(robust in ('adaptive', 'trim', 'none'), 'robust',
-                "must be 'adaptive', 'trim' or 'none'", robust)
-        require(search in ('bearing', 'kd_tree'), 'search', "must be 'bearing' or 'kd_tree'",
-                search)
-        require(all(math.isfinite(v) for v in laser), 'laser_x_m/laser_y_m',
-                'must be finite', laser)
-        require(bool(self._odom_frame) and bool(self._base_frame), 'odom_frame/base_frame',
-                'must not be empty')
-        require(max_gap > 0.0, 'max_gap_s', 'must be > 0', max_gap)
-        require(math.isfinite(self._odom_delay_s), 'odom_delay_s', 'must be finite',
-                self._odom_delay_s)
-        return ScanMatcherSettings(
-            mode=mode, local_map=local, anchor_distance_m=anchor_distance,
-            insert_distance_m=insert_distance, insert_angle_rad=insert_angle,
-            min_gate_m=min_gate, max_error_ratio=max_error_ratio,
-            map_degeneracy_ratio=degeneracy,
-            reacquire_after=reacquire_after, reacquire_window_m=reacquire_window,
-            reacquire_window_rad=reacquire_window_rad, velocity_decay_s=velocity_decay,
-            max_speed_m_s=max_speed, max_yaw_rate_rad_s=max_yaw_rate, rate_limits=rate_limits,
-            laser_pose=laser, keyframe_distance_m=kf_distance, keyframe_angle_rad=kf_angle,
-            max_error_m=max_error, max_jump_m=max_jump, max_jump_rad=max_jump_rad,
-            fallback_std_m=fallback_std_m, fallback_std_rad=fallback_std_rad, max_gap_s=max_gap,
-            search=search, icp_options=IcpOptions(
-                method=method, voxel_size=voxel,
-                convergence=Convergence(max_iterations=max_iterations),
-                correspondences=Correspondences(
-                    max_correspondence_distance=max_corr, robust=robust,
-                    min_inlier_fraction=min_inliers, min_points=max(3, self._min_points))))
 
 
 class IcpMatcherProcessor:

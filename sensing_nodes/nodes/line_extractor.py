@@ -8,6 +8,7 @@ docs/nodes/line_extractor.md.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
 import sys
@@ -18,6 +19,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import LaserScan, PointCloud2, PointField
 from visualization_msgs.msg import MarkerArray
 
+from sensing_nodes.core.config.line_extractor import LINE_EXTRACTOR_PARAMETERS
 from sensing_nodes.core.geometry.scan import valid_ranges
 from sensing_nodes.core.lines import Line, extract_lines
 from sensing_nodes.core.timing import StampStep, classify_step
@@ -25,7 +27,7 @@ from sensing_nodes.ros.cdr import line_list_markers_cdr, point_cloud2_cdr
 from sensing_nodes.ros.conversions import scan_arrays, stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
-from sensing_nodes.ros.params import ParameterError, declare, require
+from sensing_nodes.ros.params import declare_config
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
@@ -82,50 +84,9 @@ class LineExtractorNode(Node):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
         super().__init__('line_extractor', **node_options)
-        self._options = dict(
-            split_distance=declare(
-                self, 'split_distance', 0.05,
-                'a segment is split while one of its points is farther than this from its '
-                'least-squares line (m)', minimum=1e-6, maximum=100.0),
-            max_line_gap=declare(
-                self, 'max_line_gap', 0.5,
-                'no line spans two consecutive valid points farther apart than this (m)',
-                minimum=1e-6, maximum=1000.0),
-            min_line_points=declare(
-                self, 'min_line_points', 6, 'lines fitted to fewer beams are dropped',
-                minimum=2, maximum=100000),
-            min_line_length=declare(
-                self, 'min_line_length', 0.2, 'shorter lines (endpoint distance) are dropped (m)',
-                minimum=0.0, maximum=1000.0),
-            min_range=declare(
-                self, 'min_range', 0.0,
-                'shorter ranges are invalid (m); the scan\'s range_min also applies',
-                minimum=0.0, maximum=1000.0),
-            max_range=declare(
-                self, 'max_range', 100.0,
-                'longer ranges are invalid (m); the scan\'s range_max also applies',
-                minimum=1e-3, maximum=1e6),
-            range_sigma=declare(
-                self, 'range_sigma', 0.01,
-                'standard deviation of the range noise (m): weights the fit, scales covariances',
-                minimum=1e-6, maximum=10.0),
-            merge_chi2=declare(
-                self, 'merge_chi2', 9.21,
-                'neighbouring segments merge when chi-square of (dr, dalpha) over their summed '
-                'covariance is at most this (2 dof; 9.21 = 99 %)', minimum=1e-6, maximum=1e6),
-        )
-        self._marker_width_m = declare(self, 'marker_width', 0.03,
-                                       'line width of the LINE_LIST marker (m)',
-                                       minimum=1e-4, maximum=10.0)
-        self._max_gap_s = declare(self, 'max_gap_s', 1.0,
-                                  'scans further apart (stamp time) are reported as a gap',
-                                  minimum=1e-3, maximum=3600.0)
-        require(self._options['max_range'] > self._options['min_range'], 'max_range',
-                'must be greater than min_range', self._options['max_range'])
-        try:
-            extract_lines(np.zeros(0), np.zeros(0), **self._options)
-        except ValueError as exc:
-            raise ParameterError('line extraction options', str(exc)) from exc
+        parameters = declare_config(self, LINE_EXTRACTOR_PARAMETERS)
+        self._options = dataclasses.asdict(parameters.lines)
+        self._marker_width_m, self._max_gap_s = parameters.marker_width, parameters.max_gap_s
         self.processor = LineExtractorProcessor(
             self._options, self._marker_width_m, self._max_gap_s, Diagnostics(self),
             ThrottledWarnings(self, period_s=5.0))

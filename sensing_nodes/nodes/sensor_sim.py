@@ -29,21 +29,15 @@ from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState, LaserScan
 
+from sensing_nodes.core.config.sensor_sim import NODE_SETTINGS_PARAMETERS
 from sensing_nodes.core.geometry.transform import Transform
 from sensing_nodes.core.sim import simulator as core
+from sensing_nodes.parameters import ParameterError, load_parameters
 from sensing_nodes.ros.diagnostics import Diagnostics
-from sensing_nodes.ros.params import ParameterError, declare
+from sensing_nodes.ros.params import declare
 from sensing_nodes.ros.qos import CLOCK_QOS, ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
-from sensing_nodes.ros.sim_robot import (
-    NODE_DOCS,
-    NODE_RANGES,
-    TOPICS,
-    NodeSettings,
-    SimMessages,
-    record,
-    settings_from_values,
-)
+from sensing_nodes.ros.sim_robot import TOPICS, SimMessages, record, settings_from_values
 from sensing_nodes.ros.tf import StaticTransformBroadcaster, TransformBroadcaster
 from sensing_nodes.topics import CMD_VEL, SCAN
 
@@ -62,11 +56,11 @@ def ros_args_values(ros_args: list[str]) -> dict[str, Any]:
     try:
         remove_ros_args([NODE_NAME, '--ros-args', *ros_args])
     except (_rclpy.RCLInvalidROSArgsError, _rclpy.UnknownROSArgsError) as exc:
-        raise core.SimParameterError('ros_args', f'cannot be parsed: {exc}') from None
+        raise ParameterError('ros_args', f'cannot be parsed: {exc}') from None
     values: dict[str, Any] = {}
     for flag, argument in zip(ros_args, ros_args[1:]):
         if flag == '--params-file':
-            values.update(core.load_params_file(argument, NODE_NAME))
+            values.update(load_parameters(NODE_NAME, argument, require_section=True))
         elif flag in ('-p', '--param'):
             name, _, text = argument.partition(':=')
             values[name] = parameter_value_to_python(get_parameter_value(text))
@@ -88,18 +82,19 @@ def _record_main(argv: list[str], ros_args: list[str]) -> int:
     parser.add_argument('--quiet', action='store_true', help='no progress output')
     args = parser.parse_args(argv)
     try:
-        values = core.load_params_file(args.params_file) if args.params_file else {}
+        values = load_parameters(NODE_NAME, args.params_file, require_section=True) \
+            if args.params_file else {}
         values.update(ros_args_values(ros_args))
         if args.seed is not None:
             values['seed'] = args.seed
         params, settings, world = settings_from_values(values)
         if not (math.isfinite(args.duration) and args.duration > 0.0):
-            raise core.SimParameterError('duration', 'must be a positive number of seconds',
+            raise ParameterError('duration', 'must be a positive number of seconds',
                                          args.duration)
         if Path(args.record).exists():
-            raise core.SimParameterError('record', 'must name a directory that does not exist yet',
+            raise ParameterError('record', 'must name a directory that does not exist yet',
                                          args.record)
-    except core.SimParameterError as exc:
+    except ParameterError as exc:
         print(f'[sensor_sim] invalid parameter: {exc}', file=sys.stderr, flush=True)
         return EXIT_BAD_PARAMETER
     started = time.perf_counter()
@@ -124,19 +119,10 @@ class SensorSimNode(Node):
 
     def __init__(self) -> None:
         super().__init__(NODE_NAME)
-        values: dict[str, Any] = {}
-        for f in core.param_fields():
-            default = list(f.default) if f.name == 'route' else f.default
-            values[f.name] = declare(self, f.name, default, f.metadata['doc'],
-                                     minimum=f.metadata['min'], maximum=f.metadata['max'])
-        for name, default in NodeSettings.__dataclass_fields__.items():
-            lo, hi = NODE_RANGES.get(name, (None, None))
-            values[name] = declare(self, name, default.default, NODE_DOCS[name],
-                                   minimum=lo, maximum=hi)
-        try:
-            params, settings, world = settings_from_values(values)
-        except core.SimParameterError as exc:
-            raise ParameterError(exc.name, exc.problem, exc.value) from None
+        values = {p.name: declare(self, p) for table in (core.SIM_PARAMETERS,
+                                                         NODE_SETTINGS_PARAMETERS)
+                  for p in table.parameters}
+        params, settings, world = settings_from_values(values)
         self.params, self.settings = params, settings
         self._commands = core.CommandedMotion(params) if settings.use_cmd_vel else None
         self.sim = core.SensorSim(params, world, settings.seed, self._commands)

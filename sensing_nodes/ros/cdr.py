@@ -306,9 +306,8 @@ class _DecoderSource:
 
 def _first_alignment(msgtype: str) -> int:
     """Alignment of a message's first field (where an element of a sequence of it starts), as
-    rosbags.serde.utils.align gives it."""
+    rosbags aligns it: its first primitive's size (a string's or sequence's length: 4)."""
     from rosbags.interfaces import Nodetype
-    from rosbags.serde.utils import SIZEMAP
 
     desc = _fields(msgtype)[0][1]
     while True:
@@ -318,8 +317,10 @@ def _first_alignment(msgtype: str) -> int:
             desc = desc[1][0]
         elif desc[0] == Nodetype.SEQUENCE or desc[1][0] == 'string':
             return 4
+        elif desc[1][0] not in _PRIMITIVES:
+            raise _Malformed(desc[1][0])      # float128: rosbags reads it
         else:
-            return SIZEMAP[desc[1][0]]
+            return struct.calcsize(_PRIMITIVES[desc[1][0]][0])
 
 
 def create_decoded_subscription(node: Node, msg_class: type, topic: str,

@@ -16,7 +16,7 @@ from rclpy.exceptions import (
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from sensing_nodes.ros.params import ParameterError
+from sensing_nodes.parameters import ParameterError
 
 EXIT_BAD_PARAMETER = 2
 

@@ -1,13 +1,11 @@
-"""The simulated robot's side of ROS: its node settings (everything that is not a number of the
-simulation), parameters -> (SimParams, settings, world), samples -> rclpy messages, and the
-offline recording of a run into a bag. Shared by the sensor_sim node and its --record mode."""
+"""The simulated robot's side of ROS: parameter values -> (SimParams, node settings, world),
+samples -> rclpy messages, and the offline recording of a run into a bag. Shared by the
+sensor_sim node and its --record mode."""
 
 from __future__ import annotations
 
-import math
 import signal
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -16,8 +14,10 @@ from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState, LaserScan
 
+from sensing_nodes.core.config.sensor_sim import NODE_SETTINGS_PARAMETERS, NodeSettings
 from sensing_nodes.core.sim import simulator as core
 from sensing_nodes.core.sim.world import World, load_world
+from sensing_nodes.parameters import ParameterError
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import float32_array, yaw_to_quaternion
 from sensing_nodes.topics import CLOCK, GROUND_TRUTH, IMU_RAW, JOINT_STATES, SCAN, TOPIC_TYPES
@@ -27,96 +27,16 @@ TOPICS = {kind: (topic, TOPIC_TYPES[topic]) for kind, topic in (
     (core.JOINTS, JOINT_STATES), (core.SCAN, SCAN))}
 
 
-@dataclass(frozen=True)
-class NodeSettings:
-    """The node's own parameters (everything that is not a number of the simulation)."""
-
-    seed: int = 0
-    world_file: str = ''
-    real_time_factor: float = 1.0
-    duration_s: float = 0.0
-    use_cmd_vel: bool = False
-    publish_clock: bool = True
-    map_frame: str = 'map'
-    base_frame: str = 'base_link'
-    laser_frame: str = 'laser'
-    imu_frame: str = 'imu_link'
-    left_joint_name: str = 'left_wheel_joint'
-    right_joint_name: str = 'right_wheel_joint'
-    wait_for_subscribers: int = 0
-    wait_for_scan_subscribers: int = 0
-    pace_topic: str = ''
-    pace_timeout_s: float = 5.0
-    publish_tf: bool = True
-    truth_frame: str = 'base_link_truth'
-
-
-NODE_DOCS = {
-    'seed': 'random seed; same seed and parameters give the same messages',
-    'world_file': "world YAML (walls/polygons); '' = the shipped config/default_world.yaml",
-    'real_time_factor': 'simulated seconds per wall second (1.0 live, > 1 faster; with '
-                        'pace_topic the most)',
-    'duration_s': 'stop publishing and exit after this much simulated time; 0 = run on',
-    'use_cmd_vel': 'follow /cmd_vel (geometry_msgs/Twist) instead of the scripted route',
-    'publish_clock': 'publish simulated time on /clock',
-    'map_frame': 'frame of the ground truth pose',
-    'base_frame': 'child frame of the ground truth (the robot body)',
-    'laser_frame': 'frame of /scan',
-    'imu_frame': 'frame of /imu/data_raw (coincides with base_frame)',
-    'left_joint_name': 'name of the left wheel joint in /joint_states',
-    'right_joint_name': 'name of the right wheel joint in /joint_states',
-    'wait_for_subscribers': 'start simulated time once /scan, /imu/data_raw, /joint_states and '
-                            '/ground_truth/odom have at least this many subscribers each',
-    'wait_for_scan_subscribers': 'and /scan at least this many (every scan consumer matched, '
-                                 'so none misses the first scans)',
-    'pace_topic': "'' = paced by real_time_factor; else also paced by the graph (at most "
-                  'real_time_factor): a scan is published only once an Odometry stamped at or '
-                  'after the previous scan arrived on this topic',
-    'pace_timeout_s': 'with pace_topic: wall seconds to wait for an answer before going on '
-                      '(with a warning)',
-    'publish_tf': 'publish the sensor mounts on /tf_static (base_frame -> laser_frame, '
-                  'imu_frame) and the ground truth on /tf (map_frame -> truth_frame)',
-    'truth_frame': 'child frame of the ground truth on /tf (not base_frame: the estimate owns '
-                   'odom -> base_frame)',
-}
-NODE_RANGES = {'real_time_factor': (1e-3, 1e6), 'duration_s': (0.0, None), 'seed': (0, 2**63 - 1),
-               'pace_timeout_s': (1e-3, None), 'wait_for_subscribers': (0, 1000),
-               'wait_for_scan_subscribers': (0, 1000)}
-
-
 def settings_from_values(values: dict[str, Any]) -> tuple[core.SimParams, NodeSettings, World]:
-    """Parameters, node settings and world from a dict of parameter values; SimParameterError
-    names the first parameter that is missing its type, out of range, or unusable."""
-    params = core.params_from_dict(values)
-    core.validate(params)
-    fields = {}
-    for name, default in NodeSettings.__dataclass_fields__.items():
-        value = values.get(name, default.default)
-        expected = type(default.default)
-        if expected is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
-            raise core.SimParameterError(name, f'must be of type {expected.__name__}', value)
-        fields[name] = value
-    settings = NodeSettings(**fields)
-    for name, (lo, hi) in NODE_RANGES.items():
-        value = getattr(settings, name)
-        if not math.isfinite(value) or value < lo or (hi is not None and value > hi):
-            upper = hi if hi is not None else 'inf'
-            raise core.SimParameterError(name, f'must be in [{lo}, {upper}]',
-                                         value)
-    for name in ('map_frame', 'base_frame', 'laser_frame', 'imu_frame', 'truth_frame',
-                 'left_joint_name', 'right_joint_name'):
-        if not getattr(settings, name).strip():
-            raise core.SimParameterError(name, 'must not be empty')
-    if settings.left_joint_name == settings.right_joint_name:
-        raise core.SimParameterError('right_joint_name', 'must differ from left_joint_name',
-                                     settings.right_joint_name)
+    """Parameters, node settings and world from a dict of parameter values; ParameterError
+    names the first parameter of the wrong type, out of range, or unusable."""
+    params = core.SIM_PARAMETERS.config(values)
+    settings = NODE_SETTINGS_PARAMETERS.config(values)
     path = settings.world_file or str(config_file('default_world.yaml'))
     try:
         world = load_world(path)
     except ValueError as exc:
-        raise core.SimParameterError('world_file', str(exc), path) from None
+        raise ParameterError('world_file', str(exc), path) from None
     return params, settings, world
 
 

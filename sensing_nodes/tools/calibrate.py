@@ -35,33 +35,30 @@ from sensing_nodes.bags.sensor_streams import (
     read_yaw_track,
     stderr_progress,
 )
+from sensing_nodes.core.config.icp_matcher import ICP_MATCHER_PARAMETERS, IcpMatcherParameters
+from sensing_nodes.core.config.wheel_odometry import (
+    WHEEL_ODOMETRY_PARAMETERS,
+    WheelOdometryParameters,
+)
 from sensing_nodes.core.evaluation import calibration as cal
 from sensing_nodes.core.geometry.scan import scan_to_points
+from sensing_nodes.parameters import ParameterError, load_parameters
 from sensing_nodes.paths import config_file
 
 PROG = 'sensing_calibrate'
 
 
-def _section(path: Path, node: str) -> dict[str, Any]:
-    data = yaml.safe_load(path.read_text()) or {}
-    for key in (node, '/' + node, '/**'):
-        section = data.get(key) if isinstance(data, dict) else None
-        if isinstance(section, dict) and isinstance(section.get('ros__parameters'), dict):
-            return section['ros__parameters']
-    return {}
-
-
-def nominal_settings(nominal_file: Path | None) -> dict[str, Any]:
-    """wheel_odometry and icp_matcher parameters the nodes run with today (merged dict)."""
-    values: dict[str, Any] = {}
-    files = [nominal_file] * 2 if nominal_file else [config_file('wheel_odometry.yaml'),
-                                                     config_file('icp_matcher.yaml')]
+def nominal_settings(nominal_file: Path | None
+                     ) -> tuple[WheelOdometryParameters, IcpMatcherParameters]:
+    """wheel_odometry's and icp_matcher's parameters as the nodes run with them: the --nominal
+    file's, else the shipped config/ files' (each node's defaults for what a file leaves out)."""
     try:
-        values.update(_section(Path(files[0]), 'wheel_odometry'))
-        values.update(_section(Path(files[1]), 'icp_matcher'))
-    except (OSError, yaml.YAMLError) as exc:
-        raise SensorBagError(f'cannot read the nominal parameters: {exc}') from None
-    return values
+        return (WHEEL_ODOMETRY_PARAMETERS.config(load_parameters(
+                    'wheel_odometry', nominal_file or config_file('wheel_odometry.yaml'))),
+                ICP_MATCHER_PARAMETERS.config(load_parameters(
+                    'icp_matcher', nominal_file or config_file('icp_matcher.yaml'))))
+    except ParameterError as exc:
+        raise SensorBagError(f'cannot use the nominal parameters: {exc}') from None
 
 
 def _wheel_columns(names: tuple[str, ...], left: str, right: str) -> tuple[int, int]:
@@ -189,19 +186,19 @@ def plot(result: cal.CalibrationResult, intervals: cal.Intervals, path: Path) ->
     plt.close(fig)
 
 
-def _nominal(args: argparse.Namespace) -> tuple[cal.Geometry, float, dict]:
+def _nominal(args: argparse.Namespace) -> tuple[cal.Geometry, float, WheelOdometryParameters]:
     """The nominal geometry (command line over the --nominal parameter file over defaults),
-    the nominal wheel radius (m) and the file's values."""
-    values = nominal_settings(args.nominal)
-    radius = args.wheel_radius or float(values.get('wheel_radius_m', 0.05))
-    separation = args.wheel_separation or float(values.get('wheel_separation_m', 0.30))
-    laser = args.laser or [float(values.get(k, 0.0)) for k in
-                           ('laser_x_m', 'laser_y_m', 'laser_yaw_rad')]
+    the nominal wheel radius (m) and wheel_odometry's parameters."""
+    wheel, icp = nominal_settings(args.nominal)
+    odometry = wheel.odometry
+    radius = args.wheel_radius or odometry.wheel_radius_m
+    separation = args.wheel_separation or odometry.wheel_separation_m
+    laser = args.laser or list(icp.matcher.laser_pose)
     # A radius given on the command line replaces the file's, multipliers included.
-    left_mult = 1.0 if args.wheel_radius else float(values.get('left_radius_multiplier', 1.0))
-    right_mult = 1.0 if args.wheel_radius else float(values.get('right_radius_multiplier', 1.0))
+    left_mult = 1.0 if args.wheel_radius else odometry.left_radius_multiplier
+    right_mult = 1.0 if args.wheel_radius else odometry.right_radius_multiplier
     return cal.Geometry(radius * left_mult, radius * right_mult, separation, *laser), radius, \
-        values
+        wheel
 
 
 def _print_inputs(args, data, columns: tuple[int, int], nominal: cal.Geometry) -> None:
@@ -262,10 +259,9 @@ def run(args: argparse.Namespace) -> int:
                            imu_topic=args.imu_topic, want=('joints', 'scan', 'imu'),
                            required=('joints', 'scan'), purpose='calibration needs both',
                            progress=progress)
-    nominal, radius, nominal_values = _nominal(args)
-    columns = _wheel_columns(data.joint_names,
-                             args.left_joint or nominal_values.get('left_wheel_joint', ''),
-                             args.right_joint or nominal_values.get('right_wheel_joint', ''))
+    nominal, radius, wheel = _nominal(args)
+    columns = _wheel_columns(data.joint_names, args.left_joint or wheel.left_wheel_joint,
+                             args.right_joint or wheel.right_wheel_joint)
     joints = data.joint_position[:, list(columns)]
     if np.ptp(joints, axis=0).max() < 1e-6:
         raise SensorBagError(f'{args.bag}: the wheels never turn: no motion to calibrate from')

@@ -298,7 +298,7 @@ def _write_bag(out: Path, messages: list, options: ConvertOptions,
     staging.mkdir(parents=True)
     counts = {SCAN: 0, '/odom': 0, GROUND_TRUTH: 0}
     try:
-        # Written in one go: rosbags' own chunks (a crash leaves only the staging folder).
+        # Written in one go: 1 MiB chunks (a crash leaves only the staging folder).
         with BagWriter(staging / out.name, compress=options.compress, chunk_s=None) as bag:
             # Offered QoS for `ros2 bag play`: the scan as a driver offers it, the rest reliable.
             bag.add_topic(SCAN, 'sensor_msgs/msg/LaserScan', SENSOR_QOS)

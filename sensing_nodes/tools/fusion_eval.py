@@ -30,10 +30,11 @@ from sensing_nodes.core.evaluation.fusion import (
     stop_corrections,
     track_errors,
 )
-from sensing_nodes.core.fusion.config import ConfigError, SessionConfig, default_config
+from sensing_nodes.core.fusion.config import SessionConfig, default_config
 from sensing_nodes.core.fusion.inputs import IMU
 from sensing_nodes.core.sim.inputs import FusionInputs, simulated_inputs
-from sensing_nodes.core.sim.simulator import load_params_file, params_from_dict
+from sensing_nodes.core.sim.simulator import params_from_dict
+from sensing_nodes.parameters import ParameterError, load_parameters
 from sensing_nodes.paths import config_file
 
 EXIT_BAD_INPUT = 2
@@ -138,13 +139,13 @@ def main(argv: list[str] | None = None) -> int:
         ekf = default_config(*args.params_file, overrides={'method': 'ekf', **EVERY_OUTPUT})
         complementary = default_config(*args.params_file,
                                        overrides={'method': 'complementary', **EVERY_OUTPUT})
-    except (ConfigError, OSError) as error:
+    except ParameterError as error:
         print(f'sensing_fusion_eval: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
     rows, summary = [], {}
     for name in args.configs.split(','):
         params = None if name == 'default' else params_from_dict(
-            load_params_file(config_file(f'bags_{name}.yaml')))
+            load_parameters('sensor_sim', config_file(f'bags_{name}.yaml')))
         runs = []
         for seed in range(args.seeds):
             inputs = simulated_inputs(seed, params, matcher_mode=args.matcher_mode)

@@ -1,8 +1,8 @@
-"""complementary_fusion's parameters (names as in its YAML file and on the node, defaults,
-ranges, descriptions) and the one translation of a parameter dict into the fusion's whole
-configuration (SessionConfig): the node declares the parameters of these tables and calls
-`session_config` with their values, as the offline tools do with a YAML file's, so the two
-cannot disagree."""
+"""complementary_fusion's parameters as one dataclass (FusionParameters: names as in its YAML
+file and on the node, defaults, ranges and descriptions in its tables) and the one translation
+of them into the fusion's whole configuration (SessionConfig): the node declares a table's
+parameters and translates their values, as the offline tools do with a parameter file's, so
+the two cannot disagree."""
 
 from __future__ import annotations
 
@@ -12,173 +12,150 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from sensing_nodes.core.fusion.complementary import FusionSettings
 from sensing_nodes.core.fusion.ekf import EkfSettings
 from sensing_nodes.core.fusion.inputs import (
     IMU,
     IMU_SOURCES,
     INPUT_DEFAULTS,
-    INPUT_DESCRIPTIONS,
+    INPUT_PARAMS,
     INPUTS,
     SCAN,
     WHEEL,
     InputConfig,
-    input_config,
+    input_internal,
+    with_fixed,
     with_mask,
+)
+from sensing_nodes.parameters import (
+    Param,
+    ParameterError,
+    ParameterTable,
+    flatten,
+    load_parameters,
 )
 from sensing_nodes.paths import config_file
 
 NODE_NAME = 'complementary_fusion'
 METHODS = ('ekf', 'complementary')
+# The scan matches each method takes.
+SCAN_TOPICS = {'ekf': '/scan_match/keyframe_odom', 'complementary': '/scan_match/odom'}
 
 
 @dataclass(frozen=True)
-class Parameter:
-    """One parameter: its default (which also fixes its type), what it means, and its inclusive
-    range where it is a number."""
+class FusionParameters:
+    """complementary_fusion's parameters: the method, which inputs it fuses and their topics,
+    the timeline (s), frames and outputs; with method 'ekf' also the IMU's source and fallback
+    mount (roll, pitch, yaw in base_link, rad), each input's settings (max_gap_s 0: the node's)
+    and the filter's process noise."""
 
-    default: Any
-    description: str
-    minimum: float | None = None
-    maximum: float | None = None
+    method: str = 'ekf'
+    use_wheel_odom: bool = True
+    use_imu: bool = True
+    use_scan_match_position: bool = True
+    use_scan_match_heading: bool = True
+    alpha: float | None = 0.98            # None: 'auto'
+    reorder_window_s: float = 2.0
+    flush_after_s: float = 0.5            # wall time
+    max_gap_s: float = 2.0
+    reset_on_backwards_jump_s: float = 0.0
+    input_timeout_s: float = 2.0
+    odom_frame: str = 'odom'
+    base_frame: str = 'base_link'
+    publish_tf: bool = True
+    publish_rate_hz: float = 30.0
+    wheel_odom_topic: str = '/wheel/odom'
+    imu_topic: str = '/imu/data'
+    scan_match_topic: str = SCAN_TOPICS['ekf']
+    level_with_imu_tilt: bool = False
+    # method 'ekf' only
+    imu_source: str = 'integrated'
+    imu_estimate_bias: bool = False
+    imu_mount_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    wheel_odom: InputConfig = INPUT_DEFAULTS[WHEEL]
+    imu: InputConfig = INPUT_DEFAULTS[IMU]
+    scan_match: InputConfig = INPUT_DEFAULTS[SCAN]
+    ekf: EkfSettings = EkfSettings()
 
+    @property
+    def enabled(self) -> dict[str, bool]:
+        """Per input (WHEEL, IMU, SCAN): fused or not."""
+        return {WHEEL: self.use_wheel_odom, IMU: self.use_imu,
+                SCAN: self.use_scan_match_position or self.use_scan_match_heading}
 
-# Every method's, in the node's declaration order.
-PARAMETERS: dict[str, Parameter] = {
-    'method': Parameter('ekf', "'ekf' (docs/fusion.md) or 'complementary' (the seed's filter)"),
-    'use_wheel_odom': Parameter(True, 'fuse /wheel/odom'),
-    'use_imu': Parameter(True, 'fuse /imu/data'),
-    'use_scan_match_position': Parameter(True, 'fuse x/y of scan matching'),
-    'use_scan_match_heading': Parameter(True, 'fuse the heading of scan matching'),
-    # a number or 'auto': the node declares it with dynamic typing
-    'alpha': Parameter(0.98, "complementary: weight of the gyro-propagated heading, in [0, 1], "
-                             "or 'auto' to derive it each update from the two variances"),
-    'reorder_window_s': Parameter(2.0, 'longest an input may lag the newest (stamp time) and '
-                                       'still be fused in stamp order; later messages are '
-                                       'dropped and counted', 0.0, 10.0),
-    'flush_after_s': Parameter(0.5, 'wall time without input after which held inputs are '
-                                    'processed', 0.01, 60.0),
-    'max_gap_s': Parameter(2.0, 'an input silent longer than this (stamp time) restarts its '
-                                'increments', 0.001, 3600.0),
-    'reset_on_backwards_jump_s': Parameter(
-        0.0, "an input stamp more than this before the same input's previous one means time "
-             'went backwards (looping bag): the filter resets', 0.0),
-    'input_timeout_s': Parameter(2.0, 'an enabled input silent for this long is reported '
-                                      'missing', 0.01),
-    'odom_frame': Parameter('odom', 'frame of the fused pose'),
-    'base_frame': Parameter('base_link', 'child frame of the fused pose'),
-    'publish_tf': Parameter(True, 'broadcast odom_frame -> base_frame on /tf with each output, '
-                                  'stamped as the output (one owner per tree: turn it off where '
-                                  'another node owns it)'),
-    'publish_rate_hz': Parameter(
-        30.0, 'outputs (/odometry/filtered, /tf) per second of stamp time: the first fused '
-              'output in each new period goes out, with its stamp; 0: one per wheel and '
-              'scan-match input (every input still filtered)', 0.0, 1000.0),
-    'wheel_odom.topic': Parameter('/wheel/odom', 'wheel odometry topic'),
-    'imu.topic': Parameter('/imu/data', 'IMU topic (sensor_msgs/Imu)'),
-    'level_with_imu_tilt': Parameter(
-        False, "ekf, imu.source 'orientation': count only the horizontal part of body "
-               "velocities (the IMU's roll and pitch), for a robot on slopes"),
-}
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each setting the fusion cannot run with (of an input:
+        only where it is enabled)."""
+        out: list[tuple[str, str, object]] = []
+        if self.method not in METHODS:
+            out.append(('method', "must be 'ekf' or 'complementary'", self.method))
+        if self.alpha is not None and not 0.0 <= self.alpha <= 1.0:
+            out.append(('alpha', "must be a number in [0, 1] or 'auto'", self.alpha))
+        enabled = self.enabled
+        if not any(enabled.values()):
+            out.append(('use_*', 'at least one input must be enabled', None))
+        if not (self.odom_frame and self.base_frame):
+            out.append(('odom_frame/base_frame', 'must not be empty', None))
+        if self.method != 'ekf':
+            return out
+        if self.imu_source not in IMU_SOURCES:
+            out.append(('imu_source', f'must be one of {IMU_SOURCES}', self.imu_source))
+        for name in INPUTS:
+            if not enabled[name]:
+                continue
+            cfg = getattr(self, name)
+            out += [(f'{name}.{field}', problem, value)
+                    for field, problem, value in cfg.problems()]
+            # A retimed input lags (or leads) the others by delay_s in stamp time: the reorder
+            # buffer must hold the others that long, or its messages are dropped as late.
+            if not abs(cfg.delay_s) <= self.reorder_window_s:
+                out.append((f'{name}.delay_s', 'must be within the reorder window (|delay_s| '
+                            f'<= reorder_window_s = {self.reorder_window_s:g} s)', cfg.delay_s))
+        return out
 
-# The scan matches each method takes.
-SCAN_TOPIC: dict[str, Parameter] = {
-    'ekf': Parameter('/scan_match/keyframe_odom', 'keyframe-relative scan matches (icp_matcher)'),
-    'complementary': Parameter('/scan_match/odom', 'scan matching poses (icp_matcher)'),
-}
+    def session_config(self) -> SessionConfig:
+        """The fusion's configuration these parameters give."""
+        enabled = self.enabled
+        imu_source, mount, inputs, ekf = 'integrated', (0.0, 0.0, 0.0), (), EkfSettings()
+        if self.method == 'ekf':
+            imu_source, mount, ekf = self.imu_source, self.imu_mount_rpy, self.ekf
+            inputs = self._ekf_inputs(enabled)
+        complementary = FusionSettings(
+            use_wheel=self.use_wheel_odom, use_gyro=self.use_imu,
+            use_scan_position=self.use_scan_match_position,
+            use_scan_heading=self.use_scan_match_heading, alpha=self.alpha,
+            max_gap_s=self.max_gap_s)
+        return SessionConfig(
+            method=self.method, enabled=enabled, inputs=inputs, ekf=ekf,
+            complementary=complementary,
+            topics={WHEEL: self.wheel_odom_topic, IMU: self.imu_topic,
+                    SCAN: self.scan_match_topic},
+            imu_source=imu_source, imu_mount_rpy=mount,
+            level_with_imu_tilt=self.level_with_imu_tilt,
+            reorder_window_s=self.reorder_window_s, flush_after_s=self.flush_after_s,
+            max_gap_s=self.max_gap_s, reset_on_backwards_jump_s=self.reset_on_backwards_jump_s,
+            input_timeout_s=self.input_timeout_s, odom_frame=self.odom_frame,
+            base_frame=self.base_frame, publish_tf=self.publish_tf,
+            publish_rate_hz=self.publish_rate_hz)
 
-
-def _ekf_parameters() -> dict[str, Parameter]:
-    """method 'ekf' only: the IMU's source and mount, each input's (INPUT_DEFAULTS), the
-    process noise."""
-    table = {'imu.source': Parameter(
-        'integrated', "'integrated' (gyro_integrator's heading), 'orientation' (the IMU's own "
-                      "orientation) or 'rate' (raw gyro rate, bias estimated in the filter)"),
-        'imu.estimate_bias': Parameter(
-            False, "imu.source 'integrated': estimate the integrator's remaining bias (its "
-                   'heading increments measure the turn plus bias x interval; observable where '
-                   "another input measures the heading absolutely: a local map's matches)")}
-    for axis in ('roll', 'pitch', 'yaw'):
-        table[f'imu.mount_{axis}_rad'] = Parameter(
-            0.0, f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi; the '
-                 "fallback where /tf_static gives no base_frame -> the Imu's frame_id",
-            -2 * math.pi, 2 * math.pi)
-    for name in INPUTS:
-        for key, default in INPUT_DEFAULTS[name].items():
-            numeric = isinstance(default, float) and key != 'delay_s'   # delay_s may be < 0
-            table[f'{name}.{key}'] = Parameter(default, INPUT_DESCRIPTIONS[key],
-                                               0.0 if numeric else None)
-    defaults = EkfSettings()
-    table.update({
-        'ekf.accel_noise_density': Parameter(
-            defaults.accel_noise_density, 'how fast vx, vy may change (m/s^2/sqrt(Hz))', 1e-6),
-        'ekf.angular_accel_noise_density': Parameter(
-            defaults.angular_accel_noise_density,
-            'how fast the yaw rate may change (rad/s^2/sqrt(Hz))', 1e-6),
-        'ekf.bias_random_walk': Parameter(defaults.bias_random_walk,
-                                          'gyro bias random walk (rad/s/sqrt(s))', 0.0),
-        'ekf.initial_bias_std': Parameter(defaults.initial_bias_std,
-                                          'gyro bias std before any input (rad/s)', 0.0),
-        'ekf.speed_std_m_s': Parameter(
-            defaults.speed_std_m_s, "the spread of the robot's speeds (m/s): its velocity's "
-            'uncertainty grows no further, and dead reckoning faster than the gate allows is '
-            'refused', 1e-3, 1e3),
-        'ekf.yaw_rate_std_rad_s': Parameter(
-            defaults.yaw_rate_std_rad_s, "the spread of the robot's yaw rates (rad/s), as "
-            'speed_std_m_s', 1e-3, 1e3),
-        'ekf.fault_isolation': Parameter(
-            defaults.fault_isolation, 'a refused scan match is checked against the state '
-            'replayed without each other input since the last fused match: an input the match '
-            'and the motion model both contradict is blamed and its readings dropped instead'),
-        'ekf.reacquire_after_s': Parameter(
-            defaults.reacquire_after_s, 'a scan input refused this long (stamp time) is taken '
-            'back: its map or keyframe placed anew from the current match (s)', 0.0, 3600.0),
-        'ekf.reacquire_after_matches': Parameter(
-            float(defaults.reacquire_after_matches), '... and refused at least this many '
-            'matches in a row', 1.0, 1e6),
-        'ekf.hold_back_max_s': Parameter(
-            defaults.hold_back_max_s, "an input blamed at a scan match is held back until the "
-            'next match vouches for it where matches come at most this far apart (s; 0: never, '
-            'for stamps whose time is assumed)', 0.0, 60.0),
-        'ekf.adaptive_noise': Parameter(
-            defaults.adaptive_noise, "scale each input's noise by what its innovations show "
-            '(bounded, windowed; the scales on /diagnostics)'),
-        'ekf.adaptive_window': Parameter(
-            float(defaults.adaptive_window), 'readings the adaptive noise scale follows', 2.0,
-            1e6),
-        'ekf.adaptive_max_scale': Parameter(
-            defaults.adaptive_max_scale, 'largest adaptive noise scale', 1.0, 1e6),
-    })
-    return table
-
-
-EKF_PARAMETERS: dict[str, Parameter] = _ekf_parameters()
-
-
-def parameters_of(method: str) -> dict[str, Parameter]:
-    """Every parameter the node declares with this method, in declaration order."""
-    table = dict(PARAMETERS)
-    if method == 'ekf':
-        table.update(EKF_PARAMETERS)
-    if method in SCAN_TOPIC:
-        table['scan_match.topic'] = SCAN_TOPIC[method]
-    return table
-
-
-class ConfigError(ValueError):
-    """A parameter value the fusion cannot run with (the node exits with status 2 on it)."""
-
-    def __init__(self, name: str, problem: str, value: Any = None) -> None:
-        detail = f' (got {value!r})' if value is not None else ''
-        super().__init__(f"parameter '{name}' {problem}{detail}")
-        self.name, self.problem, self.value = name, problem, value
-
-
-def _require(condition: bool, name: str, problem: str, value: Any = None) -> None:
-    if not condition:
-        raise ConfigError(name, problem, value)
+    def _ekf_inputs(self, enabled: Mapping[str, bool]) -> tuple[InputConfig, ...]:
+        """The enabled inputs' EKF configurations (use_scan_match_position / _heading switch the
+        scan's quantities off)."""
+        # The bias is a state for the raw rate always, for the integrated heading on request.
+        bias = self.imu_source == 'rate' or (self.imu_source == 'integrated'
+                                             and self.imu_estimate_bias)
+        fixed = {WHEEL: {}, IMU: {'gyro_bias': bias}, SCAN: {'keyframes': True}}
+        configs = []
+        for name in INPUTS:
+            if not enabled[name]:
+                continue
+            cfg = with_fixed(getattr(self, name), max_gap_s=self.max_gap_s, **fixed[name])
+            if name == SCAN:
+                cfg = with_mask(cfg, **({} if self.use_scan_match_position else
+                                        {'x': False, 'y': False}),
+                                **({} if self.use_scan_match_heading else {'yaw': False}))
+            configs.append(cfg)
+        return tuple(configs)
 
 
 @dataclass(frozen=True)
@@ -210,144 +187,141 @@ class SessionConfig:
         return {cfg.name: cfg for cfg in self.inputs}
 
 
-def flatten(params: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
-    """{'imu': {'source': 'rate'}} -> {'imu.source': 'rate'} (dotted names, as ROS 2 reads a
-    parameter file's nesting); already dotted names pass unchanged."""
-    out: dict[str, Any] = {}
-    for key, value in params.items():
-        if isinstance(value, Mapping):
-            out.update(flatten(value, f'{prefix}{key}.'))
-        else:
-            out[f'{prefix}{key}'] = value
-    return out
-
-
-def _value(values: Mapping[str, Any], name: str, parameter: Parameter) -> Any:
-    """values[name] (the default when absent) checked against the parameter's type and range,
-    as the node's declaration checks it."""
-    value = values.get(name, parameter.default)
-    default = parameter.default
-    if isinstance(default, bool):
-        _require(isinstance(value, bool), name, 'must be true or false', value)
-    elif isinstance(default, (int, float)):
-        _require(isinstance(value, (int, float)) and not isinstance(value, bool), name,
-                 'must be a number', value)
-        value = float(value)
-        low, high = parameter.minimum, parameter.maximum
-        _require((low is None or value >= low) and (high is None or value <= high), name,
-                 f'must be within [{-math.inf if low is None else low:g}, '
-                 f'{math.inf if high is None else high:g}]', value)
-    elif isinstance(default, str):
-        _require(isinstance(value, str), name, 'must be a string', value)
-    else:
-        _require(isinstance(value, (list, tuple)), name, 'must be a list', value)
-    return value
-
-
 def _alpha(value: Any) -> float | None:
-    """alpha: a number in [0, 1], or None for 'auto'."""
+    """alpha: a number (checked by problems()), or None for 'auto'."""
     if value == 'auto':
         return None
-    _require(isinstance(value, (int, float)) and not isinstance(value, bool)
-             and 0.0 <= value <= 1.0, 'alpha', "must be a number in [0, 1] or 'auto'", value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError("must be a number in [0, 1] or 'auto'")
     return float(value)
 
 
-def session_config(params: Mapping[str, Any]) -> SessionConfig:
-    """The fusion's configuration from complementary_fusion's parameters, nested as in its YAML
-    file or with dotted names as the node declares them (absent ones: their defaults); the
-    node's validation (ConfigError names the parameter)."""
-    flat = flatten(params)
+def _mount(axis: str) -> Param:
+    return Param(f'IMU mount {axis} in base_link (rad, ZYX); upside down: roll = pi; the '
+                 "fallback where /tf_static gives no base_frame -> the Imu's frame_id",
+                 -2 * math.pi, 2 * math.pi, name=f'imu.mount_{axis}_rad')
+
+
+_DESCRIBED = {
+    'method': Param("'ekf' (docs/fusion.md) or 'complementary' (the seed's filter)"),
+    'use_wheel_odom': Param('fuse /wheel/odom'),
+    'use_imu': Param('fuse /imu/data'),
+    'use_scan_match_position': Param('fuse x/y of scan matching'),
+    'use_scan_match_heading': Param('fuse the heading of scan matching'),
+    'alpha': Param("complementary: weight of the gyro-propagated heading, in [0, 1], or 'auto' "
+                   'to derive it each update from the two variances', dynamic=True,
+                   to_value=lambda alpha: 'auto' if alpha is None else alpha,
+                   from_value=_alpha),
+    'reorder_window_s': Param('longest an input may lag the newest (stamp time) and still be '
+                              'fused in stamp order; later messages are dropped and counted',
+                              0.0, 10.0),
+    'flush_after_s': Param('wall time without input after which held inputs are processed',
+                           0.01, 60.0),
+    'max_gap_s': Param('an input silent longer than this (stamp time) restarts its increments',
+                       0.001, 3600.0),
+    'reset_on_backwards_jump_s': Param(
+        "an input stamp more than this before the same input's previous one means time went "
+        'backwards (looping bag): the filter resets', 0.0),
+    'input_timeout_s': Param('an enabled input silent for this long is reported missing', 0.01),
+    'odom_frame': Param('frame of the fused pose'),
+    'base_frame': Param('child frame of the fused pose'),
+    'publish_tf': Param('broadcast odom_frame -> base_frame on /tf with each output, stamped as '
+                        'the output (one owner per tree: turn it off where another node owns '
+                        'it)'),
+    'publish_rate_hz': Param(
+        'outputs (/odometry/filtered, /tf) per second of stamp time: the first fused output in '
+        'each new period goes out, with its stamp; 0: one per wheel and scan-match input (every '
+        'input still filtered)', 0.0, 1000.0),
+    'wheel_odom_topic': Param('wheel odometry topic', name='wheel_odom.topic'),
+    'imu_topic': Param('IMU topic (sensor_msgs/Imu)', name='imu.topic'),
+    'scan_match_topic': Param('scan matches (icp_matcher): keyframe-relative or in its local '
+                              "map (method 'ekf'), or its odometry ('complementary')",
+                              name='scan_match.topic'),
+    'level_with_imu_tilt': Param(
+        "ekf, imu.source 'orientation': count only the horizontal part of body velocities (the "
+        "IMU's roll and pitch), for a robot on slopes"),
+    'imu_source': Param("'integrated' (gyro_integrator's heading), 'orientation' (the IMU's own "
+                        "orientation) or 'rate' (raw gyro rate, bias estimated in the filter)",
+                        name='imu.source'),
+    'imu_estimate_bias': Param(
+        "imu.source 'integrated': estimate the integrator's remaining bias (its heading "
+        'increments measure the turn plus bias x interval; observable where another input '
+        "measures the heading absolutely: a local map's matches)", name='imu.estimate_bias'),
+    'imu_mount_rpy': Param(elements=(_mount('roll'), _mount('pitch'), _mount('yaw'))),
+    **{f'{name}.{field}': param for name in INPUTS for field, param in INPUT_PARAMS.items()},
+    'ekf.accel_noise_density': Param('how fast vx, vy may change (m/s^2/sqrt(Hz))', 1e-6),
+    'ekf.angular_accel_noise_density': Param(
+        'how fast the yaw rate may change (rad/s^2/sqrt(Hz))', 1e-6),
+    'ekf.bias_random_walk': Param('gyro bias random walk (rad/s/sqrt(s))', 0.0),
+    'ekf.initial_bias_std': Param('gyro bias std before any input (rad/s)', 0.0),
+    'ekf.speed_std_m_s': Param(
+        "the spread of the robot's speeds (m/s): its velocity's uncertainty grows no further, "
+        'and dead reckoning faster than the gate allows is refused', 1e-3, 1e3),
+    'ekf.yaw_rate_std_rad_s': Param(
+        "the spread of the robot's yaw rates (rad/s), as speed_std_m_s", 1e-3, 1e3),
+    'ekf.fault_isolation': Param(
+        'a refused scan match is checked against the state replayed without each other input '
+        'since the last fused match: an input the match and the motion model both contradict '
+        'is blamed and its readings dropped instead'),
+    'ekf.reacquire_after_s': Param(
+        'a scan input refused this long (stamp time) is taken back: the pose doubted as far as '
+        'it disagrees with the match, which is fused (s)', 0.0, 3600.0),
+    'ekf.reacquire_after_matches': Param('... and refused at least this many matches in a row',
+                                         1, 1_000_000),
+    'ekf.hold_back_max_s': Param(
+        'an input blamed at a scan match is held back until the next match vouches for it '
+        'where matches come at most this far apart (s; 0: never, for stamps whose time is '
+        'assumed)', 0.0, 60.0),
+    'ekf.adaptive_noise': Param(
+        "scale the dead reckoning's noise by what the scan matches' innovations show (bounded, "
+        'windowed; the scales on /diagnostics)'),
+    'ekf.adaptive_window': Param('scan matches the adaptive noise scale follows', 2, 1_000_000),
+    'ekf.adaptive_max_scale': Param('largest adaptive noise scale', 1.0, 1e6),
+}
+# What the node does not expose: each input's fields its kind decides, the EKF's pose noise and
+# initial velocity std (the filter's own values).
+_INTERNAL = {f'{name}.{field}' for name in INPUTS for field in input_internal(name)} | {
+    'ekf.pose_noise_density', 'ekf.initial_velocity_std', 'ekf.isolation_log'}
+_EKF_ONLY = {'imu_source', 'imu_estimate_bias', 'imu_mount_rpy', *INPUTS, 'ekf'}
+
+# The parameters each method declares.
+FUSION_PARAMETERS: dict[str, ParameterTable[FusionParameters]] = {
+    'ekf': ParameterTable(FusionParameters(), _DESCRIBED,
+                          prefixes={f'{name}.noise': '' for name in INPUTS}, internal=_INTERNAL),
+    'complementary': ParameterTable(
+        FusionParameters(method='complementary', scan_match_topic=SCAN_TOPICS['complementary']),
+        {k: v for k, v in _DESCRIBED.items() if k.split('.')[0] not in _EKF_ONLY},
+        internal=_EKF_ONLY),
+}
+
+
+def fusion_parameters(values: Mapping[str, Any]) -> FusionParameters:
+    """complementary_fusion's parameters from their values, nested as in its YAML file or with
+    dotted names as the node declares them (absent ones: their defaults; those of the other
+    method are not read), checked as the node checks them (ParameterError names the
+    parameter)."""
+    flat = flatten(values)
     retired = sorted(name for name in flat if name.endswith('.gate_chi2'))
-    _require(not retired, retired[0] if retired else '', 'is gone: every input has a gate, set '
-             'by its gate_probability (the chi-square quantile of its rows; 0.999 by '
-             'default)', flat.get(retired[0]) if retired else None)
-    method = _value(flat, 'method', PARAMETERS['method'])
-    _require(method in METHODS, 'method', "must be 'ekf' or 'complementary'", method)
-    table = parameters_of(method)
-    v = {name: (_alpha(flat.get(name, p.default)) if name == 'alpha' else _value(flat, name, p))
-         for name, p in table.items()}
-    enabled = {WHEEL: v['use_wheel_odom'], IMU: v['use_imu'],
-               SCAN: v['use_scan_match_position'] or v['use_scan_match_heading']}
-    _require(any(enabled.values()), 'use_*', 'at least one input must be enabled')
-    _require(bool(v['odom_frame']) and bool(v['base_frame']), 'odom_frame/base_frame',
-             'must not be empty')
-    imu_source, mount, inputs, ekf = 'integrated', (0.0, 0.0, 0.0), (), EkfSettings()
-    if method == 'ekf':
-        imu_source = v['imu.source']
-        _require(imu_source in IMU_SOURCES, 'imu.source', f'must be one of {IMU_SOURCES}',
-                 imu_source)
-        mount = tuple(v[f'imu.mount_{axis}_rad'] for axis in ('roll', 'pitch', 'yaw'))
-        inputs = _ekf_inputs(v, enabled, imu_source)
-        ekf = EkfSettings(**{key: v[f'ekf.{key}'] for key in (
-            'accel_noise_density', 'angular_accel_noise_density', 'bias_random_walk',
-            'initial_bias_std', 'speed_std_m_s', 'yaw_rate_std_rad_s', 'fault_isolation',
-            'reacquire_after_s', 'hold_back_max_s', 'adaptive_noise', 'adaptive_max_scale')},
-            reacquire_after_matches=int(v['ekf.reacquire_after_matches']),
-            adaptive_window=int(v['ekf.adaptive_window']))
-    complementary = FusionSettings(
-        use_wheel=v['use_wheel_odom'], use_gyro=v['use_imu'],
-        use_scan_position=v['use_scan_match_position'],
-        use_scan_heading=v['use_scan_match_heading'], alpha=v['alpha'], max_gap_s=v['max_gap_s'])
-    return SessionConfig(
-        method=method, enabled=enabled, inputs=inputs, ekf=ekf, complementary=complementary,
-        topics={WHEEL: v['wheel_odom.topic'], IMU: v['imu.topic'], SCAN: v['scan_match.topic']},
-        imu_source=imu_source, imu_mount_rpy=mount, level_with_imu_tilt=v['level_with_imu_tilt'],
-        reorder_window_s=v['reorder_window_s'], flush_after_s=v['flush_after_s'],
-        max_gap_s=v['max_gap_s'], reset_on_backwards_jump_s=v['reset_on_backwards_jump_s'],
-        input_timeout_s=v['input_timeout_s'], odom_frame=v['odom_frame'],
-        base_frame=v['base_frame'], publish_tf=v['publish_tf'],
-        publish_rate_hz=v['publish_rate_hz'])
+    if retired:
+        raise ParameterError(retired[0], 'is gone: every input has a gate, set by its '
+                             'gate_probability (the chi-square quantile of its rows; 0.999 by '
+                             'default)', flat[retired[0]])
+    method = flat.get('method', 'ekf')
+    table = FUSION_PARAMETERS.get(method, FUSION_PARAMETERS['ekf']) if isinstance(method, str) \
+        else FUSION_PARAMETERS['ekf']
+    return table.config(flat)
 
 
-def _ekf_inputs(v: Mapping[str, Any], enabled: Mapping[str, bool], imu_source: str
-                ) -> tuple[InputConfig, ...]:
-    """The enabled inputs' EKF configurations (use_scan_match_position / _heading switch the
-    scan's quantities off); the problems of an enabled one raise ConfigError."""
-    window_s, max_gap_s = v['reorder_window_s'], v['max_gap_s']
-    # The bias is a state for the raw rate always, for the integrated heading on request.
-    bias = imu_source == 'rate' or (imu_source == 'integrated' and v['imu.estimate_bias'])
-    fixed = {WHEEL: {}, IMU: {'gyro_bias': bias}, SCAN: {'keyframes': True}}
-    configs = []
-    for name in INPUTS:
-        values = {key: v[f'{name}.{key}'] for key in INPUT_DEFAULTS[name]}
-        try:
-            cfg = input_config(name, values, max_gap_s=max_gap_s, **fixed[name])
-        except ValueError as error:
-            raise ConfigError(f'{name}.mask', str(error), values['mask']) from None
-        if not enabled[name]:
-            continue
-        for field, problem, value in cfg.problems():
-            raise ConfigError(f'{name}.{field}', problem, value)
-        # A retimed input lags (or leads) the others by delay_s in stamp time: the reorder
-        # buffer must hold the others that long, or its messages are dropped as late.
-        _require(abs(cfg.delay_s) <= window_s, f'{name}.delay_s',
-                 f'must be within the reorder window (|delay_s| <= reorder_window_s = '
-                 f'{window_s:g} s)', cfg.delay_s)
-        if name == SCAN:
-            cfg = with_mask(cfg, **({} if v['use_scan_match_position'] else
-                                    {'x': False, 'y': False}),
-                            **({} if v['use_scan_match_heading'] else {'yaw': False}))
-        configs.append(cfg)
-    return tuple(configs)
-
-
-def load_params(*files: str | Path) -> dict[str, Any]:
-    """complementary_fusion's parameters from ROS 2 parameter files (dotted names), a later
-    file's values over an earlier's, as the node reads several --params-file."""
-    merged: dict[str, Any] = {}
-    for path in files:
-        data = yaml.safe_load(Path(path).read_text()) or {}
-        for node in ('/**', NODE_NAME, f'/{NODE_NAME}'):
-            section = data.get(node, {})
-            if isinstance(section, Mapping):
-                merged.update(flatten(section.get('ros__parameters', {}) or {}))
-    return merged
+def session_config(values: Mapping[str, Any]) -> SessionConfig:
+    """The fusion's configuration from complementary_fusion's parameter values
+    (fusion_parameters)."""
+    return fusion_parameters(values).session_config()
 
 
 def default_config(*files: str | Path, overrides: Mapping[str, Any] | None = None
                    ) -> SessionConfig:
     """The configuration of config/complementary_fusion.yaml, then `files` over it, then
     `overrides` (as the node starts in sensing_pipeline and the launch file)."""
-    params = load_params(config_file(f'{NODE_NAME}.yaml'), *files)
-    return session_config({**params, **flatten(overrides or {})})
+    values = load_parameters(NODE_NAME, config_file(f'{NODE_NAME}.yaml'), *files)
+    return session_config({**values, **flatten(overrides or {})})
+

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core.geometry.se2 import Pose2
+from sensing_nodes.parameters import Param, ParameterTable
 
 WHEEL, IMU, SCAN = 'wheel_odom', 'imu', 'scan_match'
 INPUTS = (WHEEL, IMU, SCAN)
@@ -190,81 +191,94 @@ def mask_from_names(names: list[str] | tuple[str, ...]) -> tuple[bool, ...]:
     return tuple(q in names for q in QUANTITIES)
 
 
-# The fusion node's per-input parameters (`<input>.<key>`) and their defaults: one table for
-# the node, the YAML files and the tools that run the core over a bag.
-INPUT_DEFAULTS: dict[str, dict] = {
-    'wheel_odom': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential', 'covariance': 'auto',
-                   'covariance_scale': 1.0, 'variance_per_m': 1e-4, 'variance_per_rad': 1e-3,
-                   'yaw_variance_per_m': 1e-4, 'yaw_variance_per_s': 0.0,
-                   'xy_variance_per_rad': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
-                   'gate_probability': 0.999, 'max_gap_s': 0.0, 'delay_s': 0.0},
-    'imu': {'mask': ['yaw'], 'pose_mode': 'differential', 'covariance': 'model',
-            'covariance_scale': 1.0, 'variance_per_m': 0.0, 'variance_per_rad': 0.0,
-            'yaw_variance_per_m': 0.0, 'yaw_variance_per_s': 1e-8,
-            'twist_variance': [1e-4, 1e-4, 1e-4], 'gate_probability': 0.999,
-            # gyro_integrator's max_gap_s: across a longer silence of its input it holds the
-            # heading (the turn in the gap is not in its output), so no increment spans one.
-            'max_gap_s': 0.5, 'heading_delay_s': 0.0, 'delay_s': 0.0},
-    'scan_match': {'mask': ['x', 'y', 'yaw'], 'pose_mode': 'differential',
-                   'covariance': 'message', 'covariance_scale': 1.0, 'variance_per_m': 1e-4,
-                   'variance_per_rad': 1e-3, 'yaw_variance_per_m': 1e-4,
-                   'yaw_variance_per_s': 0.0, 'twist_variance': [1e-4, 1e-4, 1e-4],
-                   'gate_probability': 0.999, 'max_gap_s': 0.0, 'delay_s': 0.0,
-                   'map_variance_per_m': 0.0, 'map_yaw_variance_per_m': 0.0},
-}
+def mask_names(mask: tuple[bool, ...]) -> list[str]:
+    """Mask tuple -> the names of the quantities it selects."""
+    return [q for q, used in zip(QUANTITIES, mask) if used]
 
 
-# What each per-input parameter means (the node's parameter descriptions).
-INPUT_DESCRIPTIONS: dict[str, str] = {
-    'mask': 'quantities fused, of x, y, yaw, vx, vy, vyaw (robot_localization order)',
-    'pose_mode': "pose quantities: 'absolute', 'relative' (to the first message) or "
-                 "'differential' (the motion between consecutive messages)",
-    'covariance': "'auto' (the message's unless static or zero, then the noise model), "
-                  "'message' or 'model'",
-    'covariance_scale': "the message's covariance times this (distrust: > 1)",
-    'variance_per_m': 'noise model: x/y variance per metre travelled (m^2/m)',
-    'variance_per_rad': 'noise model: yaw variance per radian turned (rad^2/rad)',
-    'yaw_variance_per_m': 'noise model: yaw variance per metre travelled (rad^2/m)',
-    'yaw_variance_per_s': 'noise model: yaw variance per second (rad^2/s)',
-    'xy_variance_per_rad': 'noise model: x/y variance per radian turned (m^2/rad), where the '
-                           "source's point is not the one the robot turns about",
-    'twist_variance': 'vx, vy, vyaw variances when the message has none',
-    'gate_probability': 'refuse a reading whose innovation lies beyond this probability of '
-                        'a consistent one (the chi-square quantile of its rows; the gate '
-                        'cannot be off)',
-    'max_gap_s': 'differential: no increment across a longer silence of this input (s); '
-                 "0 = the node's max_gap_s, else the shorter of the two",
-    'heading_delay_s': "how far the input's heading lags its stamp (s): its yaw is read as "
-                       'yaw + yaw rate x this (sensor_sim: half its IMU period)',
-    'delay_s': "how far the input's stamps lag the robot (s): a message stamped t is fused "
-               'and published as at t - this (< 0: stamps early); within +-reorder_window_s',
-    'map_variance_per_m': "matches in a local map's frame: how far the map may drift from the "
-                          'fused odom frame, x and y variance per metre travelled (m^2/m)',
-    'map_yaw_variance_per_m': "matches in a local map's frame: the map's heading drift, "
-                              'variance per metre travelled (rad^2/m)',
+# Each input's settings as the fusion node's parameters (`<input>.<field>`) give them by default:
+# one table for the node, the YAML files and the tools that run the core over a bag. max_gap_s
+# 0 is the node's max_gap_s (input_config resolves it).
+INPUT_DEFAULTS: dict[str, InputConfig] = {
+    WHEEL: InputConfig(WHEEL, mask=mask_from_names(['x', 'y', 'yaw']), covariance='auto',
+                       noise=NoiseModel(1e-4, 1e-3, 1e-4, 0.0), max_gap_s=0.0),
+    IMU: InputConfig(IMU, mask=mask_from_names(['yaw']), covariance='model',
+                     noise=NoiseModel(0.0, 0.0, 0.0, 1e-8),
+                     # gyro_integrator's max_gap_s: across a longer silence of its input it holds
+                     # the heading (the turn in the gap is not in its output), so no increment
+                     # spans one.
+                     max_gap_s=0.5),
+    SCAN: InputConfig(SCAN, mask=mask_from_names(['x', 'y', 'yaw']), covariance='message',
+                      noise=NoiseModel(1e-4, 1e-3, 1e-4, 0.0), max_gap_s=0.0),
 }
+# An input's gap where neither the node's nor its own is given.
+_DEFAULT_GAP_S = InputConfig('').max_gap_s
+
+
+# What each per-input parameter means (the node's parameter descriptions) and its range, by
+# InputConfig field.
+INPUT_PARAMS: dict[str, Param] = {
+    'mask': Param('quantities fused, of x, y, yaw, vx, vy, vyaw (robot_localization order)',
+                  to_value=mask_names, from_value=lambda names: mask_from_names(list(names))),
+    'pose_mode': Param("pose quantities: 'absolute', 'relative' (to the first message) or "
+                       "'differential' (the motion between consecutive messages)"),
+    'covariance': Param("'auto' (the message's unless static or zero, then the noise model), "
+                        "'message' or 'model'"),
+    'covariance_scale': Param("the message's covariance times this (distrust: > 1)", 0.0),
+    'noise.variance_per_m': Param('noise model: x/y variance per metre travelled (m^2/m)', 0.0),
+    'noise.variance_per_rad': Param('noise model: yaw variance per radian turned (rad^2/rad)',
+                                    0.0),
+    'noise.yaw_variance_per_m': Param('noise model: yaw variance per metre travelled (rad^2/m)',
+                                      0.0),
+    'noise.yaw_variance_per_s': Param('noise model: yaw variance per second (rad^2/s)', 0.0),
+    'noise.xy_variance_per_rad': Param('noise model: x/y variance per radian turned (m^2/rad), '
+                                       "where the source's point is not the one the robot "
+                                       'turns about', 0.0),
+    'twist_variance': Param('vx, vy, vyaw variances when the message has none'),
+    'gate_probability': Param('refuse a reading whose innovation lies beyond this probability of '
+                              'a consistent one (the chi-square quantile of its rows; the gate '
+                              'cannot be off)', 0.5, 1.0),
+    'max_gap_s': Param('differential: no increment across a longer silence of this input (s); '
+                       "0 = the node's max_gap_s, else the shorter of the two", 0.0),
+    'heading_delay_s': Param("how far the input's heading lags its stamp (s): its yaw is read as "
+                             'yaw + yaw rate x this (sensor_sim: half its IMU period)', 0.0),
+    'delay_s': Param("how far the input's stamps lag the robot (s): a message stamped t is fused "
+                     'and published as at t - this (< 0: stamps early); within '
+                     '+-reorder_window_s'),
+    'map_variance_per_m': Param("matches in a local map's frame: how far the map may drift from "
+                                'the fused odom frame, x and y variance per metre travelled '
+                                '(m^2/m)', 0.0),
+    'map_yaw_variance_per_m': Param("matches in a local map's frame: the map's heading drift, "
+                                    'variance per metre travelled (rad^2/m)', 0.0),
+}
+# What no input's parameters set (the input's kind decides), and the fields of one input only.
+INPUT_INTERNAL = frozenset({'name', 'gyro_bias', 'keyframes', 'noise.min_variance'})
+INPUT_ONLY = {'heading_delay_s': IMU, 'map_variance_per_m': SCAN, 'map_yaw_variance_per_m': SCAN}
+
+
+def input_internal(name: str) -> frozenset[str]:
+    """The InputConfig fields that are no parameter of input `name`."""
+    return INPUT_INTERNAL | {f for f, only in INPUT_ONLY.items() if only != name}
+
+
+INPUT_PARAMETERS: dict[str, ParameterTable[InputConfig]] = {
+    name: ParameterTable(INPUT_DEFAULTS[name], described=INPUT_PARAMS, prefixes={'noise': ''},
+                         internal=input_internal(name)) for name in INPUTS}
+
+
+def with_fixed(cfg: InputConfig, **fixed) -> InputConfig:
+    """An input as its parameters give it, with what its kind decides (`fixed`: keyframes,
+    gyro_bias, max_gap_s: the node-wide gap, which the input's own max_gap_s, when > 0,
+    shortens)."""
+    if cfg.max_gap_s > 0.0:
+        fixed = {**fixed, 'max_gap_s': min(cfg.max_gap_s, fixed.get('max_gap_s', cfg.max_gap_s))}
+    else:
+        fixed = {'max_gap_s': _DEFAULT_GAP_S, **fixed}
+    return replace(cfg, **fixed)
 
 
 def input_config(name: str, values: dict, **fixed) -> InputConfig:
-    """InputConfig of input `name` from its parameter values (missing ones: INPUT_DEFAULTS);
-    `fixed` sets what the input's kind decides (keyframes, gyro_bias, max_gap_s: the node-wide
-    gap, which the input's own max_gap_s, when > 0, shortens). ValueError for an unknown
-    quantity in the mask."""
-    v = {**INPUT_DEFAULTS[name], **values}
-    own_gap = float(v.get('max_gap_s', 0.0))
-    if own_gap > 0.0:
-        fixed = {**fixed, 'max_gap_s': min(own_gap, fixed.get('max_gap_s', own_gap))}
-    return InputConfig(
-        name=name, mask=mask_from_names(list(v['mask'])), pose_mode=v['pose_mode'],
-        covariance=v['covariance'], covariance_scale=float(v['covariance_scale']),
-        noise=NoiseModel(variance_per_m=float(v['variance_per_m']),
-                         variance_per_rad=float(v['variance_per_rad']),
-                         yaw_variance_per_m=float(v['yaw_variance_per_m']),
-                         yaw_variance_per_s=float(v['yaw_variance_per_s']),
-                         xy_variance_per_rad=float(v.get('xy_variance_per_rad', 0.0))),
-        twist_variance=tuple(float(x) for x in v['twist_variance']),
-        heading_delay_s=float(v.get('heading_delay_s', 0.0)),   # imu only
-        map_variance_per_m=float(v.get('map_variance_per_m', 0.0)),   # scan_match only
-        map_yaw_variance_per_m=float(v.get('map_yaw_variance_per_m', 0.0)),
-        delay_s=float(v['delay_s']),
-        gate_probability=float(v['gate_probability']), **fixed)
+    """InputConfig of input `name` from its parameter values (by field name; missing ones: its
+    INPUT_DEFAULTS), unchecked (problems() tells), with `fixed` (with_fixed). ValueError for an
+    unknown quantity in the mask."""
+    return with_fixed(INPUT_PARAMETERS[name].build(values), **fixed)

@@ -15,18 +15,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
 from sensing_nodes.core.geometry.se2 import wrap_angle
 from sensing_nodes.core.sim.route import Motion, Route
 from sensing_nodes.core.sim.world import World, raycast
+from sensing_nodes.parameters import Param, ParameterError, ParameterTable
 
 NS_PER_S = 1_000_000_000
 
@@ -50,8 +48,18 @@ DEFAULT_ROUTE = (
 )
 
 
-def _p(default: Any, doc: str, minimum: float | None = None, maximum: float | None = None):
-    return field(default=default, metadata={'doc': doc, 'min': minimum, 'max': maximum})
+def _p(default: Any, doc: str, minimum: float | None = None, maximum: float | None = None,
+       **options):
+    """A SimParams field: its default and, as a parameter of sensor_sim, what it means and its
+    inclusive range."""
+    return field(default=default, metadata={'param': Param(doc, minimum, maximum, **options)})
+
+
+def _legs(value: Any) -> tuple[str, ...]:
+    """The route parameter (a list of leg strings) as SimParams.route."""
+    if isinstance(value, str) or not isinstance(value, (list, tuple)):
+        raise ValueError('must be a list of leg strings')
+    return tuple(value)
 
 
 @dataclass(frozen=True)
@@ -65,7 +73,8 @@ class SimParams:
                            'epoch); stamps are start_time_s + elapsed', 0)
     # Route (truth)
     route: tuple[str, ...] = _p(DEFAULT_ROUTE, "scripted legs: 'wait S', 'straight M SPEED', "
-                                "'turn DEG DEG_PER_S', 'arc DEG RADIUS_M SPEED'; repeats")
+                                "'turn DEG DEG_PER_S', 'arc DEG RADIUS_M SPEED'; repeats",
+                                from_value=_legs)
     start_x_m: float = _p(-2.5, 'start x of base_link in the map frame (m)')
     start_y_m: float = _p(-2.0, 'start y of base_link in the map frame (m)')
     start_yaw_rad: float = _p(0.0, 'start yaw of base_link in the map frame (rad)')
@@ -137,6 +146,34 @@ class SimParams:
     truth_rate_hz: float = _p(100.0, '/ground_truth/odom rate (Hz)', 1e-3)
     clock_rate_hz: float = _p(100.0, '/clock rate (Hz of simulated time)', 1e-3)
 
+    def problems(self) -> list[tuple[str, str, object]]:
+        """(field, problem, value) for each number the simulation cannot run with (types and
+        ranges checked: SIM_PARAMETERS)."""
+        out: list[tuple[str, str, object]] = [
+            (f.name, 'must be finite', getattr(self, f.name)) for f in dataclasses.fields(self)
+            if f.name != 'route' and not math.isfinite(getattr(self, f.name))]
+        if out:
+            return out
+        if NS_PER_S % self.physics_rate_hz:
+            out.append(('physics_rate_hz', 'must divide 1e9 (whole nanoseconds per tick)',
+                        self.physics_rate_hz))
+        if self.encoder_quadrature not in (1, 2, 4):
+            out.append(('encoder_quadrature', 'must be 1, 2 or 4', self.encoder_quadrature))
+        if self.range_min_m >= self.range_max_m:
+            out.append(('range_min_m', f'must be < range_max_m ({self.range_max_m})',
+                        self.range_min_m))
+        for name in ('joint_rate_hz', 'imu_rate_hz', 'scan_rate_hz', 'truth_rate_hz',
+                     'clock_rate_hz'):
+            try:
+                period_ticks(self, name)
+            except ParameterError as error:
+                out.append((name, error.problem, error.value))
+        try:
+            make_route(self)
+        except ValueError as error:
+            out.append(('route', str(error), None))
+        return out
+
     @property
     def count_angle_rad(self) -> float:
         """Joint angle of one encoder count (rad)."""
@@ -174,52 +211,13 @@ class SimParams:
                 self.laser_yaw_rad + self.laser_yaw_error_rad)
 
 
-class SimParameterError(ValueError):
-    """A simulation parameter the simulator cannot run with."""
-
-    def __init__(self, name: str, problem: str, value: Any = None) -> None:
-        detail = f' (got {value!r})' if value is not None else ''
-        super().__init__(f"parameter '{name}' {problem}{detail}")
-        self.name, self.problem, self.value = name, problem, value
-
-
-def param_fields() -> list[dataclasses.Field]:
-    """The SimParams fields, in declaration order (name, type, default, metadata doc/min/max)."""
-    return list(dataclasses.fields(SimParams))
+# SimParams' fields as sensor_sim's parameters (each field's Param in its metadata).
+SIM_PARAMETERS = ParameterTable(SimParams())
 
 
 def validate(params: SimParams) -> None:
-    """Raise SimParameterError naming the first parameter the simulation cannot run with."""
-    for f in param_fields():
-        value = getattr(params, f.name)
-        if f.name == 'route':
-            continue
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            raise SimParameterError(f.name, 'must be a number', value)
-        if not math.isfinite(value):
-            raise SimParameterError(f.name, 'must be finite', value)
-        lo, hi = f.metadata['min'], f.metadata['max']
-        if lo is not None and value < lo:
-            raise SimParameterError(f.name, f'must be >= {lo}', value)
-        if hi is not None and value > hi:
-            raise SimParameterError(f.name, f'must be <= {hi}', value)
-        if f.type == 'int' and not isinstance(value, numbers.Integral):
-            raise SimParameterError(f.name, 'must be an integer', value)
-    if NS_PER_S % params.physics_rate_hz:
-        raise SimParameterError('physics_rate_hz', 'must divide 1e9 (whole nanoseconds per tick)',
-                                params.physics_rate_hz)
-    if params.encoder_quadrature not in (1, 2, 4):
-        raise SimParameterError('encoder_quadrature', 'must be 1, 2 or 4',
-                                params.encoder_quadrature)
-    if params.range_min_m >= params.range_max_m:
-        raise SimParameterError('range_min_m', f'must be < range_max_m ({params.range_max_m})',
-                                params.range_min_m)
-    for name in ('joint_rate_hz', 'imu_rate_hz', 'scan_rate_hz', 'truth_rate_hz', 'clock_rate_hz'):
-        period_ticks(params, name)
-    try:
-        make_route(params)
-    except ValueError as exc:
-        raise SimParameterError('route', str(exc)) from None
+    """Raise ParameterError naming the first parameter the simulation cannot run with."""
+    SIM_PARAMETERS.check(params)
 
 
 def period_ticks(params: SimParams, rate_name: str) -> int:
@@ -227,8 +225,8 @@ def period_ticks(params: SimParams, rate_name: str) -> int:
     rate = getattr(params, rate_name)
     ticks = params.physics_rate_hz / rate
     if abs(ticks - round(ticks)) > 1e-9 * ticks or round(ticks) < 1:
-        raise SimParameterError(rate_name, f'must divide physics_rate_hz '
-                                f'({params.physics_rate_hz}) into a whole number of ticks', rate)
+        raise ParameterError(rate_name, f'must divide physics_rate_hz '
+                             f'({params.physics_rate_hz}) into a whole number of ticks', rate)
     return int(round(ticks))
 
 
@@ -245,47 +243,9 @@ def make_route(params: SimParams) -> Route:
 
 
 def params_from_dict(values: dict[str, Any]) -> SimParams:
-    """SimParams from a dict of parameter values (other keys ignored); ints given for float
-    fields are accepted. Raises SimParameterError for a value of the wrong type."""
-    kwargs: dict[str, Any] = {}
-    for f in param_fields():
-        if f.name not in values:
-            continue
-        value = values[f.name]
-        if f.name == 'route':
-            if isinstance(value, str) or not isinstance(value, (list, tuple)):
-                raise SimParameterError('route', 'must be a list of leg strings', value)
-            kwargs['route'] = tuple(value)
-        elif f.type == 'float' and isinstance(value, int) and not isinstance(value, bool):
-            kwargs[f.name] = float(value)
-        else:
-            kwargs[f.name] = value
-    return SimParams(**kwargs)
-
-
-def load_params_file(path: str | Path, node_name: str = 'sensor_sim') -> dict[str, Any]:
-    """The ros__parameters of node_name (or of '/**') in a ROS 2 parameter YAML file.
-
-    Raises SimParameterError('params_file', ...) when the file is missing or malformed.
-    """
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise SimParameterError('params_file', f'cannot be read: {exc.strerror}',
-                                str(path)) from None
-    except yaml.YAMLError as exc:
-        raise SimParameterError('params_file', f'is not valid YAML: {exc}', str(path)) from None
-    values: dict[str, Any] = {}
-    if isinstance(data, dict):
-        for key in ('/**', node_name, '/' + node_name):
-            section = data.get(key)
-            if isinstance(section, dict) and isinstance(section.get('ros__parameters'), dict):
-                values.update(section['ros__parameters'])
-    if not values and data:
-        raise SimParameterError('params_file', f'has no {node_name}: ros__parameters: section',
-                                str(path))
-    return values
+    """SimParams from a dict of parameter values (other keys ignored), unchecked; ints given
+    for float fields are accepted. ParameterError for a route that is no list of legs."""
+    return SIM_PARAMETERS.build(values)
 
 
 class CommandedMotion:
@@ -694,7 +654,7 @@ def simulate(params: SimParams, world: World, duration_s: float, seed: int) -> S
     """Run the simulation for duration_s simulated seconds (samples at times start .. start +
     duration inclusive), without ROS."""
     if not (math.isfinite(duration_s) and duration_s >= 0.0):
-        raise SimParameterError('duration_s', 'must be finite and >= 0', duration_s)
+        raise ParameterError('duration_s', 'must be finite and >= 0', duration_s)
     sim = SensorSim(params, world, seed)
     end_ns = params.start_ns + int(round(duration_s * NS_PER_S))
     blocks = [sim.advance()]
