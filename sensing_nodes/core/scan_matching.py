@@ -130,6 +130,12 @@ class ScanMatcherSettings:
             out.append(('laser_pose', 'must be finite', self.laser_pose))
         if not self.max_gap_s > 0.0:
             out.append(('max_gap_s', 'must be > 0', self.max_gap_s))
+        for name in ('doubt_deviations', 'prediction_error_share'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                out.append((name, 'must be finite and >= 0', value))
+        if not self.doubt_streak >= 1:
+            out.append(('doubt_streak', 'must be >= 1', self.doubt_streak))
         for part in ('icp_options', 'local_map'):
             out += [(f'{part}.{name}', problem, value)
                     for name, problem, value in getattr(self, part).problems()]

@@ -18,7 +18,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
@@ -28,31 +27,16 @@ from sensing_nodes.core.fusion.config import FUSION_PARAMETERS
 from sensing_nodes.core.fusion.inputs import IMU, INPUTS, SCAN, WHEEL
 from sensing_nodes.core.fusion.session import FusedOutput, FusionSession
 from sensing_nodes.core.geometry.transform import Transform
-from sensing_nodes.parameters import ParameterError
 from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
 from sensing_nodes.ros.conversions import quaternion_to_yaw, ros_covariance_to_planar
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.fusion_readings import ReadingConverter, unit_quaternion
 from sensing_nodes.ros.logging import ThrottledWarnings
-from sensing_nodes.ros.params import declare, declare_config
+from sensing_nodes.ros.params import declare, declare_config, refuse_retired
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TF_TOPIC, ImuMount, imu_mount
-
-
-def retired_gates(node: Node) -> None:
-    """ParameterError where a parameter file or override still sets an input's gate_chi2 (its
-    gate is set by gate_probability now, and cannot be off): a value left unread would be a
-    gate silently different from the one the user asked for."""
-    for name in INPUTS:
-        parameter = node.declare_parameter(
-            f'{name}.gate_chi2', None, ParameterDescriptor(
-                description='retired: use gate_probability', dynamic_typing=True))
-        if parameter.value is not None:
-            raise ParameterError(f'{name}.gate_chi2', 'is gone: every input has a gate, set by '
-                                 'its gate_probability (the chi-square quantile of its rows; '
-                                 '0.999 by default)', parameter.value)
 
 
 class ComplementaryFusionNode(Node):
@@ -61,7 +45,9 @@ class ComplementaryFusionNode(Node):
         super().__init__('complementary_fusion', **node_options)
         # The parameters of the method the `method` parameter names.
         method = declare(self, FUSION_PARAMETERS['ekf']['method'])
-        retired_gates(self)
+        refuse_retired(self, {f'{name}.gate_chi2': f'is gone: every input has a gate, set by '
+                              f'{name}.gate_probability (the chi-square quantile of its rows; '
+                              '0.999 by default)' for name in INPUTS})
         config = declare_config(self, FUSION_PARAMETERS.get(
             method, FUSION_PARAMETERS['ekf'])).session_config()
         self.diagnostics = Diagnostics(self, update=self._update_diagnostics)

@@ -10,7 +10,7 @@ from typing import Any, TypeVar
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
-from sensing_nodes.parameters import Parameter, ParameterTable
+from sensing_nodes.parameters import Parameter, ParameterError, ParameterTable
 
 _BIG = sys.float_info.max
 
@@ -44,3 +44,13 @@ def declare_config(node: Node, table: ParameterTable[Config]) -> Config:
     """Declare every parameter of the table and return its dataclass with their values, checked
     (ParameterError naming the parameter)."""
     return table.config({p.name: declare(node, p) for p in table.parameters})
+
+
+def refuse_retired(node: Node, retired: dict[str, str]) -> None:
+    """ParameterError (`problem`) for each retired parameter name a parameter file or override
+    still sets: left unread, it would be a setting silently different from the one asked for."""
+    for name, problem in retired.items():
+        value = node.declare_parameter(name, None, ParameterDescriptor(
+            description=f'retired: {problem}', dynamic_typing=True)).value
+        if value is not None:
+            raise ParameterError(name, problem, value)

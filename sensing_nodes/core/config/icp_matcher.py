@@ -133,6 +133,16 @@ ICP_MATCHER_PARAMETERS = ParameterTable(IcpMatcherParameters(), described={
     'matcher.reacquire_window_m': Param('local map: that window, x and y each way (m)', 0.0,
                                         10.0),
     'matcher.reacquire_window_rad': Param('... and yaw each way (rad)', 0.0, math.pi),
+    'matcher.doubt_deviations': Param(
+        'local map: a match further from its prediction than this many x the recent RMS model '
+        'error does not join the map until the next one agrees (0: no such test; a re-acquired '
+        'match waits too)', 0.0, 100.0),
+    'matcher.doubt_streak': Param('local map: ... this many doubted matches in a row join it',
+                                  1, 1000),
+    'matcher.prediction_error_share': Param(
+        "a match's covariance keeps this share of its prediction's error: plus (this x the "
+        'recent RMS deviation between prediction and match)^2 in x and y, over the scan\'s '
+        'median range^2 in yaw', 0.0, 1.0),
     'deskew': Param("move each beam to the scan's stamp by the motion during the sweep, where "
                     'the scan gives time_increment'),
     'odom_max_extrapolation_s': Param('use odometry up to this far past its newest message (s)',
