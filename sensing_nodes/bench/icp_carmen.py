@@ -8,6 +8,11 @@ For every log and mode: ATE (m) and consecutive-scan RPE (mean and median, m / d
 odometry (/odom), the matcher (/scan_match/odom) and the fusion (/odometry/filtered) against the
 logs' corrected poses, and how many of the matcher's published steps are more than 1 m or
 30 deg off the reference's motion. A log that cannot be converted or scored says why.
+
+In local_map mode, the integrity's figures too (docs/real-data.md's second table): the
+matcher's claimed standard deviation over its own error's (three-cornered hat over matcher,
+odometry and reference: core/evaluation/consistency.py) per axis, and how many of the matches
+within 3x the reference's own noise of the reference the fusion's gate refused.
 """
 
 from __future__ import annotations
@@ -20,10 +25,25 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from sensing_nodes.bags.storage import BagReader
 from sensing_nodes.bench.icp_real import carmen_dir
+from sensing_nodes.core.evaluation.consistency import (
+    consecutive_relations,
+    informative,
+    three_cornered_hat,
+    within_reference_noise,
+)
+from sensing_nodes.core.evaluation.fusion import EVERY_OUTPUT, run_recorded
+from sensing_nodes.core.evaluation.metrics import interpolate_poses
+from sensing_nodes.core.fusion.config import default_config
+from sensing_nodes.core.fusion.inputs import SCAN, WHEEL
+from sensing_nodes.core.fusion.timeline import InputRecord
+from sensing_nodes.core.geometry import se2
 from sensing_nodes.paths import config_file
+from sensing_nodes.ros.conversions import map_stamp, odometry_pose, stamp_to_ns
+from sensing_nodes.ros.fusion_readings import ReadingConverter
 from sensing_nodes.tools import carmen_to_bag, pipeline
 from sensing_nodes.tools import eval as sensing_eval
 
@@ -41,6 +61,7 @@ PIPELINE_ARGUMENTS = (
 ASSUMED_TIME_ARGUMENTS = ('--param', 'icp_matcher:rate_limits:=false',
                           '--param', 'complementary_fusion:ekf.hold_back_max_s:=0.0')
 FAR_M, FAR_RAD = 1.0, math.radians(30.0)
+MATCHES, ODOMETRY, REFERENCE = '/scan_match/keyframe_odom', '/odom', '/ground_truth/odom'
 
 
 def log_figures(name: str, out: Path, modes: tuple[str, ...] = MODES,
@@ -73,7 +94,75 @@ def log_figures(name: str, out: Path, modes: tuple[str, ...] = MODES,
             entry['steps_beyond_1m_or_30deg'] = int(np.count_nonzero(
                 (errors.translation_m > FAR_M) | (errors.rotation_rad > FAR_RAD)))
             figures[mode][topic] = entry
+        if mode == 'local_map':
+            figures[mode]['integrity'] = integrity_figures(processed, assumed)
     return figures
+
+
+def _odometry_rows(bag: Path, topic: str):
+    """(stamps ns, poses (N, 3), covariances (N, 3, 3), frame ids) of an Odometry topic."""
+    t, p, c, f = [], [], [], []
+    for _, _, msg in BagReader(bag).messages([topic]):
+        pose, cov = odometry_pose(msg)
+        t.append(stamp_to_ns(msg.header.stamp))
+        p.append(pose)
+        c.append(cov)
+        f.append(msg.header.frame_id)
+    return np.array(t, dtype=np.int64), np.array(p), np.array(c), f
+
+
+def integrity_figures(processed: Path, assumed: tuple[str, ...] = ()) -> dict:
+    """The matcher's claimed over own sigma per axis (x, y, yaw; inf where its own error is
+    below what the hat resolves) on consecutive matches in one local map (those it calls
+    uninformative, consistency.informative, counted apart), and the fusion's
+    decisions, replayed over the processed bag as the node makes them with the benchmark's
+    configuration: the matches refused among those whose relation lies within 3x the
+    reference's own noise ('good'), and among all."""
+    t, poses, covs, frames = _odometry_rows(processed, MATCHES)
+    map_ids = np.array([map_stamp(f) if map_stamp(f) is not None else -1 for f in frames])
+    ref_t, ref_p, _, _ = _odometry_rows(processed, REFERENCE)
+    odo_t, odo_p, _, _ = _odometry_rows(processed, ODOMETRY)
+    matched = (map_ids >= 0) & np.all(np.isfinite(interpolate_poses(ref_t, ref_p, t)), axis=1)
+    pairs, relations, relation_covs = consecutive_relations(
+        t[matched], map_ids[matched], poses[matched], covs[matched])
+
+    def motion(track_t, track_p):
+        a = interpolate_poses(track_t, track_p, pairs[:, 0])
+        b = interpolate_poses(track_t, track_p, pairs[:, 1])
+        return np.array([se2.between(tuple(x), tuple(y)) for x, y in zip(a, b)]).reshape(-1, 3)
+
+    reference = motion(ref_t, ref_p)
+    told = informative(relation_covs)
+    hat = three_cornered_hat(relations[told], motion(odo_t, odo_p)[told], reference[told],
+                             relation_covs[told])
+    good = within_reference_noise(relations, reference, hat.reference_own)
+    # The fusion's decision on each match, as the node makes it over this bag.
+    overrides = {name: yaml.safe_load(value) for name, value in (
+        arg.split(':', 1)[1].split(':=') for arg in assumed[1::2]
+        if arg.startswith('complementary_fusion:'))}
+    config = default_config(config_file('fusion_carmen.yaml'),
+                            overrides={**EVERY_OUTPUT, **overrides})
+    converter = ReadingConverter.for_config(config)
+    records = {WHEEL: InputRecord(WHEEL), SCAN: InputRecord(SCAN)}
+    readings = []
+    for topic, _, msg in BagReader(processed).messages([ODOMETRY, MATCHES]):
+        source = WHEEL if topic == ODOMETRY else SCAN
+        reading, _ = converter.reading(source, msg, converter.stamp_ns(source, msg),
+                                       records[source])
+        if reading is not None:
+            readings.append((source, reading))
+    refused = {stamp for name, stamp, outcome in run_recorded(config, readings).outcomes
+               if name == SCAN and outcome.gated}
+    refused_at_end = np.array([stamp in refused for stamp in pairs[:, 1]], dtype=bool)
+    return {'relations': hat.relations, 'uninformative_relations': int(np.count_nonzero(~told)),
+            **{f'claimed_over_own_{axis}': float(r) for axis, r in zip('xy', hat.ratio[:2])},
+            'claimed_over_own_yaw': float(hat.ratio[2]),
+            **{f'own_{axis}': float(v) for axis, v in zip(('x_m', 'y_m', 'yaw_rad'), hat.own)},
+            **{f'claimed_{axis}': float(v)
+               for axis, v in zip(('x_m', 'y_m', 'yaw_rad'), hat.claimed)},
+            'good_matches': int(np.count_nonzero(good)),
+            'good_matches_refused': int(np.count_nonzero(good & refused_at_end)),
+            'matches_refused': len(refused)}
 
 
 def table(results: dict) -> str:

@@ -13,15 +13,17 @@ sigma from the fault's start to 2 s after its end. Times in s, stamps in ns.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from sensing_nodes.core.evaluation.fusion import input_readings, track_errors
+from sensing_nodes.core.evaluation.fusion import (
+    RecordedRun,
+    input_readings,
+    run_recorded,
+    track_errors,
+)
 from sensing_nodes.core.evaluation.metrics import express_in_reference_frame, interpolate_poses
 from sensing_nodes.core.fusion.config import SessionConfig
-from sensing_nodes.core.fusion.ekf import EkfFusion, Outcome
-from sensing_nodes.core.fusion.session import FusionSession
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.core.sim.faults import (
     SENSOR_FAULTS,
@@ -38,60 +40,7 @@ from sensing_nodes.core.sim.simulator import SimRun
 AFTER_S = 2.0
 
 
-class _Recording(EkfFusion):
-    """The EKF, recording each reading's outcome (input, stamp ns, outcome) as it is fused."""
-
-    def __init__(self, *args, **kwargs) -> None:
-        self.outcomes: list[tuple[str, int, Outcome]] = []
-        super().__init__(*args, **kwargs)
-
-    def update(self, name, reading):
-        outcome = super().update(name, reading)
-        self.outcomes.append((name, reading.stamp_ns, outcome))
-        return outcome
-
-
-@dataclass
-class FaultRun:
-    """The fused track of one run with its outcomes and the health the filter ended with."""
-
-    t: np.ndarray
-    pose: np.ndarray
-    covariance: np.ndarray
-    heading_step_variance: np.ndarray
-    outcomes: list = field(repr=False)
-    problems: list = field(repr=False)   # (input, stamp of a refused or blamed reading)
-
-
-def run_readings(config: SessionConfig, readings) -> FaultRun:
-    """The fusion session over (input, Reading) pairs in arrival order, flushed: every output
-    (the heading steps' variances followed), each reading's outcome and every problem the
-    filter recorded (refused or blamed readings, by the stamp it recorded them at)."""
-    fusion = _Recording(config.inputs, config.ekf)
-    fusion.follow_heading_steps()
-    out_t, out_p, out_c, steps = [], [], [], []
-    problems: list[tuple[str, int]] = []
-    seen = {name: None for name in fusion.health}
-
-    def on_output(stamp, state) -> None:
-        out_t.append(stamp)
-        out_p.append(state.pose)
-        out_c.append(state.covariance)
-        steps.append(fusion.heading_step_variance() if len(out_t) > 1 else math.nan)
-
-    session = FusionSession(config, fusion=fusion, on_output=on_output)
-    for name, reading in readings:
-        session.feed(name, reading)
-        for n, health in fusion.health.items():
-            if health.last_problem_ns != seen[n]:
-                seen[n] = health.last_problem_ns
-                problems.append((n, health.last_problem_ns))
-    session.flush()
-    return FaultRun(np.array(out_t, dtype=np.int64), np.array(out_p), np.array(out_c),
-                    np.array(steps), fusion.outcomes, problems)
-
-
-def _window_figures(track: FaultRun, inputs: FusionInputs, window: tuple[int, int]) -> dict:
+def _window_figures(track: RecordedRun, inputs: FusionInputs, window: tuple[int, int]) -> dict:
     """The largest fused heading step error (in its sigma) and position error (in the output
     covariance's sigma) over the window."""
     keep = (track.t >= window[0]) & (track.t <= window[1] + int(AFTER_S * 1e9))
@@ -114,14 +63,14 @@ def fault_figures(run: SimRun, config: SessionConfig, faults: list[Fault],
     run over the same simulated samples with `config` (every output: publish_rate_hz 0)."""
     base_inputs = base_inputs or inputs_from_run(run)
     first = int(run.truth_t[0])
-    base = run_readings(config, input_readings(base_inputs, config))
+    base = run_recorded(config, input_readings(base_inputs, config))
     clean = track_errors(base_inputs.truth_t, base_inputs.truth_pose, base.t, base.pose)
     out = {'none': clean}
     for fault in faults:
         inputs = inputs_from_run(inject_sensors(run, fault)) \
             if fault.kind in SENSOR_FAULTS else base_inputs
         inputs = inject_matches(inputs, fault)
-        track = run_readings(config, arrival_order(input_readings(inputs, config), first, fault))
+        track = run_recorded(config, arrival_order(input_readings(inputs, config), first, fault))
         figures = track_errors(inputs.truth_t, inputs.truth_pose, track.t, track.pose)
         start, end = fault.window_ns(first)
         problems = [stamp for name, stamp in track.problems

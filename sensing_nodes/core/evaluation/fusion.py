@@ -4,14 +4,14 @@ ground truth: the accuracy checks of docs/fusion.md (position m, heading deg, co
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core.evaluation.metrics import express_in_reference_frame, interpolate_poses
 from sensing_nodes.core.fusion.config import SessionConfig, default_config
-from sensing_nodes.core.fusion.ekf import EkfFusion
+from sensing_nodes.core.fusion.ekf import EkfFusion, Outcome
 from sensing_nodes.core.fusion.filter import FusedState
 from sensing_nodes.core.fusion.inputs import IMU, RANK, SCAN, WHEEL, DeltaAngles, Reading
 from sensing_nodes.core.fusion.session import FusionSession
@@ -126,6 +126,61 @@ def run_session(config: SessionConfig, readings, follow_heading_steps: bool = Fa
     return FusedTrack(np.array(out_t, dtype=np.int64), np.array(out_p), np.array(out_c),
                       sum(session.fusion.gated.values()),
                       np.array(steps) if follow_heading_steps else None)
+
+
+class _Recording(EkfFusion):
+    """The EKF, recording each reading's outcome (input, stamp ns, outcome) as it is fused."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        self.outcomes: list[tuple[str, int, Outcome]] = []
+        super().__init__(*args, **kwargs)
+
+    def update(self, name, reading):
+        outcome = super().update(name, reading)
+        self.outcomes.append((name, reading.stamp_ns, outcome))
+        return outcome
+
+
+@dataclass
+class RecordedRun:
+    """The fused track of one EKF run (every output, its heading steps' variances), each
+    reading's outcome (input, stamp ns, Outcome) and each problem the filter recorded (input,
+    stamp of a refused or blamed reading)."""
+
+    t: np.ndarray
+    pose: np.ndarray
+    covariance: np.ndarray
+    heading_step_variance: np.ndarray
+    outcomes: list = field(repr=False)
+    problems: list = field(repr=False)   # (input, stamp of a refused or blamed reading)
+
+
+def run_recorded(config: SessionConfig, readings) -> RecordedRun:
+    """The fusion session over (input, Reading) pairs in arrival order, flushed: every output
+    (the heading steps' variances followed), each reading's outcome and every problem the
+    filter recorded (refused or blamed readings, by the stamp it recorded them at)."""
+    fusion = _Recording(config.inputs, config.ekf)
+    fusion.follow_heading_steps()
+    out_t, out_p, out_c, steps = [], [], [], []
+    problems: list[tuple[str, int]] = []
+    seen = {name: None for name in fusion.health}
+
+    def on_output(stamp, state) -> None:
+        out_t.append(stamp)
+        out_p.append(state.pose)
+        out_c.append(state.covariance)
+        steps.append(fusion.heading_step_variance() if len(out_t) > 1 else math.nan)
+
+    session = FusionSession(config, fusion=fusion, on_output=on_output)
+    for name, reading in readings:
+        session.feed(name, reading)
+        for n, health in fusion.health.items():
+            if health.last_problem_ns != seen[n]:
+                seen[n] = health.last_problem_ns
+                problems.append((n, health.last_problem_ns))
+    session.flush()
+    return RecordedRun(np.array(out_t, dtype=np.int64), np.array(out_p), np.array(out_c),
+                       np.array(steps), fusion.outcomes, problems)
 
 
 # The evaluation scores the filter at every wheel and scan-match input: the node's output rate
