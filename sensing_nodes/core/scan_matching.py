@@ -181,8 +181,10 @@ class ScanStep:
     # What else happened, each counted on /diagnostics: deskewed_by_odometry,
     # deskewed_by_velocity, gap, limited (the published step was held to the physical limits
     # around the odometry's motion), prediction_limited (the constant-velocity prediction
-    # was), reacquire_attempts, reacquired, degenerate, map_pruned.
+    # was), reacquire_attempts, reacquired, degenerate, map_pruned, not_inserted.
     events: tuple[str, ...] = ()
+    # local_map: why a match was kept out of the map ('' when it joined or was not a match).
+    doubt: str = ''
 
     @property
     def publish(self) -> bool:
@@ -592,6 +594,7 @@ class LocalMapScanMatcher:
         keyframe_stamp = relative = rel_cov = None
         map_pose = map_cov = None
         new_anchor = False
+        doubt = ''
         if reason:
             self.failures += 1
             fallback_cov = np.diag([s.fallback_std_m ** 2, s.fallback_std_m ** 2,
@@ -675,7 +678,7 @@ class LocalMapScanMatcher:
                         relative_covariance=rel_cov, events=tuple(events),
                         map_stamp_ns=self.map_stamp_ns,
                         map_time_ns=stamp_ns + round(middle_s * 1e9), map_pose=map_pose,
-                        map_covariance=map_cov)
+                        map_covariance=map_cov, doubt=doubt)
 
     def _match(self, points: NDArray[np.float64], guess: Pose2, gate: float | None = None,
                check_jump: bool = True) -> tuple[icp.MatchResult, str]:

@@ -190,6 +190,23 @@ class IcpMatcherProcessor:
 
     # long: a scan's path through the node (mount, conversion, validation, guess, match,
     # diagnostics, outputs) in order: each step reads what the previous one set.
+    def _match_quality(self, step) -> None:
+        """The last match's quality on /diagnostics: its mean alignment error and
+        iterations, the share of its points paired (inliers), the residuals' standard deviation
+        behind its covariance (m), whether a direction was unconstrained, and the recent RMS
+        deviation of matches from their predictions (m at the scan's reach) its covariance and
+        the doubt test are scaled by."""
+        result, values = step.result, self.diagnostics.values
+        values['last_error_m'] = f'{result.error:.4f}'
+        values['last_iterations'] = str(result.iterations)
+        values['last_inlier_share'] = \
+            f'{result.inliers / result.source_points if result.source_points else 0.0:.3f}'
+        values['last_residual_std_m'] = f'{math.sqrt(result.residual_variance):.4f}' \
+            if math.isfinite(result.residual_variance) else 'nan'
+        values['last_degenerate'] = str(result.degenerate).lower()
+        errors = self._matcher.model_errors
+        values['model_error_rms_m'] = f'{errors.rms if errors else 0.0:.4f}'
+
     def on_scan(self, msg: LaserScan) -> Outputs:
         stamp = stamp_to_ns(msg.header.stamp)
         diag = self.diagnostics
@@ -233,11 +250,15 @@ class IcpMatcherProcessor:
         elif step.status in ('repeated', 'reset_backwards', 'gap'):
             self._warnings.warn(step.status, f'scan at {stamp * 1e-9:.3f} s: {step.reason}')
         if step.result is not None and step.status == 'matched':
-            diag.values['last_error_m'] = f'{step.result.error:.4f}'
-            diag.values['last_iterations'] = str(step.result.iterations)
+            self._match_quality(step)
         if self._settings.mode == 'local_map':
             diag.values['map_cells'] = str(len(self._matcher.map))
             diag.values['gate_m'] = f'{self._matcher.gate_m:.3f}'
+            matched = diag.counts['matched']
+            diag.values['not_inserted_share'] = \
+                f"{diag.counts['not_inserted'] / matched if matched else 0.0:.3f}"
+            if step.doubt:
+                diag.values['last_not_inserted'] = f'{stamp * 1e-9:.3f} s: {step.doubt}'
         if not step.publish:
             return []
         # The keyframe-relative message first: a consumer waiting for /scan_match/odom (a lockstep
