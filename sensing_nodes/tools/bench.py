@@ -19,7 +19,7 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'allan', 'graph_cpu', 'pipeline', 'fusion',
+AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'icp_kiss', 'allan', 'graph_cpu', 'pipeline', 'fusion',
          'bags', 'messages', 'doctor']
 
 
