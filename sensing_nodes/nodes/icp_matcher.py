@@ -135,6 +135,10 @@ class IcpMatcherNode(Node):
             radius_m=declare(self, 'map_radius_m', 30.0,
                              'local map: cells further than this from the robot are dropped (m)',
                              minimum=0.1, maximum=1000.0),
+            radius_per_range=declare(self, 'map_radius_per_range', 1.25,
+                                     'local map: ... or than this x the recent scans\' 90th-'
+                                     'percentile range where that is further (0: off)',
+                                     minimum=0.0, maximum=100.0),
             max_cells=declare(self, 'map_max_cells', 60_000,
                               'local map: at most this many cells (the furthest dropped)',
                               minimum=1, maximum=10_000_000))
@@ -148,6 +152,10 @@ class IcpMatcherNode(Node):
         insert_angle = declare(self, 'insert_angle_rad', math.radians(10.0),
                                '... or turning this much (rad) since the last insertion',
                                minimum=0.0, maximum=math.pi)
+        restart_reach = declare(self, 'map_restart_reach', 0.5,
+                                'local map: while matches fail, the map restarts from the scan '
+                                'once the prediction is this x the scan\'s median range from '
+                                'the last match (0: never)', minimum=0.0, maximum=100.0)
         min_gate = declare(self, 'min_gate_m', 0.10,
                            'local map: the correspondence gate (3 x the recent RMS model error)'
                            ' is at least this (m)', minimum=0.01, maximum=10.0)
@@ -239,6 +247,7 @@ class IcpMatcherNode(Node):
         return ScanMatcherSettings(
             mode=mode, local_map=local, anchor_distance_m=anchor_distance,
             insert_distance_m=insert_distance, insert_angle_rad=insert_angle,
+            map_restart_reach=restart_reach,
             min_gate_m=min_gate, max_error_ratio=max_error_ratio,
             map_degeneracy_ratio=degeneracy,
             reacquire_after=reacquire_after, reacquire_window_m=reacquire_window,
