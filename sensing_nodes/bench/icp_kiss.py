@@ -1,5 +1,6 @@
 """KISS-ICP (PRBonn's scan-to-map odometry, pip `kiss-icp`) beside this package's local-map
-matcher on the seven shared CARMEN logs and the simulated default route, in one run:
+matcher on the seven shared CARMEN logs, the simulated default route and the simulated hall
+and outdoor worlds (bench/icp_sim.WORLDS), in one run:
 
     python -m sensing_nodes.bench.icp_kiss OUT_DIR [--logs aces,...] [--seeds 2] [--json F]
 
@@ -198,16 +199,17 @@ def log_figures(name: str, out: Path, settings: ScanMatcherSettings = CARMEN_SET
     return figures
 
 
-def sim_figures(seeds: int = 2) -> dict:
+def sim_figures(seeds: int = 2, world: str = '') -> dict:
     """{estimator: figures} on the simulated default route (one lap, the wheel odometry's
-    guess), pooled over seeds: ATE and heading RMS as RMS over seeds, RPE and ms as means."""
-    from sensing_nodes.bench.icp_sim import simulated_run
+    guess), or one loop of an open-space world (icp_sim.WORLDS), pooled over seeds: ATE and
+    heading RMS as RMS over seeds, RPE and ms as means."""
+    from sensing_nodes.bench.icp_sim import simulated_run, world_run
     from sensing_nodes.core.evaluation.fusion import track_errors
     from sensing_nodes.core.sim.inputs import matcher_settings, scan_inputs
 
     rows: dict[str, list[dict]] = {}
     for seed in range(seeds):
-        run = simulated_run(seed)
+        run = world_run(world, seed) if world else simulated_run(seed)
         inputs = scan_inputs(run)
         scan_t = np.array([i[0] for i in inputs], dtype=np.int64)
         truth = run.truth_at(scan_t)
@@ -253,6 +255,7 @@ def table(results: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from sensing_nodes.bench.icp_carmen import LOGS
+    from sensing_nodes.bench.icp_sim import WORLDS
 
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('out', type=Path, help='folder for the converted bags')
@@ -273,6 +276,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f'{name}: done', file=sys.stderr, flush=True)
     if args.seeds > 0:
         results[f'simulated route ({args.seeds} seeds)'] = sim_figures(args.seeds)
+        for world in WORLDS:
+            results[f'simulated {world} ({args.seeds} seeds)'] = sim_figures(args.seeds, world)
     print(table(results))
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
@@ -284,10 +289,13 @@ def run(quick: bool = False) -> dict:
     import tempfile
 
     from sensing_nodes.bench.icp_carmen import LOGS
+    from sensing_nodes.bench.icp_sim import WORLDS
 
     with tempfile.TemporaryDirectory() as out:
         results = {name: log_figures(name, Path(out)) for name in (LOGS[:2] if quick else LOGS)}
     results['sim'] = sim_figures(1 if quick else 2)
+    for world in WORLDS:
+        results[f'sim_{world}'] = sim_figures(1 if quick else 2, world)
     flat: dict = {}
     for name, figures in results.items():
         if 'error' in figures:
