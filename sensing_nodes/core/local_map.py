@@ -184,6 +184,9 @@ class LocalMap:
 
 
 def cell_count_bound(settings: LocalMapSettings) -> int:
-    """The most cells the map can hold: max_cells, or every cell within radius_m if fewer."""
+    """The most cells the map can hold: max_cells, or every cell within radius_m if fewer (with
+    radius_per_range the reach follows the scans: max_cells)."""
+    if settings.radius_per_range:
+        return settings.max_cells
     within = math.pi * (settings.radius_m / settings.cell_m + 1.0) ** 2
     return int(min(settings.max_cells, within))
