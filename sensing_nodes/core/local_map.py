@@ -39,7 +39,7 @@ class LocalMapSettings:
     # Cells are kept within max(radius_m, this x the recent scans' 90th-percentile range): the
     # map holds what the scans see. In an open hall (simulated, walls 20-45 m away, a 40 m
     # laser) a fixed 30 m dropped the far walls the scans still saw and 3 of 8 seeds slid
-    # 0.25-1.0 m along the hall (0.012-0.026 m kept).
+    # 0.25-1.0 m along the hall (0.011-0.025 m kept).
     radius_per_range: float = 1.25
     max_cells: int = 60_000
     min_planarity: float = 0.5
