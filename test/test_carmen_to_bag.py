@@ -19,7 +19,13 @@ from sensing_nodes.bags.storage import BagReader, read_messages, topic_counts
 from sensing_nodes.ros.conversions import odometry_pose, scan_arrays
 from sensing_nodes.tools import carmen_to_bag
 from sensing_nodes.tools import eval as sensing_eval
-from sensing_nodes.tools.carmen_to_bag import TIME_BASE_KEY, ConvertOptions, convert, time_base
+from sensing_nodes.tools.carmen_to_bag import (
+    NO_RETURN_MARGIN,
+    TIME_BASE_KEY,
+    ConvertOptions,
+    convert,
+    time_base,
+)
 
 CARMEN = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'carmen'
 needs_logs = pytest.mark.skipif(not CARMEN.is_dir(), reason=f'CARMEN logs not found in {CARMEN}')
@@ -55,10 +61,11 @@ def test_shared_log_converts(tmp_path, name):
     # Beams at -90 deg + i * 180 deg / beams, counter-clockwise (the README's layout).
     np.testing.assert_allclose(angles, -math.pi / 2 + math.pi * np.arange(beams) / beams,
                                atol=1e-6)
-    assert first_scan.range_max == pytest.approx(no_return)
+    limit = no_return * (1.0 - NO_RETURN_MARGIN)
+    assert first_scan.range_max == pytest.approx(limit)
     raw = log.scans[0].ranges
-    np.testing.assert_array_equal(np.isinf(ranges), raw >= no_return)
-    np.testing.assert_allclose(ranges[np.isfinite(ranges)], raw[raw < no_return], rtol=1e-6)
+    np.testing.assert_array_equal(np.isinf(ranges), raw >= limit)
+    np.testing.assert_allclose(ranges[np.isfinite(ranges)], raw[raw < limit], rtol=1e-6)
     assert first_scan.header.stamp.sec + first_scan.header.stamp.nanosec * 1e-9 == \
         pytest.approx(log.scans[0].time_s, abs=1e-6)
 
@@ -156,6 +163,30 @@ def test_bad_lines_are_reported_with_their_number_and_the_rest_converts(tmp_path
     scan = next(m for _, _, m in read_messages(out, ['/scan']))
     ranges_out, _ = scan_arrays(scan)
     assert np.isinf(ranges_out[-2:]).all() and np.all(ranges_out[:-2] == 2.0)
+
+
+def test_a_scattered_no_return_value_and_a_stuck_beam_are_no_measurements(tmp_path):
+    """As Edmonton and Acapulco: the sentinel 51.15 also read as 51.14 and, rarely, 51.16 (the
+    largest value, too rare to be a sentinel on its own), and the last beam reading 50.0 in every
+    scan. Every one of those is no return (+inf) or invalid (NaN); a far wall at 45 m stays."""
+    lines = []
+    for k in range(30):
+        ranges = [2.0 + 0.01 * k] * 175 + [51.15, 51.14, 51.15, 45.0 - 0.1 * k, 50.0]
+        if k == 3:
+            ranges[0] = 51.16
+        text = ' '.join(f'{r:g}' for r in ranges)
+        lines += [f'ODOM {0.1 * k} 0 0 0 0 0 {1.0 + k} host {1.0 + k}',
+                  f'FLASER 180 {text} {0.1 * k} 0 0 {0.1 * k} 0 0 {1.0 + k} host {1.0 + k}']
+    out = tmp_path / 'bag'
+    result = run_to_exit('carmen_to_bag', [str(_write_log(tmp_path / 'hall.log.gz', lines)),
+                                           str(out)])
+    assert result.returncode == 0, result.stderr
+    assert 'no-return value 51.16' in result.stdout and 'beams [179]' in result.stdout
+    scans = [scan_arrays(m)[0] for _, _, m in read_messages(out, ['/scan'])]
+    for k, ranges in enumerate(scans):
+        assert np.isinf(ranges[175:178]).all() and ranges[178] == pytest.approx(45.0 - 0.1 * k)
+        assert np.isnan(ranges[179])
+        assert np.isinf(ranges[0]) if k == 3 else ranges[0] == pytest.approx(2.0 + 0.01 * k)
 
 
 def test_unusable_input_is_refused_without_output(tmp_path):

@@ -31,6 +31,33 @@ def simulated_run(seed: int = 0, laps: float = 1.0, params: SimParams | None = N
                     laps * make_route(params).period_s, seed)
 
 
+def _loop(long_m: float, short_m: float, speed_m_s: float) -> tuple[str, ...]:
+    """A rectangular loop to the left at speed_m_s, turning in place at 45 deg/s."""
+    leg = ('straight {} %g' % speed_m_s, 'turn 90 45')
+    return ('wait 2', *(part.format(length) for length in (long_m, short_m, long_m, short_m)
+                        for part in leg), 'wait 1')
+
+
+# Open spaces (docs/nodes/icp_matcher.md): a world file and the simulated robot's parameters
+# there, a 40 m laser (360 beams, 1 deg apart, as the default) driving a loop at 1 m/s.
+WORLDS = {
+    # An 80 m x 50 m hall, walls 20-45 m from a 12 m x 8 m loop, pillars and booths.
+    'hall': ('hall_world.yaml', {'start_x_m': -6.0, 'start_y_m': -4.0,
+                                 'route': _loop(12.0, 8.0, 1.0), 'range_max_m': 40.0}),
+    # Sparse posts, bushes and two building fronts around a 20 m x 12 m loop, 3 cm range noise.
+    'outdoor': ('outdoor_world.yaml', {'start_x_m': -10.0, 'start_y_m': -6.0,
+                                       'route': _loop(20.0, 12.0, 1.0), 'range_max_m': 40.0,
+                                       'range_noise_std_m': 0.03}),
+}
+
+
+def world_run(world: str, seed: int = 0) -> SimRun:
+    """One loop of a WORLDS scenario."""
+    name, overrides = WORLDS[world]
+    params = dataclasses.replace(SimParams(), **overrides)
+    return simulate(params, load_world(config_file(name)), make_route(params).period_s, seed)
+
+
 def route_drift(seed: int = 0, laps: float = 1.0, settings: ScanMatcherSettings | None = None,
                 params: SimParams | None = None) -> dict:
     """The matcher alone (constant-velocity prediction and deskewing, no odometry) over `laps`

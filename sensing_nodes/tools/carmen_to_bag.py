@@ -82,14 +82,39 @@ class TimeBase:
     rebuilt: str = ''
 
 
+# A no-return reading scatters a little below the log's sentinel (Edmonton: 51.14 and 51.10
+# around 51.15, with a few at 51.16; freiburg-campus: 81.83 below 81.91): a range this close
+# below the largest is a no-return too (what it loses: returns within 0.5 % of the range limit).
+NO_RETURN_MARGIN = 0.005
+
+
 def no_return_value(log: CarmenLog, min_share: float = 0.001) -> float | None:
-    """The log's no-return range: its largest range value, if it is a repeated sentinel
-    (at least min_share of all beams), else None."""
+    """The log's no-return range: its largest range value, when the ranges within
+    NO_RETURN_MARGIN below it repeat in at least min_share of all beams (a sentinel with its
+    scatter, not a far wall); else None. Ranges from (1 - NO_RETURN_MARGIN) x it up are no
+    returns."""
     if not log.scans:
         return None
     ranges = np.concatenate([s.ranges for s in log.scans])
     largest = float(ranges.max())
-    return largest if np.mean(ranges == largest) >= min_share else None
+    near = ranges >= largest * (1.0 - NO_RETURN_MARGIN)
+    return largest if np.mean(near) >= min_share else None
+
+
+def stuck_beams(log: CarmenLog, min_scans: int = 20) -> list[int]:
+    """Beams that read one and the same range, below the no-return value, in every scan of the
+    log (Acapulco's 181st beam: 50.0 in all 861 scans): no measurement. Only among the scans
+    with the usual beam count, with at least min_scans of them, and only when fewer than a
+    tenth of the beams are so (a robot that never moved reads the same everywhere)."""
+    counts = [s.ranges.size for s in log.scans]
+    usual = max(set(counts), key=counts.count) if counts else 0
+    ranges = np.array([s.ranges for s in log.scans if s.ranges.size == usual])
+    if len(ranges) < min_scans:
+        return []
+    sentinel = no_return_value(log)
+    below = ranges[0] < (math.inf if sentinel is None else sentinel * (1.0 - NO_RETURN_MARGIN))
+    stuck = np.flatnonzero(np.all(ranges == ranges[0], axis=0) & below)
+    return stuck.tolist() if stuck.size < 0.1 * usual else []
 
 
 def odometry_chain(log: CarmenLog,
@@ -204,6 +229,7 @@ def convert(log_path: str | Path, out: str | Path, options: ConvertOptions | Non
     return {'counts': counts, 'skipped_odom': skipped, 'errors': log.errors,
             'scans_on_previous_stamp': int(np.sum(np.diff(time.scan_s) == 0)),
             'no_return_value': no_return_value(log), 'beams': len(log.scans[0].ranges),
+            'stuck_beams': stuck_beams(log),
             'time_base': time.rebuilt, 'odom_rate_hz': options.odom_rate_hz,
             'odometry_speed_m_s': speed,
             'declared_max_speed_m_s': _declared_max_speed(log)}
@@ -238,6 +264,10 @@ def _scan_messages(log: CarmenLog, time: TimeBase, options: ConvertOptions,
     from sensing_nodes.ros.conversions import float32_array, make_odometry
 
     sentinel = no_return_value(log)
+    limit = None if sentinel is None else sentinel * (1.0 - NO_RETURN_MARGIN)
+    stuck = stuck_beams(log)
+    counts = [s.ranges.size for s in log.scans]
+    usual = max(set(counts), key=counts.count)
     base_from_laser = se2.inverse((options.laser_x_m, 0.0, 0.0))
     zero_cov = np.zeros((3, 3))
     messages = []
@@ -254,9 +284,11 @@ def _scan_messages(log: CarmenLog, time: TimeBase, options: ConvertOptions,
         msg.scan_time = 0.0
         msg.range_min = 0.0
         ranges = scan.ranges.astype(float).copy()
-        if sentinel is not None:
-            ranges[ranges >= sentinel] = np.inf
-            msg.range_max = float(sentinel)
+        if stuck and n == usual:
+            ranges[stuck] = np.nan                  # REP 117: an invalid measurement
+        if limit is not None:
+            ranges[ranges >= limit] = np.inf
+            msg.range_max = float(limit)
         else:
             msg.range_max = float(np.max(ranges)) + 1.0
         msg.ranges = float32_array(ranges)
@@ -360,7 +392,10 @@ def _report(log: str, out: Path, summary: dict) -> None:
         print(f'carmen_to_bag: {log}:{number}: skipped: {reason}', file=sys.stderr)
     skipped = summary['skipped_odom']
     print(f"carmen_to_bag: wrote {out}: {summary['counts'][SCAN]} scans "
-          f"({summary['beams']} beams, no-return value {summary['no_return_value']} -> +inf), "
+          f"({summary['beams']} beams, no-return value {summary['no_return_value']} and up to "
+          f"{100 * NO_RETURN_MARGIN:g} % below it -> +inf"
+          + (f", beams {summary['stuck_beams']} read one value in every scan -> NaN"
+             if summary['stuck_beams'] else '') + '), '
           f"{summary['counts']['/odom']} odometry, {summary['counts'][GROUND_TRUTH]} "
           f"reference poses; ODOM lines skipped: {skipped['reference_repeated']} repeating the "
           f"scan's reference pose, {skipped['not_after_previous']} not after the previous; "

@@ -97,6 +97,12 @@ ICP_MATCHER_PARAMETERS = ParameterTable(IcpMatcherParameters(), described={
         name='map_points_per_cell'),
     'matcher.local_map.radius_m': Param(
         'local map: cells further than this from the robot are dropped (m)', 0.1, 1000.0),
+    'matcher.local_map.radius_per_range': Param(
+        "local map: ... or than this x the recent scans' 90th-percentile range where that is "
+        'further (0: off)', 0.0, 100.0),
+    'matcher.map_restart_reach': Param(
+        'local map: while matches fail, the map restarts from the scan once the prediction is '
+        "this x the scan's median range from the last match (0: never)", 0.0, 100.0),
     'matcher.local_map.max_cells': Param(
         'local map: at most this many cells (the furthest dropped)', 1, 10_000_000),
     'matcher.max_speed_m_s': Param(
