@@ -617,7 +617,7 @@ class LocalMapScanMatcher:
                     and points.shape[0] >= s.icp_options.correspondences.min_points \
                     and math.hypot(
                     predicted_mid[0] - self._matched_at[0], predicted_mid[1]
-                    - self._matched_at[1]) > s.map_restart_reach * self._reach(points):
+                    - self._matched_at[1]) > s.map_restart_reach * scan_reach(points):
                 self._restart_map(points, predicted_mid, events)
         else:
             self.failures = 0
