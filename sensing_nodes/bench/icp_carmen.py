@@ -180,13 +180,34 @@ def table(results: dict) -> str:
                 lines.append(f"| {log} | {mode} | | cannot be scored: {topics['error']} | | | |")
                 continue
             for topic, f in topics.items():
-                if topic == '/odom' and mode != next(iter(modes)):
+                if topic not in names or (topic == '/odom' and mode != next(iter(modes))):
                     continue                       # the same odometry for every mode
                 lines.append(
                     f"| {log} | {'' if topic == '/odom' else mode} | {names[topic]} | "
                     f"{f['ate_rmse_m']:.3f} | {f['rpe_translation_mean_m']:.4f} / "
                     f"{f['rpe_rotation_mean_deg']:.3f} | {f['rpe_translation_median_m']:.4f} / "
                     f"{f['rpe_rotation_median_deg']:.3f} | {f['steps_beyond_1m_or_30deg']} |")
+    return '\n'.join(lines)
+
+
+def integrity_table(results: dict) -> str:
+    """docs/real-data.md's integrity table: per log (local_map), the matcher's claimed over own
+    sigma per axis (- where its own error is below what the hat resolves) and the gate's
+    refusals among the good matches and among all."""
+    lines = ['| log | relations (uninformative) | claimed / own sigma x, y, yaw | own sigma x, y '
+             '(mm), yaw (deg) | good matches refused | matches refused |',
+             '|---|---|---|---|---|---|']
+    for log, modes in results.items():
+        f = modes.get('local_map', {}).get('integrity') if 'error' not in modes else None
+        if not f:
+            continue
+        ratios = ', '.join('-' if not math.isfinite(f[f'claimed_over_own_{a}']) else
+                           f"{f[f'claimed_over_own_{a}']:.2f}" for a in ('x', 'y', 'yaw'))
+        lines.append(
+            f"| {log} | {f['relations']} ({f['uninformative_relations']}) | {ratios} | "
+            f"{f['own_x_m'] * 1e3:.1f}, {f['own_y_m'] * 1e3:.1f}, "
+            f"{math.degrees(f['own_yaw_rad']):.3f} | {f['good_matches_refused']} of "
+            f"{f['good_matches']} | {f['matches_refused']} |")
     return '\n'.join(lines)
 
 
@@ -203,9 +224,12 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.logs.split(','):
         results[name] = log_figures(name, args.out, modes)
         print(f'{name}: done', file=sys.stderr, flush=True)
-    print(table(results))
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
+    print(table(results))
+    if 'local_map' in modes:
+        print()
+        print(integrity_table(results))
     return 0
 
 
@@ -222,6 +246,9 @@ def run(quick: bool = False) -> dict:
             if not isinstance(topics, dict) or 'error' in topics:
                 continue
             for topic, f in topics.items():
+                if topic == 'integrity':
+                    flat.update({f'{name}.{mode}.integrity.{k}': v for k, v in f.items()})
+                    continue
                 for key in ('ate_rmse_m', 'rpe_translation_mean_m', 'rpe_rotation_mean_deg',
                             'steps_beyond_1m_or_30deg'):
                     flat[f'{name}.{mode}.{topic}.{key}'] = f[key]
