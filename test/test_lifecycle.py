@@ -4,18 +4,22 @@ each transition through the node's lifecycle_msgs services (/<node>/change_state
 in one `sensing_graph --lifecycle` process (each its own node with its own services); nothing is
 published before activate or after deactivate, inputs arriving while inactive are counted, a bad
 parameter fails configure and is set right through set_parameters, cleanup removes the node's
-topics, shutdown finalizes it. (ros/processing_node.py; plain nodes, the default: every other
-node test.)"""
+topics, shutdown finalizes it. One node executable started managed, as robot.launch.py starts
+them, and `ros2 lifecycle` (the vendored ROS 2 command line, where `make venv` installed it) on
+another. (ros/processing_node.py; plain nodes, the default: every other node test.)"""
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 import tempfile
 from collections import defaultdict
 
+import numpy as np
+import pytest
 from diagnostic_msgs.msg import DiagnosticArray
-from harness import NodeProcess, spin_until
+from harness import BIN, Collector, NodeProcess, laser_scan, publish_until, spin_until
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from nav_msgs.msg import Odometry
@@ -233,3 +237,55 @@ def test_every_transition_over_lifecycle_services(probe):
         text = log.read()
         print(text)   # shown by pytest when the test fails
     assert 'Traceback' not in text, text
+
+
+def test_a_managed_executable_owns_no_topic_until_configured_and_answers_once_active(probe):
+    with NodeProcess('line_extractor', params={'lifecycle': True}) as node:
+        manager = Lifecycle(probe, 'line_extractor')
+        scans = probe.create_publisher(LaserScan, SCAN, SENSOR_QOS)
+        tables = Collector(probe, PointCloud2, SCAN_LINES_TABLE, ESTIMATE_QOS)
+        try:
+            assert manager.state() == State.PRIMARY_STATE_UNCONFIGURED, node.output()
+            assert 'line_extractor' not in {
+                i.node_name for i in probe.get_subscriptions_info_by_topic(SCAN)}
+            assert manager.change(Transition.TRANSITION_CONFIGURE), node.output()
+            assert manager.change(Transition.TRANSITION_ACTIVATE), node.output()
+            # a wall 2 m ahead: one line in the table
+            scan = laser_scan(1_000_000_000, 2.0 / np.cos(np.radians(np.arange(-45, 46))),
+                              angle_min=np.radians(-45.0), increment=np.radians(1.0))
+            assert publish_until(probe, scans, scan, lambda: tables.messages, outputs=tables), \
+                node.output()
+            assert tables.messages[0].width == 1
+        finally:
+            tables.close()
+            probe.destroy_publisher(scans)
+            manager.close()
+        assert node.stop() == 0, node.output()
+
+
+@pytest.mark.skipif(
+    not (BIN / 'ros2').is_file() or importlib.util.find_spec('ros2lifecycle') is None,
+    reason='the ROS 2 command line (ros2 lifecycle) is not in the venv: make venv installs it '
+           'from ../shared/vendor/ros2-jazzy where that exists (a ROS install has its own)')
+def test_ros2_lifecycle_set_and_get(probe):
+    """configure and activate by `ros2 lifecycle set`, the state by `ros2 lifecycle get` (each
+    verb takes seconds: the rest of the transitions are the services' test above)."""
+    def ros2_lifecycle(*args: str) -> subprocess.CompletedProcess:
+        # No daemon, as every ros2 verb the tests run. A verb that has not discovered the node
+        # in its spin time (a loaded machine) says so: once more with longer.
+        for spin_s in ('3', '8'):
+            done = subprocess.run([str(BIN / 'ros2'), 'lifecycle', *args, '--no-daemon',
+                                   '--spin-time', spin_s], capture_output=True, text=True,
+                                  timeout=60)
+            if 'Node not found' not in done.stderr:
+                break
+        return done
+
+    with NodeProcess('wheel_odometry', params={'lifecycle': True}) as node:
+        assert spin_until(probe, lambda: 'wheel_odometry' in probe.get_node_names(), 30.0)
+        for transition in ('configure', 'activate'):
+            done = ros2_lifecycle('set', '/wheel_odometry', transition)
+            assert done.returncode == 0 and done.stdout.strip() == 'Transitioning successful', \
+                (transition, done, node.output())
+        got = ros2_lifecycle('get', '/wheel_odometry')
+        assert got.stdout.strip() == 'active [3]', (got, node.output())
