@@ -14,7 +14,7 @@ LAYERS = {'topics': 0, 'paths': 0, 'parameters': 0, 'core': 1, 'bags': 2, 'ros':
           'graph': 5, 'doctor': 6, 'tools': 7, 'bench': 7}
 ROS_PACKAGES = ('rclpy', 'rosbags', 'mcap', 'sensor_msgs', 'nav_msgs', 'geometry_msgs',
                 'std_msgs', 'tf2_msgs', 'diagnostic_msgs', 'visualization_msgs', 'rosgraph_msgs',
-                'rcl_interfaces', 'builtin_interfaces')
+                'rcl_interfaces', 'builtin_interfaces', 'lifecycle_msgs')
 
 
 def _imports(path: Path) -> list[str]:

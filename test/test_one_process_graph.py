@@ -56,6 +56,10 @@ def test_each_node_keeps_its_name_parameters_and_remappings(probe):
         assert _subscriber_nodes(probe, '/scan_front') == {'line_extractor'}
         assert _subscriber_nodes(probe, '/scan') == {'icp_matcher'}
         assert 'wheel_odometry' in _subscriber_nodes(probe, '/joint_states')
+        # Plain nodes (the default): not managed, no lifecycle service (test_lifecycle.py).
+        assert _get(probe, 'line_extractor', ['lifecycle']) == {'lifecycle': False}
+        assert not [name for name, _ in probe.get_service_names_and_types()
+                    if name.endswith('/change_state')]
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
     finally:

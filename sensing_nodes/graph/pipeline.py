@@ -56,9 +56,10 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
         nodes = {}
         for name in names:
             try:
+                # Plain whatever a parameter file says: the pipeline calls the processors.
                 nodes[name] = make_node(name, node_arguments(name, params_files,
                                                              node_params.get(name, [])),
-                                        context)
+                                        context, lifecycle=False)
             except _PARAMETER_ERRORS as exc:
                 close(nodes, context)
                 raise PipelineError(f'{name}: invalid parameter: {exc}') from None

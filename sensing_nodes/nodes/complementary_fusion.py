@@ -19,7 +19,6 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from sensor_msgs.msg import Imu
 from tf2_msgs.msg import TFMessage
 
@@ -33,16 +32,20 @@ from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.fusion_readings import ReadingConverter, unit_quaternion
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, declare_config, refuse_retired
+from sensing_nodes.ros.processing_node import ProcessingNode
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TF_TOPIC, ImuMount, imu_mount
 
 
-class ComplementaryFusionNode(Node):
+class ComplementaryFusionNode(ProcessingNode):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        # and `lifecycle` (ros/processing_node.py)
         super().__init__('complementary_fusion', **node_options)
+
+    def configure(self) -> None:
         # The parameters of the method the `method` parameter names.
         method = declare(self, FUSION_PARAMETERS['ekf']['method'])
         refuse_retired(self, {f'{name}.gate_chi2': f'is gone: every input has a gate, set by '
@@ -71,7 +74,8 @@ class ComplementaryFusionNode(Node):
                    for i in self.processor.inputs()], self.processor.outputs())
         # robot_localization's set_pose as a topic: a service would need an interface package
         # of our own, which the PyPI-wheel setup cannot build.
-        self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose, 10)
+        self.create_subscription(PoseWithCovarianceStamped, '~/set_pose',
+                                 self.when_active(self._on_set_pose), 10)
         # Wall time (steady): held inputs are processed when the bag has paused or ended, when
         # /clock (use_sim_time) has stopped too.
         self.create_timer(self._flush_after_s / 2.0, self._flush_if_idle,

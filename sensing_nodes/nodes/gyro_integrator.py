@@ -7,7 +7,6 @@ import sys
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from rclpy.node import Node
 from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger
 
@@ -21,6 +20,7 @@ from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare_config
+from sensing_nodes.ros.processing_node import ProcessingNode
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
@@ -30,10 +30,13 @@ from sensing_nodes.topics import IMU, IMU_RAW, WHEEL_ODOM
 _HEADING_ONLY = (0.0,) * 8   # orientation covariance: only yaw's variance (last) is known
 
 
-class GyroIntegratorNode(Node):
+class GyroIntegratorNode(ProcessingNode):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        # and `lifecycle` (ros/processing_node.py)
         super().__init__('gyro_integrator', **node_options)
+
+    def configure(self) -> None:
         parameters = declare_config(self, GYRO_INTEGRATOR_PARAMETERS)
         config, use_wheels = parameters.integrator, parameters.use_wheel_odom
         self._restart_on_backwards = parameters.restart_on_backwards

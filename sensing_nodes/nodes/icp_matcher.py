@@ -11,7 +11,6 @@ import sys
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
 from nav_msgs.msg import Odometry
-from rclpy.node import Node
 from sensor_msgs.msg import LaserScan
 from tf2_msgs.msg import TFMessage
 
@@ -37,6 +36,7 @@ from sensing_nodes.ros.conversions import (
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare_config
+from sensing_nodes.ros.processing_node import ProcessingNode
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
@@ -73,10 +73,13 @@ def keyframe_odometry(step: ScanStep, base_frame: str) -> bytes:
                         step.relative_covariance if matched else np.zeros((3, 3)))
 
 
-class IcpMatcherNode(Node):
+class IcpMatcherNode(ProcessingNode):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        # and `lifecycle` (ros/processing_node.py)
         super().__init__('icp_matcher', **node_options)
+
+    def configure(self) -> None:
         parameters = declare_config(self, ICP_MATCHER_PARAMETERS)
         settings, odom_topic = parameters.matcher, parameters.odom_topic
         self._base_frame, self._deskew = parameters.base_frame, parameters.deskew

@@ -15,7 +15,6 @@ import sys
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
-from rclpy.node import Node
 from sensor_msgs.msg import LaserScan, PointCloud2, PointField
 from visualization_msgs.msg import MarkerArray
 
@@ -28,6 +27,7 @@ from sensing_nodes.ros.conversions import scan_arrays, stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare_config
+from sensing_nodes.ros.processing_node import ProcessingNode
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
@@ -80,15 +80,19 @@ def lines_markers_cdr(lines: list[Line], stamp_ns: int, frame_id: str, width_m: 
                                  [(*line.start, *line.end) for line in lines])
 
 
-class LineExtractorNode(Node):
+class LineExtractorNode(ProcessingNode):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        # and `lifecycle` (ros/processing_node.py)
         super().__init__('line_extractor', **node_options)
+
+    def configure(self) -> None:
         parameters = declare_config(self, LINE_EXTRACTOR_PARAMETERS)
         self._options = dataclasses.asdict(parameters.lines)
         self._marker_width_m, self._max_gap_s = parameters.marker_width, parameters.max_gap_s
+        self.diagnostics = Diagnostics(self)
         self.processor = LineExtractorProcessor(
-            self._options, self._marker_width_m, self._max_gap_s, Diagnostics(self),
+            self._options, self._marker_width_m, self._max_gap_s, self.diagnostics,
             ThrottledWarnings(self, period_s=5.0))
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.get_logger().info(

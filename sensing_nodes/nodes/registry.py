@@ -20,10 +20,12 @@ NODE_CLASSES = {
 assert tuple(NODE_CLASSES) == PROCESSING_NODES
 
 
-def make_node(name: str, arguments: list[str], context=None):
+def make_node(name: str, arguments: list[str], context=None, lifecycle: bool | None = None):
     """The processing node `name` constructed in `context` (default: this process's rclpy
     context) with only `arguments` (graph.cli.node_arguments) as its own, as its executable
     constructs it; the process's global ROS arguments do not apply, so nodes built side by side
-    never share a -p or -r."""
+    never share a -p or -r. `lifecycle`: managed or plain whatever its `lifecycle` parameter
+    says (default: as it says; ros/processing_node.py)."""
     options = {} if context is None else {'context': context}
-    return NODE_CLASSES[name](cli_args=arguments, use_global_arguments=False, **options)
+    return NODE_CLASSES[name](cli_args=arguments, use_global_arguments=False,
+                              lifecycle=lifecycle, **options)

@@ -6,7 +6,6 @@ import sys
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
@@ -20,6 +19,7 @@ from sensing_nodes.ros.conversions import stamp_to_ns
 from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare_config
+from sensing_nodes.ros.processing_node import ProcessingNode
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
@@ -27,10 +27,13 @@ from sensing_nodes.ros.tf import TF_TOPIC
 from sensing_nodes.topics import JOINT_STATES, WHEEL_ODOM
 
 
-class WheelOdometryNode(Node):
+class WheelOdometryNode(ProcessingNode):
     def __init__(self, **node_options) -> None:
         # node_options: rclpy Node keywords (sensing_pipeline passes this node's own cli_args)
+        # and `lifecycle` (ros/processing_node.py)
         super().__init__('wheel_odometry', **node_options)
+
+    def configure(self) -> None:
         parameters = declare_config(self, WHEEL_ODOMETRY_PARAMETERS)
         config, left, right = (parameters.odometry, parameters.left_wheel_joint,
                                parameters.right_wheel_joint)

@@ -10,10 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
 from sensing_nodes.ros.cdr import create_decoded_subscription
+from sensing_nodes.ros.processing_node import ProcessingNode
 
 # (topic, rclpy message or its CDR bytes), in publication order; bytes a processor returns are
 # canonical CDR (ros/cdr.py's encoders), which sensing_pipeline stores as they are.
@@ -40,16 +40,18 @@ class Output:
     qos: QoSProfile
 
 
-def wire(node: Node, inputs: list[Input], outputs: list[Output]) -> dict[str, Any]:
+def wire(node: ProcessingNode, inputs: list[Input], outputs: list[Output]) -> dict[str, Any]:
     """Subscribe `node` to each input and publish what its handler returns, in order; returns
-    the publishers (topic -> publisher), for outputs of the node's own timers and services."""
+    the publishers (topic -> publisher), for outputs of the node's own timers and services.
+    Managed (ros/processing_node.py), the publishers send only while the node is active, and
+    inputs arriving while it is not are dropped and counted."""
     publishers = {o.topic: node.create_publisher(o.msg_type, o.topic, o.qos) for o in outputs}
 
     def callback(handler: Callable[[Any], Outputs]) -> Callable[[Any], None]:
         def on_message(msg: Any) -> None:
             for topic, out in handler(msg):
                 publishers[topic].publish(out)
-        return on_message
+        return node.when_active(on_message)
 
     for i in inputs:
         if i.decoded:

@@ -5,7 +5,10 @@ Each node keeps its name, parameters (its config/<node>.yaml, then --params-file
 --param overrides: the arguments its executable gets from a launch, given to that node alone),
 remappings (--remap NODE:FROM:=TO) and topics; one executor spins them all. The process holds
 the Python interpreter, numpy, rclpy and the DDS participant once instead of five times. SIGINT
-or SIGTERM stops it cleanly; a bad parameter is reported and exits with 2. docs/performance.md.
+or SIGTERM stops it cleanly; a bad parameter is reported and exits with 2. With --lifecycle
+every node is managed (its `lifecycle` parameter true): each starts unconfigured and is brought
+up through its own lifecycle services, and a bad parameter fails that node's configure instead.
+docs/performance.md, docs/architecture.md (managed nodes).
 """
 
 from __future__ import annotations
@@ -74,6 +77,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help='a parameter override for one node (after the parameter files)')
     parser.add_argument('--remap', action='append', default=[], metavar='NODE:FROM:=TO',
                         help='a topic remapping for one node (as its executable\'s -r FROM:=TO)')
+    parser.add_argument('--lifecycle', action='store_true',
+                        help='managed (lifecycle) nodes: each starts unconfigured, brought up '
+                             'through /<node>/change_state (a lifecycle manager, ros2 lifecycle '
+                             'set); the same as --param NODE:lifecycle:=true for every node')
     parser.add_argument('--executor', choices=EXECUTORS, default=None,
                         help='what spins the nodes: events (rclpy\'s EventsExecutor), single '
                              '(SingleThreadedExecutor) or multi (MultiThreadedExecutor: each '
@@ -105,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     except GraphArgumentError as exc:
         print(f'sensing_graph: error: {exc}', file=sys.stderr)
         return 2
-    extras = {n: params.get(n, []) + remaps.get(n, []) for n in names}
+    managed = ['-p', 'lifecycle:=true'] if args.lifecycle else []
+    extras = {n: managed + params.get(n, []) + remaps.get(n, []) for n in names}
     return run(names, args.params_file, extras, args.executor, args.threads)
 
 
