@@ -194,7 +194,10 @@ def test_missing_input_is_reported_in_diagnostics(probe, publishers):
         spin_until(probe, lambda: any(
             s.name == 'complementary_fusion' for m in diagnostics.messages for s in m.status), 5)
 
-    messages, _ = _run(probe, publishers, events, params={'reorder_window_s': 0.05},
+    # The scan matcher is never heard: not waited for beyond 0.05 s of stamps (its default, 10 s,
+    # is for nodes started together), so every wheel input is answered.
+    messages, _ = _run(probe, publishers, events,
+                       params={'reorder_window_s': 0.05, 'startup_timeout_s': 0.05},
                        before_stop=wait_for_diagnostics)
     assert len(messages) == 100
     statuses = [

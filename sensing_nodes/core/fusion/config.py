@@ -67,6 +67,9 @@ PARAMETERS: dict[str, Parameter] = {
              'went backwards (looping bag): the filter resets', 0.0),
     'input_timeout_s': Parameter(2.0, 'an enabled input silent for this long is reported '
                                       'missing', 0.01),
+    'startup_timeout_s': Parameter(10.0, 'an enabled input not heard yet is waited for this long '
+                                         '(stamp time since the first input) before the filter '
+                                         'starts without it', 0.01),
     'odom_frame': Parameter('odom', 'frame of the fused pose'),
     'base_frame': Parameter('base_link', 'child frame of the fused pose'),
     'publish_tf': Parameter(True, 'broadcast odom_frame -> base_frame on /tf with each output, '
@@ -170,6 +173,7 @@ class SessionConfig:
     max_gap_s: float
     reset_on_backwards_jump_s: float
     input_timeout_s: float
+    startup_timeout_s: float              # stamp time: how long a silent input is waited for
     odom_frame: str
     base_frame: str
     publish_tf: bool
@@ -259,7 +263,8 @@ def session_config(params: Mapping[str, Any]) -> SessionConfig:
         imu_source=imu_source, imu_mount_rpy=mount, level_with_imu_tilt=v['level_with_imu_tilt'],
         reorder_window_s=v['reorder_window_s'], flush_after_s=v['flush_after_s'],
         max_gap_s=v['max_gap_s'], reset_on_backwards_jump_s=v['reset_on_backwards_jump_s'],
-        input_timeout_s=v['input_timeout_s'], odom_frame=v['odom_frame'],
+        input_timeout_s=v['input_timeout_s'], startup_timeout_s=v['startup_timeout_s'],
+        odom_frame=v['odom_frame'],
         base_frame=v['base_frame'], publish_tf=v['publish_tf'],
         publish_rate_hz=v['publish_rate_hz'])
 

@@ -95,6 +95,7 @@ class FusionSession:
         # moment after the wheels started ended 0.15 deg off and refused every scan match).
         self._first_ns: dict[str, int] = {}
         self._started = False
+        self._waiting = False    # told that an input not heard yet is waited for
         self._rate.reset()
         self.outputs.clear()
 
@@ -115,7 +116,7 @@ class FusionSession:
             's before its previous one: time went backwards (looping bag or restarted clock); '
             'resetting')))
         self.counts['resets'] += 1
-        out = self._process(self.buffer.flush())   # what was held: the old timeline
+        out = self._process(self.buffer.flush(), flushing=True)   # the old timeline's
         self.fusion.reset()
         self.buffer.clear()
         for r in self._record_list:
@@ -151,7 +152,8 @@ class FusionSession:
         if record.arrived_ns is None or stamp > record.arrived_ns:
             record.arrived_ns = stamp
         out = self._process(buffer.pop_ready(watermark(
-            self._record_list, buffer.newest_ns, self._start_ns, self.config.input_timeout_s)))
+            self._record_list, buffer.newest_ns, self._start_ns, self.config.input_timeout_s,
+            self.config.startup_timeout_s)))
         if self.outputs.last_ns is not None:
             self._lag_max_ns = max(self._lag_max_ns, buffer.newest_ns - self.outputs.last_ns)
         return out
@@ -190,8 +192,9 @@ class FusionSession:
         return out
 
     def flush(self) -> list[FusedOutput]:
-        """Process everything held (end of a stream, or no input for a while)."""
-        return self._process(self.buffer.flush())
+        """Process everything held (end of a stream, or no input for a while): an input not
+        heard yet is no longer waited for."""
+        return self._process(self.buffer.flush(), flushing=True)
 
     def held(self) -> int:
         """How many readings the reorder buffer holds."""
@@ -213,7 +216,8 @@ class FusionSession:
         return notices
 
     # -- fusion ----------------------------------------------------------------------------------
-    def _process(self, ready: list[tuple[int, tuple[str, object]]]) -> list[FusedOutput]:
+    def _process(self, ready: list[tuple[int, tuple[str, object]]], flushing: bool = False
+                 ) -> list[FusedOutput]:
         out: list[FusedOutput] = []
         # The state is read once every reading of a stamp is in (a wheel message and an IMU
         # message stamped alike: the output at that stamp has both, instead of the heading
@@ -222,7 +226,7 @@ class FusionSession:
         for index, (stamp, (name, reading)) in enumerate(ready):
             if reading is RESTART:
                 self.fusion.restart(name)
-            elif not self._started and self._before_every_input(stamp):
+            elif not self._started and self._before_every_input(stamp, flushing):
                 self.counts['before_every_input'] += 1
             else:
                 self.records[name].processed_at(stamp)
@@ -252,9 +256,12 @@ class FusionSession:
         if self._on_output is not None:
             self._on_output(stamp, state)
 
-    def _before_every_input(self, stamp: int) -> bool:
-        """True for a reading older than the first of some enabled input (not fused); the
-        first reading that is not starts the filter."""
+    def _before_every_input(self, stamp: int, flushing: bool) -> bool:
+        """True for a reading that is not fused because the filter has not started: older than
+        the first of some enabled input, or released while an input not heard yet is still
+        waited for (startup_timeout_s of stamps since the first input, unless `flushing`: nodes
+        started together come up and discover each other in any order); the first reading that
+        is not starts the filter."""
         if all(name in self._first_ns for name in self._enabled):
             start = max(self._first_ns[name] for name in self._enabled)
             if stamp < start:
@@ -264,10 +271,19 @@ class FusionSession:
                 self.notices.append(Notice('info', (
                     f'every input has spoken: fusing from {start * 1e-9:.3f} s; {skipped} '
                     'earlier readings not fused')))
-        else:
-            silent = [name for name in self._enabled if name not in self._first_ns]
-            self.notices.append(Notice('warn', (
-                f'starting without {", ".join(silent)} (silent for '
-                f'{self.config.input_timeout_s:g} s of stamps)')))
+            self._started = True
+            return False
+        silent = ', '.join(f'{name} ({self.config.topics[name]})' for name in self._enabled
+                           if name not in self._first_ns)
+        waited_ns = self.buffer.newest_ns - self._start_ns
+        if not flushing and waited_ns <= self.config.startup_timeout_s * 1e9:
+            if not self._waiting:
+                self._waiting = True
+                self.notices.append(Notice('info', (
+                    f'waiting for {silent}: not heard yet; fusing starts once every enabled '
+                    f'input has spoken (at most {self.config.startup_timeout_s:g} s of stamps)')))
+            return True
+        self.notices.append(Notice('warn', (
+            f'starting without {silent} (not heard in {waited_ns * 1e-9:.3g} s of stamps)')))
         self._started = True
         return False
