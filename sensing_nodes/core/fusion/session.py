@@ -116,7 +116,7 @@ class FusionSession:
             's before its previous one: time went backwards (looping bag or restarted clock); '
             'resetting')))
         self.counts['resets'] += 1
-        out = self._process(self.buffer.flush(), flushing=True)   # the old timeline's
+        out = self._process(self.buffer.flush())   # what was held: the old timeline
         self.fusion.reset()
         self.buffer.clear()
         for r in self._record_list:
@@ -151,6 +151,8 @@ class FusionSession:
             self._first_ns[name] = stamp
         if record.arrived_ns is None or stamp > record.arrived_ns:
             record.arrived_ns = stamp
+        if self._waiting_for_silent_input():
+            return []
         out = self._process(buffer.pop_ready(watermark(
             self._record_list, buffer.newest_ns, self._start_ns, self.config.input_timeout_s,
             self.config.startup_timeout_s)))
@@ -194,7 +196,7 @@ class FusionSession:
     def flush(self) -> list[FusedOutput]:
         """Process everything held (end of a stream, or no input for a while): an input not
         heard yet is no longer waited for."""
-        return self._process(self.buffer.flush(), flushing=True)
+        return self._process(self.buffer.flush())
 
     def held(self) -> int:
         """How many readings the reorder buffer holds."""
@@ -216,8 +218,7 @@ class FusionSession:
         return notices
 
     # -- fusion ----------------------------------------------------------------------------------
-    def _process(self, ready: list[tuple[int, tuple[str, object]]], flushing: bool = False
-                 ) -> list[FusedOutput]:
+    def _process(self, ready: list[tuple[int, tuple[str, object]]]) -> list[FusedOutput]:
         out: list[FusedOutput] = []
         # The state is read once every reading of a stamp is in (a wheel message and an IMU
         # message stamped alike: the output at that stamp has both, instead of the heading
@@ -226,7 +227,7 @@ class FusionSession:
         for index, (stamp, (name, reading)) in enumerate(ready):
             if reading is RESTART:
                 self.fusion.restart(name)
-            elif not self._started and self._before_every_input(stamp, flushing):
+            elif not self._started and self._before_every_input(stamp):
                 self.counts['before_every_input'] += 1
             else:
                 self.records[name].processed_at(stamp)
@@ -256,12 +257,34 @@ class FusionSession:
         if self._on_output is not None:
             self._on_output(stamp, state)
 
-    def _before_every_input(self, stamp: int, flushing: bool) -> bool:
-        """True for a reading that is not fused because the filter has not started: older than
-        the first of some enabled input, or released while an input not heard yet is still
-        waited for (startup_timeout_s of stamps since the first input, unless `flushing`: nodes
-        started together come up and discover each other in any order); the first reading that
-        is not starts the filter."""
+    def _waiting_for_silent_input(self) -> bool:
+        """True while the filter has not started and an enabled input has not been heard yet,
+        for up to startup_timeout_s of stamps since the first reading: what arrives is held, not
+        fused (nodes started together come up and discover each other in any order; started
+        without an input, the filter would then drop that input's first, late messages). Told
+        once, naming the inputs, when it lasts longer than input_timeout_s."""
+        if self._started:
+            return False
+        silent = [name for name in self._enabled if name not in self._first_ns]
+        waited_ns = self.buffer.newest_ns - self._start_ns
+        if not silent or waited_ns > self.config.startup_timeout_s * 1e9:
+            return False
+        # Told once the wait is longer than a silent input is waited for later on.
+        if not self._waiting and waited_ns > self.config.input_timeout_s * 1e9:
+            self._waiting = True
+            self.notices.append(Notice('info', (
+                f'waiting for {self._named(silent)}: not heard yet; fusing starts once every '
+                f'enabled input has spoken (at most {self.config.startup_timeout_s:g} s of '
+                'stamps)')))
+        return True
+
+    def _named(self, names: list[str]) -> str:
+        return ', '.join(f'{name} ({self.config.topics[name]})' for name in names)
+
+    def _before_every_input(self, stamp: int) -> bool:
+        """True for a reading older than the first of some enabled input (not fused); the
+        first reading that is not starts the filter (without the inputs still silent, once
+        they are no longer waited for: startup_timeout_s, or a flush)."""
         if all(name in self._first_ns for name in self._enabled):
             start = max(self._first_ns[name] for name in self._enabled)
             if stamp < start:
@@ -271,19 +294,11 @@ class FusionSession:
                 self.notices.append(Notice('info', (
                     f'every input has spoken: fusing from {start * 1e-9:.3f} s; {skipped} '
                     'earlier readings not fused')))
-            self._started = True
-            return False
-        silent = ', '.join(f'{name} ({self.config.topics[name]})' for name in self._enabled
-                           if name not in self._first_ns)
-        waited_ns = self.buffer.newest_ns - self._start_ns
-        if not flushing and waited_ns <= self.config.startup_timeout_s * 1e9:
-            if not self._waiting:
-                self._waiting = True
-                self.notices.append(Notice('info', (
-                    f'waiting for {silent}: not heard yet; fusing starts once every enabled '
-                    f'input has spoken (at most {self.config.startup_timeout_s:g} s of stamps)')))
-            return True
-        self.notices.append(Notice('warn', (
-            f'starting without {silent} (not heard in {waited_ns * 1e-9:.3g} s of stamps)')))
+        else:
+            silent = [name for name in self._enabled if name not in self._first_ns]
+            waited = (self.buffer.newest_ns - self._start_ns) * 1e-9
+            self.notices.append(Notice('warn', (
+                f'starting without {self._named(silent)} (not heard in {waited:.3g} s of '
+                'stamps)')))
         self._started = True
         return False
