@@ -254,29 +254,36 @@ def test_the_command_line_against_the_launched_graphs(ws, sim_launch, probe):
     topics = sorted({topic for _, topic in documented})
     node = '/wheel_odometry'
     documented_params = _documented_parameters('wheel_odometry')
-    direct = ['--no-daemon', '--spin-time', SPIN]
+    expected_nodes = {f'/{n}' for n in SIM_GRAPH} | {f'/tb3/{n}' for n in PROCESSING_NODES}
+
+    def found_node(result):
+        return 'Node not found' not in result.stdout and 'timed out' not in result.stdout
+
+    def publishers_of(topic):
+        wanted = {name for name, t in documented if t == topic}
+        return lambda result: wanted <= {name for name, _ in _publishers(result.stdout)}
+
     node_list, echo, listed, described, get, refused, tb3_radius, tb3_sim_time, tb3_fused, \
-        *infos = ros2(
-            ws, ['ros2', 'node', 'list', *direct],
-            ['ros2', 'topic', 'echo', '--once', *direct, '/odometry/filtered'],
-            ['ros2', 'param', 'list', *direct, node],
-            ['ros2', 'param', 'describe', *direct, '--timeout', '10', node,
-             *documented_params],
-            ['ros2', 'param', 'get', *direct, node, 'wheel_radius_m'],
-            ['ros2', 'param', 'set', *direct, node, 'wheel_radius_m', '-0.05'],
-            ['ros2', 'param', 'get', *direct, '/tb3/wheel_odometry', 'wheel_radius_m'],
-            ['ros2', 'param', 'get', *direct, '/tb3/complementary_fusion', 'use_sim_time'],
-            ['ros2', 'topic', 'info', '-v', *direct, '/tb3/odometry/filtered'],
-            *[['ros2', 'topic', 'info', '-v', *direct, t] for t in topics], probe=probe)
-    nodes = set(node_list.stdout.split())
-    assert {f'/{n}' for n in SIM_GRAPH} | {f'/tb3/{n}' for n in PROCESSING_NODES} <= nodes, \
+        *infos = _discovered(ws, probe, [
+            (['ros2', 'node', 'list'], lambda r: expected_nodes <= set(r.stdout.split())),
+            (['ros2', 'topic', 'echo', '--once', '/odometry/filtered'], found_node),
+            (['ros2', 'param', 'list', node], found_node),
+            (['ros2', 'param', 'describe', '--timeout', '10', node, *documented_params],
+             found_node),
+            (['ros2', 'param', 'get', node, 'wheel_radius_m'], found_node),
+            (['ros2', 'param', 'set', node, 'wheel_radius_m', '-0.05'], found_node),
+            (['ros2', 'param', 'get', '/tb3/wheel_odometry', 'wheel_radius_m'], found_node),
+            (['ros2', 'param', 'get', '/tb3/complementary_fusion', 'use_sim_time'], found_node),
+            (['ros2', 'topic', 'info', '-v', '/tb3/odometry/filtered'],
+             lambda r: 'Publisher count: 1' in r.stdout),
+            *[(['ros2', 'topic', 'info', '-v', t], publishers_of(t)) for t in topics]])
+    assert expected_nodes <= set(node_list.stdout.split()), \
         (node_list.stdout, namespaced.output())
     assert 'frame_id: odom' in echo.stdout and 'child_frame_id: base_link' in echo.stdout, echo
     offered = {}
     for topic, info in zip(topics, infos):
         assert info.returncode == 0, info.stdout
-        for name, qos in _publishers(info.stdout):
-            offered[name, topic] = qos
+        offered.update({(name, topic): qos for name, qos in _publishers(info.stdout)})
     assert {key: offered.get(key) for key in documented} == documented
 
     assert set(listed.stdout.split()) == set(documented_params) | ROS_OWN_PARAMETERS, listed
@@ -289,13 +296,30 @@ def test_the_command_line_against_the_launched_graphs(ws, sim_launch, probe):
     assert len(ranges) >= 4, ranges
     assert {p: _described_range(descriptors[p]) for p in ranges} == {
         p: pytest.approx(r) for p, r in ranges.items()}
-    assert get.stdout.strip() == 'Double value is: 0.05', get
-    assert refused.stdout.startswith('Setting parameter failed'), refused
+    # (line by line: a loaded machine's Fast DDS may print a transport warning first)
+    assert 'Double value is: 0.05' in get.stdout.splitlines(), get
+    assert 'Setting parameter failed: Trying to set a read-only parameter: wheel_radius_m.' in \
+        refused.stdout.splitlines(), refused
 
-    assert tb3_radius.stdout.strip() == 'Double value is: 0.033', tb3_radius   # the preset's
-    assert tb3_sim_time.stdout.strip() == 'Boolean value is: True', tb3_sim_time
+    assert 'Double value is: 0.033' in tb3_radius.stdout.splitlines(), tb3_radius  # the preset's
+    assert 'Boolean value is: True' in tb3_sim_time.stdout.splitlines(), tb3_sim_time
     assert _publishers(tb3_fused.stdout) == [('complementary_fusion', ('RELIABLE', 'VOLATILE'))]
     assert 'Node namespace: /tb3' in tb3_fused.stdout, tb3_fused
+
+
+def _discovered(ws: Workspace, probe, checks: list[tuple[list[str], object]]
+                ) -> list[subprocess.CompletedProcess]:
+    """Each `ros2 VERB ...` run at once without the daemon, and a verb whose output lacks what
+    check(result) wants run once more with longer to discover: a direct verb knows only what
+    it discovered in its spin time, and on a loaded machine that can miss part of the graph."""
+    commands = [[*c[:3], '--no-daemon', '--spin-time', SPIN, *c[3:]] for c, _ in checks]
+    results = ros2(ws, *commands, probe=probe)
+    again = [i for i, (result, (_, ok)) in enumerate(zip(results, checks)) if not ok(result)]
+    retried = ros2(ws, *[[*checks[i][0][:3], '--no-daemon', '--spin-time', '8',
+                          *checks[i][0][3:]] for i in again], probe=probe)
+    for i, result in zip(again, retried):
+        results[i] = result
+    return results
 
 
 def _documented_output_qos() -> dict[tuple[str, str], tuple[str, str]]:
