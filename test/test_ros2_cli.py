@@ -496,7 +496,7 @@ def _fused_against_odom(out: Path) -> tuple[dict, float, float]:
     errors = trajectory_errors(*tracks['/odom'], *tracks['/odometry/filtered'])
     first = (errors.t - errors.t[0]) < 2_000_000_000
     # The fusion starts once every input has reached it: on a loaded machine the matcher's
-    # first match can reach it seconds of the bag after the others (measured: 6 s).
+    # first match can reach it seconds of the bag after the others (one run: 6 s in).
     assert first.sum() > 30 and (errors.t[-1] - errors.t[0]) > 10e9
     return errors.summary(), errors.position_m[first].max(), errors.position_m[~first].max()
 
