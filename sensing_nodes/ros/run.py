@@ -107,6 +107,11 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
         spin_until_shutdown(executor, node.context)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if node is None or rclpy.ok(context=node.context):
+            raise
+        # A callback run while a signal was shutting the context down (a timer publishing on a
+        # publisher that just became invalid: RCLError) is the shutdown, not the node's error.
     finally:
         ignore_further_interrupts()
         if node is not None:
