@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# Builds the interface packages in this folder (tf2_msgs: not on PyPI) into a venv that holds the
-# ROS 2 Jazzy wheels, with the rosidl generators and ament_cmake from PyPI, gcc and cmake.
-# Usage: interfaces/build_into_venv.sh VENV. The venv is the install prefix (its lib/ holds the other
+# Builds interface packages that have no wheel into a venv that holds the ROS 2 Jazzy wheels, with
+# the rosidl generators and ament_cmake from PyPI, gcc and cmake.
+# Usage: interfaces/build_into_venv.sh VENV [PACKAGE_FOLDER...]. Without folders: the packages in
+# this folder (tf2_msgs); with them, those (e.g. the vendored composition_interfaces, which may be
+# read-only: the build happens elsewhere). The venv is the install prefix (its lib/ holds the other
 # message libraries, which the wheels' bootstrapper puts on LD_LIBRARY_PATH).
 set -euo pipefail
 venv=$(cd "$1" && pwd)
@@ -17,11 +19,14 @@ for f in "$venv"/share/*/cmake/export_*__rosidl_generator_pyExport.cmake; do
          -e "s#/opt/python/cp311-cp311/include/python3.11#$py_include#g" "$f"
 done
 
+shift
+if [ "$#" -eq 0 ]; then set -- "$here/tf2_msgs"; fi
 build=$(mktemp -d)
 trap 'rm -rf "$build"' EXIT
-for package in tf2_msgs; do
+for source in "$@"; do
+  package=$(basename "$source")
   # The ament index is how rosidl finds the type support generators.
-  AMENT_PREFIX_PATH="$venv" cmake -S "$here/$package" -B "$build/$package" \
+  AMENT_PREFIX_PATH="$venv" cmake -S "$source" -B "$build/$package" \
     -DCMAKE_PREFIX_PATH="$venv" -DCMAKE_INSTALL_PREFIX="$venv" -DPython3_EXECUTABLE="$python" \
     -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release > "$build/$package.log" 2>&1 \
     || { cat "$build/$package.log"; exit 1; }

@@ -13,11 +13,16 @@ if os.environ.get('PYTEST_XDIST_WORKER'):
 else:
     os.environ.setdefault('ROS_DOMAIN_ID', str(pid_domain_id('tests')))
 
+import shutil  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+_NOT_SOURCE = shutil.ignore_patterns(
+    '.git', '.venv', 'build', 'install', 'log', '*.egg-info', '__pycache__', 'out', 'demo_out*')
 
 
 def pytest_sessionstart(session):
@@ -40,3 +45,18 @@ def probe():
     yield node
     node.destroy_node()
     rclpy.try_shutdown()
+
+
+@pytest.fixture(scope='session')
+def colcon_workspace(tmp_path_factory) -> Path:
+    """A ROS 2 workspace with a copy of this checkout in src/sensing_nodes, built with
+    `colcon build --packages-select sensing_nodes` (README, "In a ROS 2 workspace") once per
+    test session (per pytest-xdist worker that asks for it); its root."""
+    ws = tmp_path_factory.mktemp('ws')
+    shutil.copytree(REPO, ws / 'src' / 'sensing_nodes', ignore=_NOT_SOURCE)
+    colcon = Path(sys.executable).parent / 'colcon'
+    build = subprocess.run(
+        [str(colcon), 'build', '--packages-select', 'sensing_nodes'],
+        cwd=ws, capture_output=True, text=True, timeout=300)
+    assert build.returncode == 0, build.stdout + build.stderr
+    return ws

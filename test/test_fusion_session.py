@@ -170,6 +170,34 @@ def test_the_filter_starts_once_every_input_has_spoken():
     assert any('every input has spoken' in n.text for n in session.take_notices())
 
 
+def test_an_input_not_heard_yet_is_waited_for_then_started_without():
+    """Nodes started together come up in any order: the IMU heard 3 s of stamps after the
+    wheels (beyond the reorder window and input_timeout_s, 2 s each) is waited for, what came
+    before it is held and not fused, and nothing of it is dropped late. Never heard within
+    startup_timeout_s (10 s), the filter starts without it, from the first reading."""
+    config = session_config({'use_scan_match_position': False,
+                             'use_scan_match_heading': False})
+    assert (config.input_timeout_s, config.reorder_window_s, config.startup_timeout_s) == \
+        (2.0, 2.0, 10.0)
+    session = FusionSession(config)
+    out = [o for k in range(30) for o in session.feed(WHEEL, _wheel(k * S // 10, 0.0))]
+    assert out == [] and session.held() == 30
+    assert [n.text for n in session.take_notices()] == [   # told after input_timeout_s
+        'waiting for imu (/imu/data): not heard yet; fusing starts once every enabled input '
+        'has spoken (at most 10 s of stamps)']
+    out = session.feed(IMU, _yaw(3 * S)) + session.feed(WHEEL, _wheel(31 * S // 10, 0.0)) + \
+        session.feed(IMU, _yaw(31 * S // 10)) + session.flush()
+    assert [stamp for stamp, _ in out] == [31 * S // 10]
+    assert session.counts['before_every_input'] == 30 and session.buffer.late == 0
+    assert not any('starting without' in n.text for n in session.take_notices())
+
+    session = FusionSession(config)
+    out = [o for k in range(102) for o in session.feed(WHEEL, _wheel(k * S // 10, 0.0))]
+    assert out[0][0] == 0 and session.counts['before_every_input'] == 0
+    assert any(n.text == 'starting without imu (/imu/data) (not heard in 10.1 s of stamps)'
+               for n in session.take_notices())
+
+
 def test_time_going_backwards_resets_and_the_new_timeline_repeats_the_first():
     session = FusionSession(_wheels_only(reorder_window_s=0.0))
     first = [session.feed(WHEEL, _wheel(k * S // 10, 0.1 * k)) for k in range(5)]

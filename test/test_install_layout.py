@@ -2,33 +2,24 @@
 ament index, with every executable in lib/sensing_nodes, started from the install tree over DDS."""
 
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from harness import REPO, Collector, spin_until
+from harness import Collector, spin_until
 
 ARCHITECTURE_EXECUTABLES = [
     'sensor_sim', 'wheel_odometry', 'gyro_integrator', 'line_extractor', 'icp_matcher',
     'complementary_fusion',
 ]
-_NOT_SOURCE = shutil.ignore_patterns(
-    '.git', '.venv', 'build', 'install', 'log', '*.egg-info', '__pycache__', 'out', 'demo_out*')
 
 
 @pytest.fixture(scope='module')
-def install_tree(tmp_path_factory):
-    """colcon build of a copy of this checkout; returns (install prefix, environment as after
-    `source install/setup.bash`)."""
-    ws = tmp_path_factory.mktemp('ws')
-    shutil.copytree(REPO, ws / 'src' / 'sensing_nodes', ignore=_NOT_SOURCE)
-    colcon = Path(sys.executable).parent / 'colcon'
-    build = subprocess.run(
-        [str(colcon), 'build', '--packages-select', 'sensing_nodes'],
-        cwd=ws, capture_output=True, text=True, timeout=300)
-    assert build.returncode == 0, build.stdout + build.stderr
+def install_tree(colcon_workspace):
+    """The session's colcon build of this checkout; returns (install prefix, environment with
+    its prefix on AMENT_PREFIX_PATH and its site-packages on PYTHONPATH)."""
+    ws = colcon_workspace
     prefix = ws / 'install' / 'sensing_nodes'
     site = (
         prefix

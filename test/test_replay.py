@@ -406,6 +406,7 @@ def test_lockstep_into_the_fusion_and_every_record_topic(tmp_path):
                       # The silent IMU and matcher are not waited for after 0.5 s of stamps (25
                       # messages, fewer than the replay lets be outstanding): each answer comes
                       # by the watermark, not by the 2 s idle flush (15 s -> 6.5 s for the test).
+                      '--param', 'complementary_fusion:startup_timeout_s:=0.5',
                       '--param', 'complementary_fusion:input_timeout_s:=0.5',
                       # an answer per /wheel/odom, which --expect waits for (the default
                       # publish_rate_hz thins the outputs to 30 Hz of stamp time)

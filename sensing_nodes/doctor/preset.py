@@ -304,11 +304,18 @@ _PresetDumper.add_representer(str, lambda dumper, value: dumper.represent_scalar
     style="'" if value.lower() in ('y', 'n', 'yes', 'no', 'on', 'off', 'true', 'false') else None))
 
 
+# robot.launch.py's arguments that name a driver's topic, by the node topic they replace.
+LAUNCH_TOPIC_ARGUMENTS = {SCAN: 'scan_topic', IMU_RAW: 'imu_topic',
+                          JOINT_STATES: 'joint_states_topic'}
+
+
 def commands(d: Diagnosis, params: Path) -> dict[str, str]:
-    """The sensing_pipeline and sensing_replay command lines that run the preset: remaps,
-    and for the replay the expectation table of the nodes started (each bag input and the
-    outputs that answer it; none for what the fusion takes straight from the bag)."""
-    from sensing_nodes.topics import NODES
+    """The sensing_pipeline and sensing_replay command lines that run the preset over the bag:
+    remaps, and for the replay the expectation table of the nodes started (each bag input and
+    the outputs that answer it; none for what the fusion takes straight from the bag); and
+    those that run it on the robot, whose drivers publish the bag's topics: robot.launch.py
+    and sensing_graph (the same nodes in one process)."""
+    from sensing_nodes.topics import NODES, PROCESSING_NODES
 
     remap = ''.join(f' --remap {a}:={b}' for a, b in sorted(d.remaps.items()))
     fed = {s.topic for s in (d.joints, d.scan, d.imu) if s is not None}
@@ -328,10 +335,18 @@ def commands(d: Diagnosis, params: Path) -> dict[str, str]:
             expect += ' --param complementary_fusion:publish_rate_hz:=0.0'
         expect += f' --expect {topic}={",".join(answers)}'
     nodes = ','.join(d.nodes)
+    every = set(d.nodes) == set(PROCESSING_NODES)
+    launch = ''.join(f' {LAUNCH_TOPIC_ARGUMENTS[b]}:={a}' for a, b in sorted(d.remaps.items()))
+    graph = ''.join(f' --remap {n}:{b}:={a}' for a, b in sorted(d.remaps.items())
+                    for n in d.nodes if b in NODES[n].inputs)
     return {'sensing_pipeline': f'sensing_pipeline {d.survey.path} OUT --nodes {nodes} '
                                 f'--params-file {params}{remap}',
             'sensing_replay': f'sensing_replay {d.survey.path} OUT --launch --nodes {nodes} '
-                              f'--params-file {params}{remap}{expect}'}
+                              f'--params-file {params}{remap}{expect}',
+            'ros2 launch': f'ros2 launch sensing_nodes robot.launch.py params_file:={params}'
+                           + ('' if every else f' nodes:={nodes}') + launch,
+            'sensing_graph': f'sensing_graph --params-file {params}'
+                             + ('' if every else f' --nodes {nodes}') + graph}
 
 
 def preset_text(d: Diagnosis, out: Path) -> str:

@@ -43,6 +43,9 @@ from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TF_TOPIC, SensorMount, StaticTransformBuffer
 from sensing_nodes.topics import SCAN, SCAN_MATCH, SCAN_MATCH_KEYFRAME
 
+# Scan time (s) a never-heard odometry topic is information, before it is warned about.
+ODOM_START_GRACE_S = 5.0
+
 
 def keyframe_odometry(step: ScanStep, base_frame: str) -> bytes:
     """A scan step as /scan_match/keyframe_odom, the fusion's input, packed into CDR bytes
@@ -91,7 +94,8 @@ class IcpMatcherNode(ProcessingNode):
         self.processor = IcpMatcherProcessor(
             settings, odom_topic, parameters.odom_max_extrapolation_s, parameters.min_points,
             parameters.odom_frame, self._base_frame, parameters.publish_tf, mount,
-            self.diagnostics, ThrottledWarnings(self), parameters.odom_delay_s, self._deskew)
+            self.diagnostics, ThrottledWarnings(self), parameters.odom_delay_s, self._deskew,
+            self.get_logger())
         wire(self, self.processor.inputs(), self.processor.outputs())
         self.diagnostics.values['prediction'] = odom_topic or 'constant_velocity'
         laser, options = settings.laser_pose, settings.icp_options
@@ -121,7 +125,7 @@ class IcpMatcherProcessor:
                  odom_extrapolation_s: float, min_points: int, odom_frame: str, base_frame: str,
                  publish_tf: bool, mount: SensorMount, diagnostics: Diagnostics,
                  warnings: ThrottledWarnings, odom_delay_s: float = 0.0,
-                 deskew: bool = True) -> None:
+                 deskew: bool = True, logger=None) -> None:
         self._settings = settings
         self._matcher = make_scan_matcher(settings)
         self._deskew = deskew
@@ -133,6 +137,8 @@ class IcpMatcherProcessor:
             if odom_topic else None
         # The odometry's poses are read as the robot's at stamp - odom_delay_s (a lagging source).
         self._odom_delay_ns = round(odom_delay_s * 1e9)
+        self._odom_heard = False   # any message of odom_topic since the node started
+        self._odom_unheard_since_ns: int | None = None   # first scan matched before that
         self._min_points = min_points
         self._odom_frame, self._base_frame = odom_frame, base_frame
         self._publish_tf = publish_tf
@@ -141,6 +147,7 @@ class IcpMatcherProcessor:
         self._mount = mount
         self.diagnostics = diagnostics   # counted here, published by the node
         self._warnings = warnings
+        self._logger = logger            # the node's (one-off information)
 
     def inputs(self) -> list[Input]:
         return [Input(SCAN, LaserScan, SENSOR_QOS, self.on_scan)] + \
@@ -155,6 +162,7 @@ class IcpMatcherProcessor:
             ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
 
     def on_odometry(self, msg: Odometry) -> Outputs:
+        self._odom_heard = True
         stamp = stamp_to_ns(msg.header.stamp) - self._odom_delay_ns
         pose, _ = odometry_pose(msg)
         if not all(math.isfinite(v) for v in pose):
@@ -168,6 +176,27 @@ class IcpMatcherProcessor:
             self._warnings.warn('odom_backwards', f'odometry stamp {stamp * 1e-9:.3f} s went '
                                 'backwards: odometry buffer cleared')
         return []
+
+    def _odom_not_heard(self, stamp: int) -> None:
+        """A scan matched without odometry because odom_topic has not been heard yet: said
+        once (information: nodes launched together come up in any order), and warned about
+        once it lasts ODOM_START_GRACE_S of scan stamps. Not waited for: every scan is
+        answered (a lockstep replay or the fusion's pacing waits for one answer per scan), and
+        odometry published before this node's subscription matched never arrives
+        (docs/nodes/icp_matcher.md, "Start-up")."""
+        if self._odom_unheard_since_ns is None:
+            self._odom_unheard_since_ns = stamp
+            text = (f'no odometry from {self._odom_topic} yet (scan at {stamp * 1e-9:.3f} s): '
+                    'matching with the constant-velocity prediction until it comes')
+            if self._logger is not None:
+                self._logger.info(text)
+            else:
+                self._warnings.warn('odom', text)
+        elif stamp - self._odom_unheard_since_ns > ODOM_START_GRACE_S * 1e9:
+            self._warnings.warn('odom', (
+                f'no odometry from {self._odom_topic} in '
+                f'{(stamp - self._odom_unheard_since_ns) * 1e-9:.1f} s of scans: constant '
+                'velocity prediction instead (is odom_topic right?)'))
 
     def _beam_times(self, msg: LaserScan, beams, stamp: int):
         """Each valid point's time after the stamp (s) from the scan's time_increment, or None
@@ -230,8 +259,11 @@ class IcpMatcherProcessor:
             if prediction is None and self._last_scan_ns is not None \
                     and stamp > self._last_scan_ns:
                 diag.count('odom_unavailable')
-                self._warnings.warn('odom', f'no odometry around {stamp * 1e-9:.3f} s: constant '
-                                    'velocity prediction instead')
+                if self._odom_heard:
+                    self._warnings.warn('odom', f'no odometry around {stamp * 1e-9:.3f} s: '
+                                        'constant velocity prediction instead')
+                else:
+                    self._odom_not_heard(stamp)
         step = self._matcher.process(stamp, points, prediction, beam_times, sweep)
         if 'gap' in step.events:
             self._warnings.warn('gap', f'scan at {stamp * 1e-9:.3f} s: '

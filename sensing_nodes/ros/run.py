@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import faulthandler
 import os
+import signal
 import sys
 from typing import Callable
 
@@ -80,6 +81,14 @@ def spin_until_shutdown(executor, context=None) -> None:
         executor.spin_until_future_complete(never, timeout_sec=0.1)
 
 
+def ignore_further_interrupts() -> None:
+    """From here on (a node's teardown) SIGINT is ignored. A Ctrl-C on `ros2 launch` reaches a
+    node twice, from the terminal and forwarded by launch; raised as KeyboardInterrupt inside
+    rclpy's C++ destroy_node, the second aborted the process (exit -6; seen under load). SIGTERM
+    and SIGKILL still end it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
     """Create the node, spin until shutdown; a bad parameter is reported and exits with 2."""
     # A crash inside the C++ executor or a message library then leaves a Python stack in the log.
@@ -98,7 +107,13 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
         spin_until_shutdown(executor, node.context)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if node is None or rclpy.ok(context=node.context):
+            raise
+        # A callback run while a signal was shutting the context down (a timer publishing on a
+        # publisher that just became invalid: RCLError) is the shutdown, not the node's error.
     finally:
+        ignore_further_interrupts()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -27,6 +27,7 @@ from pathlib import Path
 from sensing_nodes.bags.sensor_streams import SensorBagError, stderr_progress
 from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, plural
 from sensing_nodes.doctor.diagnosis import EXIT_BAD_INPUT, PROG, Diagnosis
+from sensing_nodes.doctor.preset import commands
 from sensing_nodes.doctor.run import diagnose, write_outputs
 from sensing_nodes.paths import config_file
 
@@ -58,6 +59,13 @@ def print_summary(d: Diagnosis, out: Path, status: int) -> None:
     print(f'{PROG}: {plural(counts[PROBLEM], "problem")}, {plural(counts[WARNING], "warning")}, '
           f'{counts[OK]} ok, {counts[SKIPPED]} not judged; wrote {out / "report.html"}, '
           f'{out / "report.json"}, {out / "params.yaml"} (exit {status})')
+
+
+def print_robot_commands(d: Diagnosis, out: Path) -> None:
+    """The commands that run the preset on the robot itself (docs/doctor.md)."""
+    run = commands(d, (out / 'params.yaml').resolve())
+    print(f'{PROG}: on the robot (a ROS 2 workspace): {run["ros2 launch"]}')
+    print(f'{PROG}: or the same nodes in one process: {run["sensing_graph"]}')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     status = write_outputs(d, out, not args.no_fusion)
     print_summary(d, out, status)
+    print_robot_commands(d, out)
     return status
 
 

@@ -31,6 +31,7 @@ def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list
     from sensing_nodes.ros.run import (
         _PARAMETER_ERRORS,
         EXIT_BAD_PARAMETER,
+        ignore_further_interrupts,
         make_executor,
         spin_until_shutdown,
     )
@@ -57,6 +58,7 @@ def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        ignore_further_interrupts()
         for node in reversed(nodes):
             node.destroy_node()
         rclpy.try_shutdown()

@@ -60,6 +60,7 @@ class FusionParameters:
     max_gap_s: float = 2.0
     reset_on_backwards_jump_s: float = 0.0
     input_timeout_s: float = 2.0
+    startup_timeout_s: float = 10.0       # stamp time: how long a silent input is waited for
     odom_frame: str = 'odom'
     base_frame: str = 'base_link'
     publish_tf: bool = True
@@ -134,7 +135,8 @@ class FusionParameters:
             level_with_imu_tilt=self.level_with_imu_tilt,
             reorder_window_s=self.reorder_window_s, flush_after_s=self.flush_after_s,
             max_gap_s=self.max_gap_s, reset_on_backwards_jump_s=self.reset_on_backwards_jump_s,
-            input_timeout_s=self.input_timeout_s, odom_frame=self.odom_frame,
+            input_timeout_s=self.input_timeout_s, startup_timeout_s=self.startup_timeout_s,
+            odom_frame=self.odom_frame,
             base_frame=self.base_frame, publish_tf=self.publish_tf,
             publish_rate_hz=self.publish_rate_hz)
 
@@ -176,6 +178,7 @@ class SessionConfig:
     max_gap_s: float
     reset_on_backwards_jump_s: float
     input_timeout_s: float
+    startup_timeout_s: float              # stamp time: how long a silent input is waited for
     odom_frame: str
     base_frame: str
     publish_tf: bool
@@ -223,6 +226,9 @@ _DESCRIBED = {
         "an input stamp more than this before the same input's previous one means time went "
         'backwards (looping bag): the filter resets', 0.0),
     'input_timeout_s': Param('an enabled input silent for this long is reported missing', 0.01),
+    'startup_timeout_s': Param('an enabled input not heard yet is waited for this long (stamp '
+                               'time since the first input) before the filter starts without it',
+                               0.01),
     'odom_frame': Param('frame of the fused pose'),
     'base_frame': Param('child frame of the fused pose'),
     'publish_tf': Param('broadcast odom_frame -> base_frame on /tf with each output, stamped as '

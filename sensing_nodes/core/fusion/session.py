@@ -99,6 +99,7 @@ class FusionSession:
         # moment after the wheels started ended 0.15 deg off and refused every scan match).
         self._first_ns: dict[str, int] = {}
         self._started = False
+        self._waiting = False    # told that an input not heard yet is waited for
         self._rate.reset()
         self.outputs.clear()
 
@@ -156,8 +157,11 @@ class FusionSession:
             self._first_ns[name] = stamp
         if record.arrived_ns is None or stamp > record.arrived_ns:
             record.arrived_ns = stamp
+        if self._waiting_for_silent_input():
+            return []
         out = self._process(buffer.pop_ready(watermark(
-            self._record_list, buffer.newest_ns, self._start_ns, self.config.input_timeout_s)))
+            self._record_list, buffer.newest_ns, self._start_ns, self.config.input_timeout_s,
+            self.config.startup_timeout_s)))
         if self.outputs.last_ns is not None:
             self._lag_max_ns = max(self._lag_max_ns, buffer.newest_ns - self.outputs.last_ns)
         return out
@@ -196,7 +200,8 @@ class FusionSession:
         return out
 
     def flush(self) -> list[FusedOutput]:
-        """Process everything held (end of a stream, or no input for a while)."""
+        """Process everything held (end of a stream, or no input for a while): an input not
+        heard yet is no longer waited for."""
         return self._process(self.buffer.flush())
 
     def held(self) -> int:
@@ -287,9 +292,34 @@ class FusionSession:
         if self._on_output is not None:
             self._on_output(stamp, state)
 
+    def _waiting_for_silent_input(self) -> bool:
+        """True while the filter has not started and an enabled input has not been heard yet,
+        for up to startup_timeout_s of stamps since the first reading: what arrives is held, not
+        fused (nodes started together come up and discover each other in any order; started
+        without an input, the filter would then drop that input's first, late messages). Told
+        once, naming the inputs, when it lasts longer than input_timeout_s."""
+        if self._started:
+            return False
+        silent = [name for name in self._enabled if name not in self._first_ns]
+        waited_ns = self.buffer.newest_ns - self._start_ns
+        if not silent or waited_ns > self.config.startup_timeout_s * 1e9:
+            return False
+        # Told once the wait is longer than a silent input is waited for later on.
+        if not self._waiting and waited_ns > self.config.input_timeout_s * 1e9:
+            self._waiting = True
+            self.notices.append(Notice('info', (
+                f'waiting for {self._named(silent)}: not heard yet; fusing starts once every '
+                f'enabled input has spoken (at most {self.config.startup_timeout_s:g} s of '
+                'stamps)')))
+        return True
+
+    def _named(self, names: list[str]) -> str:
+        return ', '.join(f'{name} ({self.config.topics[name]})' for name in names)
+
     def _before_every_input(self, stamp: int) -> bool:
         """True for a reading older than the first of some enabled input (not fused); the
-        first reading that is not starts the filter."""
+        first reading that is not starts the filter (without the inputs still silent, once
+        they are no longer waited for: startup_timeout_s, or a flush)."""
         if all(name in self._first_ns for name in self._enabled):
             start = max(self._first_ns[name] for name in self._enabled)
             if stamp < start:
@@ -301,8 +331,9 @@ class FusionSession:
                     'earlier readings not fused')))
         else:
             silent = [name for name in self._enabled if name not in self._first_ns]
+            waited = (self.buffer.newest_ns - self._start_ns) * 1e-9
             self.notices.append(Notice('warn', (
-                f'starting without {", ".join(silent)} (silent for '
-                f'{self.config.input_timeout_s:g} s of stamps)')))
+                f'starting without {self._named(silent)} (not heard in {waited:.3g} s of '
+                'stamps)')))
         self._started = True
         return False

@@ -108,19 +108,21 @@ class InputRecord:
 
 
 def watermark(records: list[InputRecord], newest_ns: int | None, start_ns: int | None,
-              timeout_s: float) -> int | None:
+              timeout_s: float, startup_timeout_s: float | None = None) -> int | None:
     """The stamp every live input has reached: nothing at or before it can still arrive (each
     input arrives in order), so it can be processed without waiting for the reorder window.
-    An enabled input not heard from for timeout_s (stamp time) is not waited for."""
+    An enabled input not heard from for timeout_s (stamp time) is not waited for; one not heard
+    yet, for startup_timeout_s (default timeout_s) since start_ns."""
     if newest_ns is None:
         return None
     timeout_ns = timeout_s * 1e9
+    startup_ns = timeout_ns if startup_timeout_s is None else startup_timeout_s * 1e9
     reached = []
     for record in records:
         if not record.enabled:
             continue
         if record.arrived_ns is None:
-            if start_ns is None or newest_ns - start_ns <= timeout_ns:
+            if start_ns is None or newest_ns - start_ns <= startup_ns:
                 return None  # not heard from yet, but may still be starting up
             continue
         if newest_ns - record.arrived_ns <= timeout_ns:

@@ -1,8 +1,12 @@
-"""The demo graph on a machine with ROS 2 installed: sensor_sim and the five processing nodes.
+"""The simulated robot's graph on a machine with ROS 2 installed: sensor_sim and the five
+processing nodes, six processes (the `sensing_graph` executable is the five processing nodes in
+one process; a real robot's launch is robot.launch.py).
 
-    ros2 launch sensing_nodes sensing_graph.launch.py [real_time_factor:=5.0] [seed:=0]
+    ros2 launch sensing_nodes sim.launch.py [real_time_factor:=1.0] [seed:=0]
 
-Each node reads its parameter file from this package's share/sensing_nodes/config.
+Each node reads its parameter file from this package's share/sensing_nodes/config. The simulator
+is not paced by the graph here (sensing_demo paces it): above real time a 2-core machine loses
+messages (docs/tools.md).
 """
 
 import os
