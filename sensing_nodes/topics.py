@@ -73,7 +73,9 @@ NODES = {
     'line_extractor': NodeTopics((SCAN,), (SCAN_LINES, SCAN_LINES_TABLE), SCAN),
     'icp_matcher': NodeTopics((SCAN, WHEEL_ODOM, TF_STATIC), (SCAN_MATCH,), SCAN,
                               optional=(SCAN_MATCH_KEYFRAME, TF)),
-    'complementary_fusion': NodeTopics((WHEEL_ODOM, IMU, SCAN_MATCH, SCAN_MATCH_KEYFRAME),
+    # The raw IMU (imu.source rate, config/complementary_fusion.yaml): gyro_integrator's /imu/data
+    # is for other consumers (config/fusion_integrated.yaml fuses it instead).
+    'complementary_fusion': NodeTopics((WHEEL_ODOM, IMU_RAW, SCAN_MATCH, SCAN_MATCH_KEYFRAME),
                                        (FUSED,), optional=(TF,)),
 }
 PROCESSING_NODES = tuple(NODES)

@@ -1,6 +1,7 @@
-"""The fusion on the IMU's own rate (imu.source rate, config/fusion_imu_rate.yaml): the rates
-summed into heading increments (DeltaAngles), the gyro bias a state of the EKF, and a graph that
-runs without gyro_integrator (one node and one DDS hop fewer: docs/fusion.md)."""
+"""The fusion on the IMU's own rate (imu.source rate, config/complementary_fusion.yaml's default):
+the rates summed into heading increments (DeltaAngles), the gyro bias a state of the EKF, and a
+graph that runs without gyro_integrator (docs/fusion.md); config/fusion_integrated.yaml fuses
+gyro_integrator's heading instead."""
 
 from __future__ import annotations
 
@@ -40,8 +41,11 @@ def test_rates_are_summed_over_the_interval_before_each_sample():
 
 
 def test_a_raw_imu_message_reads_as_its_rate_and_the_summed_heading():
-    config = default_config(config_file('fusion_imu_rate.yaml'))
+    config = default_config()
     assert config.imu_source == 'rate' and config.input_map[IMU].gyro_bias
+    assert config.topics[IMU] == '/imu/data_raw'
+    integrated = default_config(config_file('fusion_integrated.yaml'))
+    assert integrated.imu_source == 'integrated' and integrated.topics[IMU] == '/imu/data'
     converter = ReadingConverter.for_config(config)
     record = InputRecord(IMU)
     readings = []
@@ -65,7 +69,7 @@ def test_a_raw_imu_message_reads_as_its_rate_and_the_summed_heading():
 @pytest.mark.parametrize('name, bias', [('strong_errors', 0.03)])
 def test_a_graph_without_gyro_integrator_fuses_the_raw_rate(tmp_path, name, bias):
     """sensing_pipeline over the shipped bag with wheel_odometry, line_extractor, icp_matcher
-    and the fusion on /imu/data_raw (config/fusion_imu_rate.yaml), no gyro_integrator. The
+    and the fusion on /imu/data_raw (its default), no gyro_integrator. The
     strong_errors bag: a 1.7 deg/s gyro bias the EKF learns (within 1e-4 rad/s after 22 s; the
     first 2 s stand still), wheels slipping 5 %. Measured: fused RMS 0.0023 m, 0.059 deg (the
     graph with gyro_integrator: 0.0023 m, 0.058 deg); bias 0.03004 rad/s, sigma 3.4e-5."""
@@ -76,8 +80,7 @@ def test_a_graph_without_gyro_integrator_fuses_the_raw_rate(tmp_path, name, bias
 
     out = tmp_path / 'out'
     nodes = ('wheel_odometry', 'line_extractor', 'icp_matcher', 'complementary_fusion')
-    counts = pipeline.run(BAGS / name, out, nodes, params_files=[
-        config_file('fusion_imu_rate.yaml')], progress=False)
+    counts = pipeline.run(BAGS / name, out, nodes, progress=False)
     assert '/imu/data' not in counts and counts['/odometry/filtered'] > 800
     tracks = load_trajectories(out, ['/ground_truth/odom', '/odometry/filtered', '/wheel/odom'])
     truth = tracks['/ground_truth/odom']
@@ -86,7 +89,7 @@ def test_a_graph_without_gyro_integrator_fuses_the_raw_rate(tmp_path, name, bias
     assert fused['rms_position_m'] < 0.005 and fused['rms_heading_deg'] < 0.1, fused
     assert fused['rms_heading_deg'] < 0.1 * wheels['rms_heading_deg'], (fused, wheels)
     # the bias as the filter has it at the end (the same session over the graph's inputs)
-    _, session = fused_outputs(out, [config_file('fusion_imu_rate.yaml')])
+    _, session = fused_outputs(out, [])
     state = session.fusion.state
     sigma = math.sqrt(state.bias_variance)
     assert sigma < 1e-4 and abs(state.bias - bias) < 3 * sigma, (state.bias, sigma)

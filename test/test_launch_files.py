@@ -45,7 +45,8 @@ def test_the_doctors_robot_commands_name_what_the_launch_file_and_sensing_graph_
     parsed = parse_args(graph[1:])
     assert parsed.params_file == [Path('/robot/params.yaml')]
     assert parsed.nodes == ','.join(d.nodes)
-    assert sorted(parsed.remap) == ['gyro_integrator:/imu/data_raw:=/imu',
+    assert sorted(parsed.remap) == ['complementary_fusion:/imu/data_raw:=/imu',
+                                    'gyro_integrator:/imu/data_raw:=/imu',
                                     'icp_matcher:/scan:=/base_scan']
 
 

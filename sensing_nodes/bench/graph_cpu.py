@@ -42,7 +42,7 @@ def input_rates(sim_overrides: dict[str, float] | None = None) -> dict[str, floa
         'gyro_integrator': imu + joints,              # /imu/data_raw, /wheel/odom
         'line_extractor': scan,                       # /scan
         'icp_matcher': scan,                          # /scan
-        'complementary_fusion': joints + imu + scan,  # /wheel/odom, /imu/data, keyframe matches
+        'complementary_fusion': joints + imu + scan,  # /wheel/odom, /imu/data_raw, the matches
         'sensor_sim': joints + imu + scan + float(params['truth_rate_hz'])
         + float(params['clock_rate_hz']),             # what it publishes
     }
@@ -101,7 +101,7 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
     one_process, spun by `executor`); CPU per process over window_s wall seconds, and memory.
     Without with_sim the nodes run with no input at all: what their processes cost idle
     (executor, timers, /diagnostics, DDS), the floor under any per-message work. params_files
-    apply to every node after its config/<node>.yaml (e.g. config/fusion_imu_rate.yaml).
+    apply to every node after its config/<node>.yaml (e.g. config/fusion_integrated.yaml).
 
     Returns {'processes': {name: {'core_percent_per_1x', 'cpu_us_per_message', 'rss_mb',
     'peak_rss_mb'}}, 'total...'}.
@@ -278,17 +278,20 @@ def relay_floor(rate_hz: float, window_s: float, answer_every: int = 1) -> dict:
             'cpu_us_per_message': round(1e6 * cpu / count, 1), 'load_average_1min': load_before}
 
 
-# gyro_integrator at 1 kHz with its wheel veto and its consumer: publishing /imu/data to a
+# gyro_integrator at 1 kHz with its wheel veto and a consumer: publishing /imu/data to a
 # subscriber costs what publishing to none does not (7.0 % of a core without the fusion, 11.1 %
-# with it, 2026-11-25).
+# with it, 2026-11-25). The fusion takes the raw IMU by default: GYRO_1KHZ_FUSION has it fuse
+# gyro_integrator's heading instead, so that /imu/data has its subscriber.
 GYRO_1KHZ_NODES = ('wheel_odometry', 'gyro_integrator', 'complementary_fusion')
+GYRO_1KHZ_FUSION = config_file('fusion_integrated.yaml')
 
 
 def run(quick: bool = False) -> dict:
     """Figures for `make bench`: the graph at the default rates, gyro_integrator at 1 kHz."""
     window = 10.0 if quick else 30.0
     graph = measure(PROCESSING_NODES, {}, window)
-    gyro = measure(GYRO_1KHZ_NODES, {'imu_rate_hz': 1000.0}, window)
+    gyro = measure(GYRO_1KHZ_NODES, {'imu_rate_hz': 1000.0}, window,
+                   params_files=(GYRO_1KHZ_FUSION,))
     figures: dict = {'load_average_1min_start': graph['load_average_1min'][0]}
     for name, values in graph['processes'].items():
         for key, value in values.items():
@@ -337,7 +340,8 @@ if __name__ == '__main__':
     parser.add_argument('--rate', type=float, default=1.0, help='simulated s per wall s')
     parser.add_argument('--imu-rate', type=float, default=None,
                         help='IMU rate (Hz); given: measure wheel_odometry, gyro_integrator and '
-                        'its consumer, complementary_fusion')
+                        'its consumer, complementary_fusion on /imu/data '
+                        '(config/fusion_integrated.yaml)')
     parser.add_argument('--floor', type=float, default=None, metavar='HZ',
                         help='measure the relay floor (one Imu in, one out) at this rate')
     parser.add_argument('--answer-every', type=int, default=1, metavar='N',
@@ -352,7 +356,7 @@ if __name__ == '__main__':
                         help='the processing nodes measured (comma separated; default all five)')
     parser.add_argument('--params-file', action='append', default=[], type=Path,
                         help='a parameter file for every node after its config/ file '
-                             '(repeatable), e.g. config/fusion_imu_rate.yaml')
+                             '(repeatable), e.g. config/fusion_integrated.yaml')
     parser.add_argument('--relay', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.answer_every < 1:
@@ -374,5 +378,6 @@ if __name__ == '__main__':
             params_files=tuple(args.params_file),
         )
     else:
-        result = measure(GYRO_1KHZ_NODES, {'imu_rate_hz': args.imu_rate}, args.window, args.rate)
+        result = measure(GYRO_1KHZ_NODES, {'imu_rate_hz': args.imu_rate}, args.window, args.rate,
+                         params_files=(GYRO_1KHZ_FUSION,))
     print(json.dumps(result, indent=2))

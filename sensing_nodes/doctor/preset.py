@@ -21,7 +21,12 @@ from sensing_nodes.doctor.diagnosis import (
     orientation_track,
     scan_gap_s,
 )
+from sensing_nodes.paths import config_file
 from sensing_nodes.topics import FUSED, IMU, IMU_RAW, JOINT_STATES, SCAN
+
+# The fusion on gyro_integrator's heading (the preset's route for a gyro): its settings over
+# config/complementary_fusion.yaml, whose default is the raw IMU's rate.
+INTEGRATED_ROUTE = 'fusion_integrated.yaml'
 
 # --- the preset -----------------------------------------------------------------------------
 
@@ -56,8 +61,9 @@ def _imu_fusion_preset(d: Diagnosis, integrated: bool) -> dict[str, Any]:
     angles = {f'mount_{a}_rad': round(float(v), 6) for a, v in
               zip(('roll', 'pitch', 'yaw'), (mount.roll, mount.pitch, mount.yaw or 0.0))}
     if integrated:
-        out = {'topic': IMU, 'source': 'integrated', 'mask': ['yaw'], 'covariance': 'model',
-               'heading_delay_s': 0.0, 'delay_s': _delay(d, d.imu.topic)}
+        out = {**_integrated_route()['imu'], 'topic': IMU, 'source': 'integrated',
+               'mask': ['yaw'], 'covariance': 'model', 'heading_delay_s': 0.0,
+               'delay_s': _delay(d, d.imu.topic)}
         if 'gyro_yaw_variance_per_s' in d.noise:
             out['yaw_variance_per_s'] = float(f'{d.noise["gyro_yaw_variance_per_s"]:.3g}')
         return out
@@ -66,6 +72,12 @@ def _imu_fusion_preset(d: Diagnosis, integrated: bool) -> dict[str, Any]:
             'mask': ['yaw', 'vyaw'], 'covariance': 'message' if has_cov else 'model',
             'heading_delay_s': 0.0, 'delay_s': _delay(d, d.imu.topic),
             **angles}
+
+
+def _integrated_route() -> dict[str, Any]:
+    """complementary_fusion's parameters (nested) in INTEGRATED_ROUTE."""
+    with open(config_file(INTEGRATED_ROUTE)) as f:
+        return yaml.safe_load(f)['complementary_fusion']['ros__parameters']
 
 
 def _odom_fusion_preset(d: Diagnosis) -> dict[str, Any]:
@@ -143,13 +155,16 @@ def _fusion_preset(d: Diagnosis, orientation_only: bool) -> dict[str, Any]:
         fusion['imu'] = _imu_fusion_preset(d, not orientation_only)
         if orientation_only and (d.imu_tilt_deg or 0.0) > 2.0:
             fusion['level_with_imu_tilt'] = True
+        elif not orientation_only:
+            fusion['ekf'] = dict(_integrated_route().get('ekf', {}))
     slowest = max([float(np.median(np.diff(d.survey.times[t].header_ns))) * 1e-9 for t in
                    {s.topic for s in (d.joints, d.scan, d.imu) if s is not None} |
                    {o.topic for o in d.odoms}] or [0.0])
     if slowest > 0.5:       # sparse logs (a scan a metre): wait for inputs that long
         fusion.update({'max_gap_s': round(10 * slowest, 1),
                        'input_timeout_s': round(10 * slowest, 1)})
-    fusion.update(_motion_range(d))
+    for key, values in _motion_range(d).items():
+        fusion[key] = {**fusion.get(key, {}), **values}
     return fusion
 
 

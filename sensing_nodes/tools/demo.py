@@ -57,8 +57,9 @@ NODE_TOPICS = {'sensor_sim': (None, list(SIMULATOR_TOPICS)),
 SIM_TOPICS = {t: (TOPIC_TYPES[t], topic_qos(t)) for t in SIMULATOR_TOPICS}
 # Topics between processing nodes, and how many subscribers each has in the graph (the
 # recorder included) once every node has matched, with config/'s parameters.
-# /scan_match/odom: the recorder; /scan_match/keyframe_odom: the fusion (method ekf).
-INTERNAL_EDGES = {WHEEL_ODOM: 4, IMU: 2, SCAN_MATCH: 1, SCAN_MATCH_KEYFRAME: 1}
+# /imu/data and /scan_match/odom: the recorder (the fusion takes the raw IMU);
+# /scan_match/keyframe_odom: the fusion (method ekf).
+INTERNAL_EDGES = {WHEEL_ODOM: 4, IMU: 1, SCAN_MATCH: 1, SCAN_MATCH_KEYFRAME: 1}
 SCAN_SUBSCRIBERS = 3  # line_extractor, icp_matcher and the recorder
 # Simulator topics and their subscribers among the processing nodes. The simulator (started with
 # them) counts the recorder's subscription too, so they must be there before the recorder's.

@@ -40,6 +40,10 @@ NODE_NAME = 'complementary_fusion'
 METHODS = ('ekf', 'complementary')
 # The scan matches each method takes.
 SCAN_TOPICS = {'ekf': '/scan_match/keyframe_odom', 'complementary': '/scan_match/odom'}
+# The IMU topic each source reads where imu.topic is empty: gyro_integrator's heading, an IMU's
+# own orientation, the driver's raw rates (REP 145's names). The complementary filter reads the
+# integrated heading.
+IMU_TOPICS = {'integrated': '/imu/data', 'orientation': '/imu/data', 'rate': '/imu/data_raw'}
 
 
 @dataclass(frozen=True)
@@ -66,7 +70,7 @@ class FusionParameters:
     publish_tf: bool = True
     publish_rate_hz: float = 30.0
     wheel_odom_topic: str = '/wheel/odom'
-    imu_topic: str = '/imu/data'
+    imu_topic: str = ''                   # '': the source's (IMU_TOPICS)
     scan_match_topic: str = SCAN_TOPICS['ekf']
     level_with_imu_tilt: bool = False
     # method 'ekf' only
@@ -129,7 +133,8 @@ class FusionParameters:
         return SessionConfig(
             method=self.method, enabled=enabled, inputs=inputs, ekf=ekf,
             complementary=complementary,
-            topics={WHEEL: self.wheel_odom_topic, IMU: self.imu_topic,
+            topics={WHEEL: self.wheel_odom_topic,
+                    IMU: self.imu_topic or IMU_TOPICS.get(imu_source, IMU_TOPICS['integrated']),
                     SCAN: self.scan_match_topic},
             imu_source=imu_source, imu_mount_rpy=mount,
             level_with_imu_tilt=self.level_with_imu_tilt,
@@ -208,7 +213,7 @@ def _mount(axis: str) -> Param:
 _DESCRIBED = {
     'method': Param("'ekf' (docs/fusion.md) or 'complementary' (the seed's filter)"),
     'use_wheel_odom': Param('fuse /wheel/odom'),
-    'use_imu': Param('fuse /imu/data'),
+    'use_imu': Param('fuse the IMU (imu.topic)'),
     'use_scan_match_position': Param('fuse x/y of scan matching'),
     'use_scan_match_heading': Param('fuse the heading of scan matching'),
     'alpha': Param("complementary: weight of the gyro-propagated heading, in [0, 1], or 'auto' "
@@ -239,7 +244,9 @@ _DESCRIBED = {
         'each new period goes out, with its stamp; 0: one per wheel and scan-match input (every '
         'input still filtered)', 0.0, 1000.0),
     'wheel_odom_topic': Param('wheel odometry topic', name='wheel_odom.topic'),
-    'imu_topic': Param('IMU topic (sensor_msgs/Imu)', name='imu.topic'),
+    'imu_topic': Param("IMU topic (sensor_msgs/Imu); '': the source's, /imu/data_raw for "
+                       "imu.source 'rate', /imu/data otherwise (and for method 'complementary')",
+                       name='imu.topic'),
     'scan_match_topic': Param('scan matches (icp_matcher): keyframe-relative or in its local '
                               "map (method 'ekf'), or its odometry ('complementary')",
                               name='scan_match.topic'),
