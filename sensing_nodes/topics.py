@@ -45,6 +45,10 @@ TOPIC_TYPES = {
 SENSOR_TOPICS = frozenset({JOINT_STATES, IMU_RAW, SCAN})
 # Published on a wall-clock timer whatever the input: never waited for, not part of "quiet".
 WALL_PERIODIC_TOPICS = frozenset({DIAGNOSTICS})
+# Made and published only while a subscription matches them (line_extractor's: nothing in the
+# graph takes them); a recorder that wants them subscribes before the inputs flow, and
+# sensing_pipeline always makes them.
+ON_DEMAND_TOPICS = frozenset({SCAN_LINES, SCAN_LINES_TABLE})
 # What sensor_sim publishes (the simulated robot's drivers, its ground truth and clock).
 SIMULATOR_TOPICS = (SCAN, IMU_RAW, JOINT_STATES, GROUND_TRUTH, CLOCK)
 

@@ -76,7 +76,7 @@ def test_shipped_bag_outputs_equal_the_lockstep_replay(tmp_path, name):
 
 
 def test_subset_of_nodes_takes_the_recorded_upstream_outputs(tmp_path):
-    """Only the fusion: it takes /wheel/odom, /imu/data and the keyframe matches from the bag
+    """Only the fusion: it takes /wheel/odom, /imu/data_raw and the keyframe matches from the bag
     (what the other nodes published when it was recorded) and gives the same fused poses."""
     out = tmp_path / 'out'
     first = tmp_path / 'first'

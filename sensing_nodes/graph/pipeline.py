@@ -34,8 +34,9 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
     """The named nodes, each constructed with the arguments its executable gets from a launch
     (--params-file config/<node>.yaml, then `params_files`, then its `-p NAME:=VALUE`
     overrides, as its own cli_args: the same precedence and parsing as a separate process),
-    in one rclpy context that is never spun, with discovery off: nothing goes over DDS.
-    PipelineError on a bad parameter."""
+    in one rclpy context that is never spun, with discovery off: nothing goes over DDS; every
+    output is made, those a running node makes only while subscribed too. PipelineError on a
+    bad parameter."""
     import rclpy
 
     from sensing_nodes.graph.cli import node_arguments
@@ -60,6 +61,10 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
                 nodes[name] = make_node(name, node_arguments(name, params_files,
                                                              node_params.get(name, [])),
                                         context, lifecycle=False)
+                if hasattr(nodes[name].processor, 'listened'):
+                    # Outputs a running node makes only while subscribed (ON_DEMAND_TOPICS):
+                    # whoever drives the processor here takes every output.
+                    nodes[name].processor.listened = _every_output
             except _PARAMETER_ERRORS as exc:
                 close(nodes, context)
                 raise PipelineError(f'{name}: invalid parameter: {exc}') from None
@@ -69,6 +74,10 @@ def build_nodes(names: tuple[str, ...], params_files: list[Path],
         else:
             os.environ[DISCOVERY_RANGE] = previous
     return nodes
+
+
+def _every_output(topic: str) -> bool:
+    return True
 
 
 def close(nodes: dict[str, Any], context=None) -> None:

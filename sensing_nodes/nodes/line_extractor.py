@@ -3,7 +3,9 @@
 
 The table is one PointCloud2 "point" per line with named fields (TABLE_FIELDS), so a consumer
 reads it with numpy alone; header = the scan's stamp and frame. Layout documented in
-docs/nodes/line_extractor.md.
+docs/nodes/line_extractor.md. Each output is made and published only while a subscription
+matches it (nothing in the graph takes them; a scan nobody's lines are wanted from is counted,
+not extracted); sensing_pipeline makes both for every scan.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import dataclasses
 import math
 import struct
 import sys
+from typing import Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -28,7 +31,7 @@ from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare_config
 from sensing_nodes.ros.processing_node import ProcessingNode
-from sensing_nodes.ros.processor import Input, Output, Outputs, wire
+from sensing_nodes.ros.processor import Input, Output, Outputs, subscribed, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.topics import SCAN, SCAN_LINES, SCAN_LINES_TABLE
@@ -94,7 +97,8 @@ class LineExtractorNode(ProcessingNode):
         self.processor = LineExtractorProcessor(
             self._options, self._marker_width_m, self._max_gap_s, self.diagnostics,
             ThrottledWarnings(self, period_s=5.0))
-        wire(self, self.processor.inputs(), self.processor.outputs())
+        self.processor.listened = subscribed(
+            wire(self, self.processor.inputs(), self.processor.outputs()))
         self.get_logger().info(
             'extracting lines from /scan with '
             + ', '.join(f'{k}={v}' for k, v in self._options.items())
@@ -103,7 +107,9 @@ class LineExtractorNode(ProcessingNode):
 
 class LineExtractorProcessor:
     """line_extractor's per-message logic (ros/processor.py): /scan -> /scan/lines (markers)
-    and /scan/lines/table (one PointCloud2 point per line), in the scan's frame and stamp."""
+    and /scan/lines/table (one PointCloud2 point per line), in the scan's frame and stamp; of
+    them, those `listened` (topic -> bool) says someone takes: the node's matched subscriptions
+    (ros/processor.subscribed), every output by default (sensing_pipeline)."""
 
     def __init__(self, options: dict, marker_width_m: float, max_gap_s: float,
                  diagnostics: Diagnostics, warnings: ThrottledWarnings) -> None:
@@ -113,6 +119,7 @@ class LineExtractorProcessor:
         self._diagnostics = diagnostics   # counted here, published by the node
         self._warnings = warnings
         self._last_stamp_ns: int | None = None
+        self.listened: Callable[[str], bool] = lambda topic: True
 
     def inputs(self) -> list[Input]:
         return [Input(SCAN, LaserScan, SENSOR_QOS, self.on_scan, decoded=True)]
@@ -123,9 +130,14 @@ class LineExtractorProcessor:
 
     def on_scan(self, msg: LaserScan) -> Outputs:
         stamp_ns = stamp_to_ns(msg.header.stamp)
-        self._diagnostics.count('scans')
         self._diagnostics.last_stamp_ns = stamp_ns
         self._check_stamp(stamp_ns)
+        wanted = [topic for topic in (SCAN_LINES, SCAN_LINES_TABLE) if self.listened(topic)]
+        if not wanted:
+            # Nobody takes the lines: the scan's ranges are neither checked nor extracted.
+            self._diagnostics.count('scans_unsubscribed')
+            return []
+        self._diagnostics.count('scans')
         lines = self._lines(msg)
         self._diagnostics.count('lines', len(lines))
         if not lines:
@@ -133,8 +145,10 @@ class LineExtractorProcessor:
         # Packed straight into CDR bytes (ros/cdr.py): building the rclpy MarkerArray (a Point
         # object per end point) and PointCloud2 and serialising them cost more than the lines.
         frame_id = msg.header.frame_id
-        return [(SCAN_LINES, lines_markers_cdr(lines, stamp_ns, frame_id, self._marker_width_m)),
-                (SCAN_LINES_TABLE, lines_table_cdr(lines, stamp_ns, frame_id))]
+        pack = {SCAN_LINES: lambda: lines_markers_cdr(lines, stamp_ns, frame_id,
+                                                      self._marker_width_m),
+                SCAN_LINES_TABLE: lambda: lines_table_cdr(lines, stamp_ns, frame_id)}
+        return [(topic, pack[topic]()) for topic in wanted]
 
     def _check_stamp(self, stamp_ns: int) -> None:
         # Extraction keeps no state, so an odd step is only reported, nothing is reset.

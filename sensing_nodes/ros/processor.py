@@ -40,6 +40,13 @@ class Output:
     qos: QoSProfile
 
 
+def subscribed(publishers: dict[str, Any]) -> Callable[[str], bool]:
+    """topic -> whether a subscription matches its publisher now (in this process or another):
+    an output nobody takes need not be made (sensing_pipeline, which records every output, asks
+    nothing of the kind)."""
+    return lambda topic: publishers[topic].get_subscription_count() > 0
+
+
 def wire(node: ProcessingNode, inputs: list[Input], outputs: list[Output]) -> dict[str, Any]:
     """Subscribe `node` to each input and publish what its handler returns, in order; returns
     the publishers (topic -> publisher), for outputs of the node's own timers and services.

@@ -29,6 +29,7 @@ from sensing_nodes.topics import (
     GROUND_TRUTH,
     IMU,
     NODES,
+    ON_DEMAND_TOPICS,
     PROCESSING_NODES,
     SCAN,
     SCAN_LINES,
@@ -60,6 +61,9 @@ SIM_TOPICS = {t: (TOPIC_TYPES[t], topic_qos(t)) for t in SIMULATOR_TOPICS}
 # /imu/data and /scan_match/odom: the recorder (the fusion takes the raw IMU);
 # /scan_match/keyframe_odom: the fusion (method ekf).
 INTERNAL_EDGES = {WHEEL_ODOM: 4, IMU: 1, SCAN_MATCH: 1, SCAN_MATCH_KEYFRAME: 1}
+# line_extractor's outputs, published only while subscribed: the recorder's subscription must
+# be there before the first scan.
+RECORDED_ON_DEMAND = {t: 1 for t in ON_DEMAND_TOPICS}
 SCAN_SUBSCRIBERS = 3  # line_extractor, icp_matcher and the recorder
 # Simulator topics and their subscribers among the processing nodes. The simulator (started with
 # them) counts the recorder's subscription too, so they must be there before the recorder's.
@@ -270,7 +274,8 @@ def _wait_for_nodes(node, executor, names, graph, recorder, timeout=30.0) -> Non
             raise SystemExit(f'sensing_demo: node(s) failed at start-up: {graph.failed()}')
         if set(names) <= set(node.get_node_names()) and all(
                 len(node.get_subscriptions_info_by_topic(topic)) >= count
-                for topic, count in {**INTERNAL_EDGES, **SIM_CONSUMERS}.items()):
+                for topic, count in {**INTERNAL_EDGES, **RECORDED_ON_DEMAND,
+                                     **SIM_CONSUMERS}.items()):
             settle = time.monotonic() + 0.5
             while time.monotonic() < settle:
                 executor.spin_once(timeout_sec=0.05)
