@@ -362,9 +362,9 @@ def test_no_free_parameter_is_none_unexcited():
     with an IndexError on the first 30 s of the TurtleBot3 bag)."""
     from sensing_nodes.core.evaluation.calibration import _unexcited
 
-    free = np.zeros(4, dtype=bool)
-    assert _unexcited(np.ones((10, 4)), free).tolist() == [False] * 4
+    free = np.zeros(6, dtype=bool)
+    assert _unexcited(np.ones((10, 6)), free).tolist() == [False] * 6
     free[1] = True
-    jac = np.zeros((10, 4))
+    jac = np.zeros((10, 6))
     jac[:, 1] = 1.0
-    assert _unexcited(jac, free).tolist() == [False] * 4
+    assert _unexcited(jac, free).tolist() == [False] * 6
