@@ -294,6 +294,8 @@ class IcpMatcherProcessor:
                 f"{diag.counts['not_inserted'] / matched if matched else 0.0:.3f}"
             if step.doubt:
                 diag.values['last_not_inserted'] = f'{stamp * 1e-9:.3f} s: {step.doubt}'
+                self._warnings.warn('not_inserted', f'scan at {stamp * 1e-9:.3f} s: matched but '
+                                    f'kept out of the map ({step.doubt})')
         if not step.publish:
             return []
         # The keyframe-relative message first: a consumer waiting for /scan_match/odom (a lockstep
