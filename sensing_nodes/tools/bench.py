@@ -19,8 +19,8 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'icp_kiss', 'allan', 'graph_cpu', 'pipeline',
-         'fusion', 'bags', 'messages', 'doctor']
+AREAS = ['sim', 'dead_reckoning', 'lines', 'icp', 'icp_kiss', 'icp_fast_lidar', 'allan',
+         'graph_cpu', 'pipeline', 'fusion', 'bags', 'messages', 'doctor']
 
 
 def demo_figures(quick: bool, extra: tuple[str, ...] = ()) -> dict:
