@@ -224,7 +224,7 @@ def test_imu_rate_mount_from_parameters_or_tf_static(probe, mount_from):
     if mount_from == 'parameters':
         params['imu.mount_roll_rad'] = math.pi
     pubs = {'wheel': probe.create_publisher(Odometry, '/wheel/odom', ESTIMATE_QOS),
-            'imu': probe.create_publisher(Imu, '/imu/data', SENSOR_QOS)}
+            'imu': probe.create_publisher(Imu, '/imu/data_raw', SENSOR_QOS)}   # the source's topic
     out = Collector(probe, Odometry, '/odometry/filtered', ESTIMATE_QOS)
     diagnostics = Collector(probe, DiagnosticArray, '/diagnostics', 50)
     talker = Node('imu_mount_talker', context=probe.context)   # destroyed: its latch goes too

@@ -549,13 +549,16 @@ def test_robot_launch_with_a_preset_over_a_replayed_bag(ws, turtlebot_bag, tmp_p
 @needs_turtlebot
 def test_sensing_graph_with_a_preset_over_a_replayed_bag(ws, turtlebot_bag, tmp_path):
     """`ros2 run sensing_nodes sensing_graph --params-file PRESET --remap
-    gyro_integrator:/imu/data_raw:=/imu` (the five nodes in one process, as sensing_doctor
-    prints it; the TurtleBot3 preset, and the lockstep replay's flush as a --param) fed the same
-    bag: every input answered, the fused output as good, a clean stop (exit 0)."""
+    gyro_integrator:/imu/data_raw:=/imu --remap complementary_fusion:/imu/data_raw:=/imu` (the
+    five nodes in one process, each remapping given to the nodes that read the driver's IMU: the
+    fusion takes the raw rate; the TurtleBot3 preset, and the lockstep replay's flush as a
+    --param) fed the same bag: every input answered, the fused output as good, a clean stop
+    (exit 0)."""
     preset = ws.share / 'config' / 'robots' / 'turtlebot3.yaml'
     graph, replay = _replayed_through(
         ws, ['ros2', 'run', 'sensing_nodes', 'sensing_graph', '--params-file', str(preset),
              '--remap', 'gyro_integrator:/imu/data_raw:=/imu',
+             '--remap', 'complementary_fusion:/imu/data_raw:=/imu',
              '--param', f'complementary_fusion:flush_after_s:={LOCKSTEP_FLUSH_S}'],
         turtlebot_bag, tmp_path / 'out')
     log = graph.output()
