@@ -34,7 +34,7 @@ from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare, declare_config, refuse_retired
 from sensing_nodes.ros.processing_node import ProcessingNode
 from sensing_nodes.ros.processor import Input, Output, Outputs, wire
-from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS, TF_QOS
+from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_BACKLOG_QOS, TF_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import TF_TOPIC, ImuMount, imu_mount
 
@@ -131,7 +131,9 @@ class ComplementaryFusionProcessor:
         self._imu_read = False   # an Imu has been read: a new mount from now on restarts it
 
     def inputs(self) -> list[Input]:
-        imu_qos = SENSOR_QOS if self._imu_source != 'integrated' else ESTIMATE_QOS
+        # The driver's Imu (orientation, rate: best effort, a deep queue: the fusion is the
+        # graph's busiest node) or gyro_integrator's heading (reliable).
+        imu_qos = SENSOR_BACKLOG_QOS if self._imu_source != 'integrated' else ESTIMATE_QOS
         kinds = {WHEEL: (Odometry, ESTIMATE_QOS), IMU: (Imu, imu_qos),
                  SCAN: (Odometry, ESTIMATE_QOS)}
         return [Input(self._topics[name], kinds[name][0], kinds[name][1],

@@ -19,6 +19,10 @@ _VOLATILE, _LATCHED = DurabilityPolicy.VOLATILE, DurabilityPolicy.TRANSIENT_LOCA
 # best-effort driver). The queue is deeper than rclpy's qos_profile_sensor_data (5) so that a
 # replay running faster than real time does not overrun a subscriber between two spins.
 SENSOR_QOS = _profile(_BEST_EFFORT, _VOLATILE, 100)
+# A fast sensor stream read by a node that can lag behind it (the fusion on the raw IMU, 200 Hz
+# and more): best effort drops whatever the reader's history cannot hold, so it holds 5 s at
+# 200 Hz (gyro_integrator's /imu/data, which the fusion read before, is reliable).
+SENSOR_BACKLOG_QOS = _profile(_BEST_EFFORT, _VOLATILE, 1000)
 # Estimates (odometry, fused pose, lines): reliable, so no consumer misses a step.
 ESTIMATE_QOS = _profile(_RELIABLE, _VOLATILE, 100)
 # /clock: reliable, latest value only matters.
