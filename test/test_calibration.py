@@ -354,3 +354,17 @@ def test_a_swept_scan_is_deskewed_to_its_stamp_by_the_encoders():
     out = deskew_scans(joint_t, joint_pos, np.array([stamp]), [seen], [times], geometry)[0]
     assert np.abs(seen - at_stamp).max() > 0.1          # the sweep moved the point
     np.testing.assert_allclose(out, np.tile(at_stamp, (times.size, 1)), atol=1e-9)
+
+
+def test_no_free_parameter_is_none_unexcited():
+    """A short bag can hold every parameter (none left free): the excitation test answers
+    'none unexcited' instead of failing on an empty information matrix (sensing_doctor crashed
+    with an IndexError on the first 30 s of the TurtleBot3 bag)."""
+    from sensing_nodes.core.evaluation.calibration import _unexcited
+
+    free = np.zeros(6, dtype=bool)
+    assert _unexcited(np.ones((10, 6)), free).tolist() == [False] * 6
+    free[1] = True
+    jac = np.zeros((10, 6))
+    jac[:, 1] = 1.0
+    assert _unexcited(jac, free).tolist() == [False] * 6

@@ -164,7 +164,8 @@ class IcpMatcherProcessor:
 
     def outputs(self) -> list[Output]:
         # Each match in its local map or relative to its keyframe, for a fusion that keeps the
-        # map's origin or the keyframe's pose in its state (docs/fusion.md, "The EKF").
+        # map's origin or the keyframe's pose in its state (docs/fusion.md, "The scan matcher's
+        # input").
         return [Output(SCAN_MATCH_KEYFRAME, Odometry, ESTIMATE_QOS),
                 Output(SCAN_MATCH, Odometry, ESTIMATE_QOS)] + \
             ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
@@ -300,8 +301,11 @@ class IcpMatcherProcessor:
             matched = diag.counts['matched']
             diag.values['not_inserted_share'] = \
                 f"{diag.counts['not_inserted'] / matched if matched else 0.0:.3f}"
-            if step.local_map is not None and step.local_map.doubt:
-                diag.values['last_not_inserted'] = f'{stamp * 1e-9:.3f} s: {step.local_map.doubt}'
+            doubt = step.local_map.doubt if step.local_map is not None else ''
+            if doubt:
+                diag.values['last_not_inserted'] = f'{stamp * 1e-9:.3f} s: {doubt}'
+                self._warnings.warn('not_inserted', f'scan at {stamp * 1e-9:.3f} s: matched but '
+                                    f'kept out of the map ({doubt})')
         if not step.publish:
             return []
         # The fusion's input first: a consumer waiting for /scan_match/odom (a lockstep replay)

@@ -538,6 +538,8 @@ _SCALES = np.array([1e-3, 1e-3, 1e-3, 1e-2, 1e-2, math.radians(1.0)])
 
 def _unexcited(jac: NDArray[np.float64], free: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """Free parameters that lie in a near-null direction of the scaled information matrix."""
+    if not free.any():            # nothing left free (a short bag: every parameter held)
+        return np.zeros(free.size, dtype=bool)
     scaled = jac[:, free] * _SCALES[free]
     info = scaled.T @ scaled
     w, v = np.linalg.eigh(info)
