@@ -164,8 +164,8 @@ class IcpMatcherProcessor:
 
     def outputs(self) -> list[Output]:
         # Each match in its local map or relative to its keyframe, for a fusion that keeps the
-        # map's origin or the keyframe's pose in its state (docs/fusion.md, "The scan matcher's
-        # input").
+        # map's origin or the keyframe's pose in its state
+        # (docs/fusion.md, "The scan matcher's input").
         return [Output(SCAN_MATCH_KEYFRAME, Odometry, ESTIMATE_QOS),
                 Output(SCAN_MATCH, Odometry, ESTIMATE_QOS)] + \
             ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])

@@ -121,12 +121,13 @@ def scan_arrays(msg) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return ranges, beam_angles(msg.angle_min, msg.angle_increment, ranges.size)
 
 
-# icp_matcher's matches for the fusion (/scan_match/keyframe_odom; docs/fusion.md, "The scan
-# matcher's input"): base_link's pose in a reference frame with a stable name, the local map
-# (local_map mode) or base_link at the keyframe's scan (keyframe mode). A message whose
-# child_frame_id is that frame starts the next reference at its stamp (a new map, its pose
-# zero: base_link there is the map's origin; or the next keyframe, this scan); every other
-# message is in the reference the latest such message started, in the order they were published.
+# icp_matcher's matches for the fusion (/scan_match/keyframe_odom;
+# docs/fusion.md, "The scan matcher's input"): base_link's pose in a reference frame with a
+# stable name, the local map (local_map mode) or base_link at the keyframe's scan (keyframe
+# mode). A message whose child_frame_id is that frame starts the next reference at its stamp
+# (a new map, its pose zero: base_link there is the map's origin; or the next keyframe, this
+# scan); every other message is in the reference the latest such message started, in the
+# order they were published.
 SCAN_MATCH_MAP_FRAME = 'scan_match_map'
 SCAN_MATCH_KEYFRAME_FRAME = 'scan_match_keyframe'
 SCAN_MATCH_FRAMES = (SCAN_MATCH_MAP_FRAME, SCAN_MATCH_KEYFRAME_FRAME)
