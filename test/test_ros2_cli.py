@@ -286,7 +286,8 @@ def test_the_command_line_against_the_launched_graphs(ws, sim_launch, probe):
         offered.update({(name, topic): qos for name, qos in _publishers(info.stdout)})
     assert {key: offered.get(key) for key in documented} == documented
 
-    assert set(listed.stdout.split()) == set(documented_params) | ROS_OWN_PARAMETERS, listed
+    assert set(listed.stdout.split()) == \
+        set(documented_params) | ROS_OWN_PARAMETERS | COMMON_PARAMETERS, listed
     descriptors = _descriptors(described.stdout)
     assert set(descriptors) == set(documented_params), described
     assert all(d.get('Description') and d.get('Read only') == 'true'
@@ -360,6 +361,9 @@ def _described_range(descriptor: dict[str, str]) -> tuple[float, float]:
 
 
 ROS_OWN_PARAMETERS = {'use_sim_time', 'start_type_description_service'}
+# Every processing node's, documented once for all (docs/architecture.md, managed nodes; each
+# node page links there): whether it is a lifecycle node.
+COMMON_PARAMETERS = {'lifecycle'}
 
 
 def _descriptors(text: str) -> dict[str, dict[str, str]]:

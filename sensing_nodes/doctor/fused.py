@@ -52,7 +52,7 @@ def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray,
     """The fused output against each pose track, the bag's ground truth where it has one,
     and the IMU's headings (the doctor's integral of its gyro, gyro_integrator's output where
     the preset runs it, its own orientation)."""
-    from sensing_nodes.core.evaluation.metrics import trajectory_errors
+    from sensing_nodes.core.evaluation.metrics import aligned_trajectory_errors, trajectory_errors
 
     def heading_only(stamps: np.ndarray, yaw: np.ndarray) -> dict[str, float] | None:
         errors = trajectory_errors(stamps, np.column_stack((np.zeros((len(stamps), 2)), yaw)),
@@ -65,7 +65,10 @@ def compare_fused(d: Diagnosis, t: np.ndarray, poses: np.ndarray,
         references[f'ground truth ({GROUND_TRUTH})'] = sorted_unique(truth.t, truth.pose)
     compared = d.fused['compared']
     for name, (rt, rp) in references.items():
-        errors = trajectory_errors(rt, rp, t, poses)
+        # Rigidly aligned: anchored at one stamp, the first second's transient (a differential
+        # input's first message only sets where its increments start) turned Freiburg 101's
+        # whole fused track by 3 deg, 1.1 m RMS from a scan matching it follows to 1 mm (ATE).
+        errors = aligned_trajectory_errors(rt, rp, t, poses)
         if errors.t.size:
             compared[name] = errors.summary()
     if d.imu is not None and d.imu.topic in d.tracks:
@@ -98,7 +101,8 @@ def _quietly(quiet: bool, call):
 
 def fused_section(d: Diagnosis, out: Path) -> None:
     """The preset through the nodes offline (sensing_pipeline's code) over the bag, and the
-    fused output against each input, anchored at the fused output's second stamp."""
+    fused output against each input: pose tracks after the best rigid alignment, headings
+    anchored at the fused output's second stamp."""
     from sensing_nodes.bags.storage import failure_reason
     from sensing_nodes.graph.pipeline import PipelineError, run
 

@@ -73,6 +73,27 @@ def trajectory_errors(
     return TrajectoryErrors(t_est, np.hypot(*error_map.T), np.asarray(heading), error_est, keep)
 
 
+def aligned_trajectory_errors(
+    t_ref: NDArray[np.int64], poses_ref: NDArray[np.float64],
+    t_est: NDArray[np.int64], poses_est: NDArray[np.float64],
+) -> TrajectoryErrors:
+    """Errors of an estimate in a frame of its own after the rigid transform that best maps its
+    positions onto the reference's at its stamps (align_rigid_2d): how far the two tracks depart,
+    whatever the moment each started (anchored at one stamp, a start-up transient of a few
+    degrees turns the whole track)."""
+    reference = interpolate_poses(t_ref, poses_ref, t_est)
+    keep = np.all(np.isfinite(reference), axis=1)
+    t_est, poses_est, reference = np.asarray(t_est)[keep], poses_est[keep], reference[keep]
+    if len(t_est) < 2:
+        return trajectory_errors(t_ref, poses_ref, t_est, poses_est)
+    origin = align_rigid_2d(reference[:, :2], poses_est[:, :2])
+    aligned = express_in_reference_frame(origin, poses_est)
+    error_map = aligned[:, :2] - reference[:, :2]
+    heading = se2.wrap_angle(aligned[:, 2] - reference[:, 2])
+    error_est = error_map @ se2.rotation(origin[2])
+    return TrajectoryErrors(t_est, np.hypot(*error_map.T), np.asarray(heading), error_est, keep)
+
+
 def path_length(poses: NDArray[np.float64]) -> float:
     """Distance travelled along a sampled trajectory (m)."""
     return float(np.sum(np.hypot(np.diff(poses[:, 0]), np.diff(poses[:, 1]))))
