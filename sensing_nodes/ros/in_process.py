@@ -116,7 +116,7 @@ class InProcessEdges:
         self._nodes: list[Any] = []
         self._queue: deque = deque()
         self._busy = False
-        self.version = 0            # bumped when a node (re)configures: subscriptions changed
+        self.version = 0            # bumped when a node (re)configures: subscriptions made
         self.counts: dict[str, TopicCounts] = {}
 
     def add_node(self, node) -> None:
@@ -124,6 +124,11 @@ class InProcessEdges:
         if node not in self._nodes:
             self._nodes.append(node)
         self.version += 1
+
+    def layout(self) -> tuple[int, int]:
+        """Changes when a node's subscriptions are made (add_node) or destroyed (a managed
+        node cleaned up: its subscriptions no longer take anything, as over DDS)."""
+        return self.version, sum(1 for node in self._nodes for _ in node.subscriptions)
 
     def publisher(self, publisher) -> InProcessPublisher:
         """`publisher`, publishing through the in-process edges."""
@@ -192,7 +197,7 @@ class InProcessPublisher:
         self._latched = publisher.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
         self.counts = edges.counts.setdefault(self.topic, TopicCounts())
         self._consumers: list[Subscription] = []
-        self._version = -1   # of the edges when _consumers was found
+        self._layout = (-1, -1)   # of the edges when _consumers was found
 
     def publish(self, msg: Any) -> None:
         """Hand `msg` (an rclpy message or its CDR bytes) to this process's subscriptions of the
@@ -201,9 +206,10 @@ class InProcessPublisher:
         if not getattr(publisher, 'is_activated', True):   # an inactive lifecycle publisher
             return
         edges = self._edges
-        if self._version != edges.version:
+        layout = edges.layout()
+        if self._layout != layout:
             self._consumers = edges.consumers(self.topic, self._type, self._qos)
-            self._version = edges.version
+            self._layout = layout
         consumers = self._consumers
         if consumers:
             if not isinstance(msg, bytes):
