@@ -118,12 +118,28 @@ class InProcessEdges:
         self._busy = False
         self.version = 0            # bumped when a node (re)configures: subscriptions made
         self.counts: dict[str, TopicCounts] = {}
+        self._handed: weakref.WeakSet = weakref.WeakSet()   # the publishers wrapped here
 
     def add_node(self, node) -> None:
         """A node whose subscriptions may take in-process messages (again: it reconfigured)."""
         if node not in self._nodes:
             self._nodes.append(node)
         self.version += 1
+        for topic in self.unserved():
+            node.get_logger().error(
+                f'{topic} is published in this process outside the in-process edges and '
+                'subscribed here: its subscribers here will not hear it (sensing_graph '
+                '--over-dds)')
+
+    def unserved(self) -> list[str]:
+        """Topics a node here subscribes and a publisher here not handing over publishes with
+        the same type (none among the processing nodes' own: their only other publisher is
+        /diagnostics): the participant ignores its own endpoints, so those subscriptions would
+        hear nothing from it."""
+        subscribed = {(s.topic_name, s.msg_type) for node in self._nodes
+                      for s in node.subscriptions}
+        return sorted({p.topic_name for node in self._nodes for p in node.publishers
+                       if p not in self._handed and (p.topic_name, p.msg_type) in subscribed})
 
     def layout(self) -> tuple[int, int]:
         """Changes when a node's subscriptions are made (add_node) or destroyed (a managed
@@ -132,6 +148,7 @@ class InProcessEdges:
 
     def publisher(self, publisher) -> InProcessPublisher:
         """`publisher`, publishing through the in-process edges."""
+        self._handed.add(publisher)
         return InProcessPublisher(self, publisher)
 
     def consumers(self, topic: str, msg_type: type, qos) -> list[Subscription]:

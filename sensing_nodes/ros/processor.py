@@ -52,8 +52,8 @@ def wire(node: ProcessingNode, inputs: list[Input], outputs: list[Output]) -> di
     publishers = {o.topic: node.create_publisher(o.msg_type, o.topic, o.qos) for o in outputs}
     edges = edges_of(node.context)
     if edges is not None:
-        edges.add_node(node)
         publishers = {topic: edges.publisher(p) for topic, p in publishers.items()}
+        edges.add_node(node)
 
     def callback(handler: Callable[[Any], Outputs]) -> Callable[[Any], None]:
         def on_message(msg: Any) -> None:

@@ -76,6 +76,11 @@ def run(names: tuple[str, ...], params_files: list[Path], extras: dict[str, list
             except _PARAMETER_ERRORS as exc:
                 print(f'[{name}] invalid parameter: {exc}', file=sys.stderr, flush=True)
                 return EXIT_BAD_PARAMETER
+        if edges is not None and edges.unserved():
+            print(f'sensing_graph: error: {", ".join(edges.unserved())} published here outside '
+                  'the in-process edges and subscribed here: use --over-dds', file=sys.stderr,
+                  flush=True)
+            return EXIT_BAD_PARAMETER
         spinner = make_executor(kind, threads)
         for node in nodes:
             spinner.add_node(node)
