@@ -43,10 +43,12 @@ demo: $(READY) $(ROS2_CLI)
 # worker (module fixtures are built once): most tests wait on processes and DDS, not the CPU.
 test: $(READY) $(ROS2_CLI)
 	$(BIN)/ruff check .
+	$(BIN)/python dev/check_links.py
 	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 lint: $(READY) $(ROS2_CLI)
 	$(BIN)/ruff check .
+	$(BIN)/python dev/check_links.py
 
 bench: $(READY) $(ROS2_CLI)
 	$(BIN)/sensing_bench

@@ -16,7 +16,7 @@ EXECUTABLES = {
     'complementary_fusion': 'sensing_nodes.nodes.complementary_fusion:main',
     'sensing_graph': 'sensing_nodes.tools.graph:main',
     'sensing_demo': 'sensing_nodes.tools.demo:main',
-    'sensing_bench': 'sensing_nodes.tools.bench:main',
+    'sensing_bench': 'sensing_nodes.bench.runner:main',
     'lines_plot': 'sensing_nodes.tools.lines_plot:main',
     'icp_plot': 'sensing_nodes.tools.icp_plot:main',
     'sensing_replay': 'sensing_nodes.tools.replay:main',

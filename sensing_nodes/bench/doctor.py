@@ -1,4 +1,4 @@
-"""sensing_doctor's speed over a 10-minute bag (issue 25: under a minute on this 2-core
+"""sensing_doctor's speed over a 10-minute bag (the aim: under a minute on a 2-core
 machine).
 
 A bag is recorded with `sensor_sim --record` (600 s of the default route, seed 5; 60 s with

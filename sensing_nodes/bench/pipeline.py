@@ -1,6 +1,6 @@
 """sensing_pipeline's speed: x real time on a simulated bag at the default sensor rates.
 
-A bag is recorded with `sensor_sim --record` (300 s, seed 5, as issue 15's target states; 60 s
+A bag is recorded with `sensor_sim --record` (300 s, seed 5; 60 s
 with --quick), then `sensing_pipeline BAG OUT --no-progress` runs as a child process, all five
 nodes. Its CPU time (user + system, process start included) and wall time give x real time
 (bag seconds per CPU second, the target's one-core figure, and per wall second). The load

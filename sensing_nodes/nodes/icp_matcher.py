@@ -156,7 +156,7 @@ class IcpMatcherProcessor:
 
     def outputs(self) -> list[Output]:
         # Each match relative to its keyframe, the keyframe named by its stamp, for a fusion
-        # that keeps its state at keyframe stamps (docs/fusion.md, "Keyframe-relative matches").
+        # that keeps its state at keyframe stamps (docs/fusion.md, "The scan matcher's input").
         return [Output(SCAN_MATCH_KEYFRAME, Odometry, ESTIMATE_QOS),
                 Output(SCAN_MATCH, Odometry, ESTIMATE_QOS)] + \
             ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])

@@ -119,7 +119,7 @@ def within_reference_noise(estimate: NDArray[np.float64], reference: NDArray[np.
                            ) -> NDArray[np.bool_]:
     """Relations (N, 3) whose error against the reference's is under `factor` times the
     reference's own standard deviation on every axis where that is resolved (above 0): the
-    matches a gate must not refuse (issue 32's target 3)."""
+    matches a gate must not refuse."""
     e = np.abs(relation_errors(estimate, reference))
     resolved = reference_own > 0
     return np.all(e[:, resolved] < factor * reference_own[resolved], axis=1)
