@@ -13,11 +13,11 @@ from sensing_nodes.bags.storage import canonical_cdr, type_name
 from sensing_nodes.ros.cdr import cdr_decoder, imu_cdr, odometry_cdr
 from sensing_nodes.ros.conversions import make_odometry, ros_covariance_to_planar
 
-FRAME_IDS = ['', 'a', 'abc', 'abcd', 'odom', 'base_link', 'keyframe/1700000000100000000', 'ünï']
+FRAME_IDS = ['', 'a', 'abc', 'abcd', 'odom', 'base_link', 'scan_match_keyframe', 'ünï']
 
 
 @pytest.mark.parametrize('frame_id', FRAME_IDS)
-@pytest.mark.parametrize('child_frame_id', ['', 'base_link', 'keyframe/none', 'abcde'])
+@pytest.mark.parametrize('child_frame_id', ['', 'base_link', 'scan_match_map', 'abcde'])
 def test_odometry_cdr_is_rclpys_odometry(frame_id, child_frame_id):
     rng = np.random.default_rng(len(frame_id) + 10 * len(child_frame_id))
     pose = tuple(rng.normal(size=3).tolist())

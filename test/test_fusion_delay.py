@@ -12,7 +12,8 @@ from sensing_nodes.core.fusion.ekf import EkfFusion, EkfSettings
 from sensing_nodes.core.fusion.inputs import IMU, SCAN, WHEEL, input_config
 from sensing_nodes.core.fusion.timeline import InputRecord
 from sensing_nodes.ros.conversions import (
-    keyframe_frame_id,
+    NOT_MATCHED,
+    SCAN_MATCH_KEYFRAME_FRAME,
     make_odometry,
     ns_to_stamp,
 )
@@ -42,11 +43,17 @@ def test_a_message_stamped_t_is_read_as_at_t_minus_its_inputs_delay():
 
 
 def test_a_retimed_match_names_its_keyframes_retimed_too():
-    """icp_matcher names the keyframe by its scan stamp: with scan_match.delay_s 0.05 the match
-    stamped 101 s against the keyframe of 100 s is read as 100.95 s against 99.95 s, and a
-    message that starts a keyframe still does."""
+    """A keyframe is named by the stamp of icp_matcher's message that started it: with
+    scan_match.delay_s 0.05 the match stamped 101 s against the keyframe of 100 s is read as
+    100.95 s against 99.95 s, and a message that starts a keyframe still does."""
     converter = _converter(scan_match=0.05)
-    msg = make_odometry(T0 + S, keyframe_frame_id(T0), keyframe_frame_id(T0 + S),
+    first = make_odometry(T0, SCAN_MATCH_KEYFRAME_FRAME, SCAN_MATCH_KEYFRAME_FRAME,
+                          (0.0, 0.0, 0.0), np.diag([NOT_MATCHED, 0.0, 0.0]))
+    reading, problem = converter.reading(SCAN, first, converter.stamp_ns(SCAN, first),
+                                         InputRecord(SCAN))
+    assert problem == '' and reading.pose is None and reading.new_keyframe
+    assert reading.stamp_ns == T0 - 50_000_000
+    msg = make_odometry(T0 + S, SCAN_MATCH_KEYFRAME_FRAME, SCAN_MATCH_KEYFRAME_FRAME,
                         (0.2, 0.0, 0.01), np.eye(3) * 1e-6)
     stamp = converter.stamp_ns(SCAN, msg)
     reading, problem = converter.reading(SCAN, msg, stamp, InputRecord(SCAN))

@@ -17,7 +17,8 @@ from sensor_msgs.msg import Imu
 
 from sensing_nodes.paths import config_file
 from sensing_nodes.ros.conversions import (
-    keyframe_frame_id,
+    NOT_MATCHED,
+    SCAN_MATCH_KEYFRAME_FRAME,
     make_odometry,
     ns_to_stamp,
     odometry_pose,
@@ -76,12 +77,12 @@ def stream(count):
         events.append(('imu', t, upside_down_imu(t, pose[2])))
         if k % 5 == 0:
             new = (k // 5) % 10 == 0
-            if keyframe is None:
-                msg = make_odometry(t, keyframe_frame_id(None), keyframe_frame_id(t),
-                                    (0.0, 0.0, 0.0), np.zeros((3, 3)))
+            if keyframe is None:       # the first scan: a keyframe, nothing matched
+                msg = make_odometry(t, SCAN_MATCH_KEYFRAME_FRAME, SCAN_MATCH_KEYFRAME_FRAME,
+                                    (0.0, 0.0, 0.0), np.diag([NOT_MATCHED, 0.0, 0.0]))
             else:
-                msg = make_odometry(t, keyframe_frame_id(keyframe[0]),
-                                    keyframe_frame_id(t) if new else 'base_link',
+                msg = make_odometry(t, SCAN_MATCH_KEYFRAME_FRAME,
+                                    SCAN_MATCH_KEYFRAME_FRAME if new else 'base_link',
                                     between(keyframe[1], pose), np.diag([1e-6, 1e-6, 1e-7]))
             if keyframe is None or new:
                 keyframe = (t, pose)
@@ -139,10 +140,10 @@ def test_keyframes_and_upside_down_imu_fuse_and_bad_input_is_counted(graph):
     bad_q = make_odometry(t_bad, 'odom', 'base_link', truth(40), np.eye(3) * 1e-3)
     bad_q.pose.pose.orientation = Quaternion(x=0.0, y=0.0, z=0.0, w=2.0)     # not unit
     bad.append(('wheel', t_bad, bad_q))
-    nan_match = make_odometry(t_bad, keyframe_frame_id(T0), 'base_link', (math.nan, 0.0, 0.0),
-                              np.eye(3) * 1e-6)
+    nan_match = make_odometry(t_bad, SCAN_MATCH_KEYFRAME_FRAME, 'base_link',
+                              (math.nan, 0.0, 0.0), np.eye(3) * 1e-6)
     bad.append(('scan', t_bad, nan_match))
-    not_psd = make_odometry(t_bad + 1, keyframe_frame_id(T0), 'base_link', (0.1, 0.0, 0.0),
+    not_psd = make_odometry(t_bad + 1, SCAN_MATCH_KEYFRAME_FRAME, 'base_link', (0.1, 0.0, 0.0),
                             np.eye(3))
     cov = np.array([[1e-4, 1e-3, 0.0], [1e-3, 1e-4, 0.0], [0.0, 0.0, 1e-4]])   # eigen < 0
     not_psd.pose.covariance = planar_covariance_to_ros(cov)

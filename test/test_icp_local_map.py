@@ -251,7 +251,7 @@ def test_a_corridor_is_reported_degenerate_along_it_and_the_odometry_moves_the_p
     stamps, steps = match_scans(run, matcher_settings(run.params))
     matched = [s for s in steps if s.status == 'matched']
     assert len(matched) == len(steps) - 1
-    ratio = np.array([s.relative_covariance[0, 0] / s.relative_covariance[1, 1]
+    ratio = np.array([s.keyframe.covariance[0, 0] / s.keyframe.covariance[1, 1]
                       for s in matched])
     assert np.all(ratio >= 100.0), ratio.min()
     assert sum('degenerate' in s.events for s in steps) >= 0.95 * len(matched)
@@ -284,9 +284,10 @@ def test_matches_are_relative_to_an_anchor_kept_while_the_robot_stays_near_it(ro
     anchors = [s.stamp_ns for s in steps if s.new_keyframe]
     assert 2 <= len(anchors) <= 6                       # 40 s, ~5 m of travel, every 2 m
     for step in steps[1:]:
-        anchor = published[step.keyframe_stamp_ns]
-        assert step.keyframe_stamp_ns in anchors
-        np.testing.assert_allclose(compose(anchor.pose, step.relative), step.pose, atol=1e-9)
-        assert math.hypot(*step.relative[:2]) <= 2.0 + 0.05
-        eigen = np.linalg.eigvalsh(step.relative_covariance)
+        anchor = published[step.keyframe.keyframe_stamp_ns]
+        assert step.keyframe.keyframe_stamp_ns in anchors
+        np.testing.assert_allclose(compose(anchor.pose, step.keyframe.pose), step.pose,
+                                   atol=1e-9)
+        assert math.hypot(*step.keyframe.pose[:2]) <= 2.0 + 0.05
+        eigen = np.linalg.eigvalsh(step.keyframe.covariance)
         assert eigen.min() > 0 and eigen.max() < 1e-4

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 
 from sensing_nodes.bags.storage import BagReader
 from sensing_nodes.bench.icp_real import carmen_dir
@@ -42,7 +43,7 @@ from sensing_nodes.core.fusion.inputs import SCAN, WHEEL
 from sensing_nodes.core.fusion.timeline import InputRecord
 from sensing_nodes.core.geometry import se2
 from sensing_nodes.paths import config_file
-from sensing_nodes.ros.conversions import map_stamp, odometry_pose, stamp_to_ns
+from sensing_nodes.ros.conversions import ScanMatchReferences, odometry_pose, stamp_to_ns
 from sensing_nodes.ros.fusion_readings import ReadingConverter
 from sensing_nodes.tools import carmen_to_bag, pipeline
 from sensing_nodes.tools import eval as sensing_eval
@@ -100,15 +101,29 @@ def log_figures(name: str, out: Path, modes: tuple[str, ...] = MODES,
 
 
 def _odometry_rows(bag: Path, topic: str):
-    """(stamps ns, poses (N, 3), covariances (N, 3, 3), frame ids) of an Odometry topic."""
-    t, p, c, f = [], [], [], []
+    """(stamps ns, poses (N, 3), covariances (N, 3, 3), messages) of an Odometry topic."""
+    t, p, c, m = [], [], [], []
     for _, _, msg in BagReader(bag).messages([topic]):
         pose, cov = odometry_pose(msg)
         t.append(stamp_to_ns(msg.header.stamp))
         p.append(pose)
         c.append(cov)
-        f.append(msg.header.frame_id)
-    return np.array(t, dtype=np.int64), np.array(p), np.array(c), f
+        m.append(msg)
+    return np.array(t, dtype=np.int64), np.array(p), np.array(c), m
+
+
+def _map_ids(messages) -> NDArray[np.int64]:
+    """The local map each of the matcher's messages is a pose in (a match, or the map's origin
+    at its first scan), named by its first scan's stamp (ns); -1 where it carries no pose in a
+    map known from its start."""
+    references = ScanMatchReferences()
+    out = []
+    for msg in messages:
+        reference, _ = references.read(msg)
+        known = reference is not None and reference.in_map and reference.reference_ns \
+            is not None and (reference.matched or reference.starts)
+        out.append(reference.reference_ns if known else -1)
+    return np.array(out, dtype=np.int64)
 
 
 def integrity_figures(processed: Path, assumed: tuple[str, ...] = ()) -> dict:
@@ -118,8 +133,8 @@ def integrity_figures(processed: Path, assumed: tuple[str, ...] = ()) -> dict:
     decisions, replayed over the processed bag as the node makes them with the benchmark's
     configuration: the matches refused among those whose relation lies within 3x the
     reference's own noise ('good'), and among all."""
-    t, poses, covs, frames = _odometry_rows(processed, MATCHES)
-    map_ids = np.array([map_stamp(f) if map_stamp(f) is not None else -1 for f in frames])
+    t, poses, covs, messages = _odometry_rows(processed, MATCHES)
+    map_ids = _map_ids(messages)
     ref_t, ref_p, _, _ = _odometry_rows(processed, REFERENCE)
     odo_t, odo_p, _, _ = _odometry_rows(processed, ODOMETRY)
     matched = (map_ids >= 0) & np.all(np.isfinite(interpolate_poses(ref_t, ref_p, t)), axis=1)

@@ -12,7 +12,7 @@ import numpy as np
 
 from sensing_nodes.core.evaluation.fusion import track_errors
 from sensing_nodes.core.geometry.se2 import between, wrap_angle
-from sensing_nodes.core.scan_matching import ScanMatcherSettings
+from sensing_nodes.core.scan_matching import ScanEvent, ScanMatcherSettings, ScanStatus
 from sensing_nodes.core.sim.inputs import match_scans, matcher_settings
 from sensing_nodes.core.sim.simulator import SimParams, SimRun, make_route, simulate
 from sensing_nodes.core.sim.world import load_world
@@ -96,7 +96,7 @@ def route_errors(run: SimRun, settings: ScanMatcherSettings, odometry: bool = Tr
     spent = time.process_time() - start
     errors = track_errors(run.truth_t, run.truth_pose, stamps,
                           np.array([step.pose for step in steps]))
-    errors['fallback'] = sum(step.status == 'fallback' for step in steps)
+    errors['fallback'] = sum(step.status is ScanStatus.FALLBACK for step in steps)
     errors['cpu_ms_per_scan_with_odometry'] = 1e3 * spent / max(len(steps), 1)
     return errors
 
@@ -177,14 +177,14 @@ def corridor_table(seeds: int = 4) -> dict:
         inputs = inputs_from_run(run)
         track = run_ekf(inputs)
         stamps, steps = match_scans(run, matcher_settings(params))
-        ratios = [step.relative_covariance[0, 0] / step.relative_covariance[1, 1]
-                  for step in steps if step.relative_covariance is not None]
+        ratios = [step.keyframe.covariance[0, 0] / step.keyframe.covariance[1, 1]
+                  for step in steps if step.keyframe is not None]
         rows.append({'seed': seed,
                      'wheels': errors(inputs, inputs.wheel_t, inputs.wheel_pose),
                      'matcher': errors(inputs, inputs.scan_t, inputs.scan_pose),
                      'fused': errors(inputs, track.t, track.pose),
                      'min_along_over_across_variance': float(min(ratios)),
-                     'degenerate': sum('degenerate' in step.events for step in steps),
+                     'degenerate': sum(ScanEvent.DEGENERATE in step.events for step in steps),
                      'matches': len(ratios)})
     return {'seeds': rows}
 

@@ -14,6 +14,7 @@ import math
 from bisect import bisect_left, insort
 from collections import deque
 from dataclasses import dataclass, field, replace
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
@@ -152,54 +153,99 @@ class ScanMatcherSettings:
         return out
 
 
+class ScanStatus(StrEnum):
+    """What became of a scan (counted on /diagnostics under its value)."""
+
+    FIRST = 'first'                       # the first scan: starts the keyframe or the map
+    MATCHED = 'matched'
+    FALLBACK = 'fallback'                 # the match failed: the prediction carried the pose
+    REPEATED = 'repeated'                 # same stamp as the previous scan: nothing published
+    RESET_BACKWARDS = 'reset_backwards'   # the stamp went backwards: restarted at the origin
+    GAP = 'gap'                           # keyframe mode: too long since the previous scan
+
+
+class ScanEvent(StrEnum):
+    """What else happened during a scan, each counted on /diagnostics under its value."""
+
+    DESKEWED_BY_ODOMETRY = 'deskewed_by_odometry'
+    DESKEWED_BY_VELOCITY = 'deskewed_by_velocity'
+    GAP = 'gap'                           # local_map: the velocity restarted, the map stayed
+    LIMITED = 'limited'                   # the published step was held to the physical limits
+    PREDICTION_LIMITED = 'prediction_limited'   # ... the constant-velocity prediction was
+    REACQUIRE_ATTEMPTS = 'reacquire_attempts'
+    REACQUIRED = 'reacquired'
+    DEGENERATE = 'degenerate'
+    MAP_PRUNED = 'map_pruned'
+    MAP_RESTARTED = 'map_restarted'
+    NOT_INSERTED = 'not_inserted'         # a doubted match kept out of the map
+
+
+class Prediction(StrEnum):
+    """Where a scan's predicted motion came from."""
+
+    ODOMETRY = 'odometry'
+    CONSTANT_VELOCITY = 'constant_velocity'
+
+
+@dataclass(frozen=True)
+class KeyframeMatch:
+    """A match's own measurement: base_link at the scan relative to base_link at the keyframe's
+    stamp (keyframe mode: the keyframe; local_map mode: the map's anchor), m and rad, with the
+    match's covariance. Successive matches against one keyframe share that keyframe's error; a
+    consumer that keeps its state at keyframe stamps (stochastic cloning) counts it once."""
+
+    keyframe_stamp_ns: int
+    pose: Pose2
+    covariance: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MapPose:
+    """local_map mode: where a scan is in its local map, what /scan_match/keyframe_odom carries
+    for the fusion. The map's frame is the odom frame the map is built in, whose origin is
+    base_link at the map's first scan (map_stamp_ns, which names the map). A match is base_link
+    in the map at the middle of the sweep (time_ns: the stamp plus half the sweep; the stamp
+    without beam times), where the registration is made, with the registration's own covariance
+    (map x, y, yaw): at the stamp the pose carries half a sweep of the prediction's error besides
+    (the odometry's motion over the sweep; on the simulated route that half sweep was half the
+    heading error's variance, and on strong_errors a 0.1 deg bias). The scan that starts a map
+    (`origin`) is stamped at its stamp, base_link there being the map's origin exactly."""
+
+    map_stamp_ns: int
+    time_ns: int
+    origin: bool = False
+    pose: Pose2 | None = None                     # None: not matched (origin, fallback)
+    covariance: NDArray[np.float64] | None = None
+    doubt: str = ''       # why a match was kept out of the map ('' when it joined or no match)
+
+
 @dataclass
 class ScanStep:
     """Outcome of one scan: pose of base_link (odom frame) with covariance, twist (vx, vy, wz)
-    in base_link over the last interval, and what happened (`status`, `reason`)."""
+    in base_link over the last interval, and what happened (`status`, `reason`, `events`); the
+    match against its keyframe or the map's anchor (`keyframe`, None when nothing was matched)
+    and, in local_map mode, the scan in the map (`local_map`, None in keyframe mode)."""
 
     stamp_ns: int
     pose: Pose2
     covariance: NDArray[np.float64]
     twist: tuple[float, float, float]
-    status: str                 # first | matched | fallback | repeated | reset_backwards | gap
+    status: ScanStatus
     reason: str = ''
+    # keyframe mode: this scan is the keyframe of the next matches; local_map: the map's
+    # anchor was renewed here.
     new_keyframe: bool = False
-    prediction: str = ''        # odometry | constant_velocity
+    prediction: Prediction | None = None
     result: icp.MatchResult | None = None
     twist_covariance: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
-    # A match's own measurement: base_link at stamp_ns relative to base_link at the keyframe's
-    # stamp (keyframe_stamp_ns), with the match's covariance. Successive matches against one
-    # keyframe share that keyframe's error; a consumer that keeps its state at keyframe stamps
-    # (stochastic cloning) counts it once. None when nothing was matched (first, gap, fallback).
-    keyframe_stamp_ns: int | None = None
-    relative: Pose2 | None = None
-    relative_covariance: NDArray[np.float64] | None = None
-    # local_map mode, what /scan_match/keyframe_odom carries for the fusion: base_link in the map
-    # (the odom frame the map is built in, whose origin is base_link at the map's first scan,
-    # map_stamp_ns) at the middle of the sweep (map_time_ns: the stamp plus half the sweep; the
-    # stamp without beam times), where the registration is made, with the registration's own
-    # covariance (map x, y, yaw). At the stamp the pose carries half a sweep of the prediction's
-    # error besides (the odometry's motion over the sweep): on the simulated route that half
-    # sweep was half the heading error's variance, and on strong_errors a 0.1 deg bias.
-    # map_time_ns is set for every scan of a local map, map_pose only for a match. The scan
-    # that starts a map (status first or reset_backwards) is its origin: map_time_ns is then
-    # its stamp (base_link there is the map's origin, exactly).
-    map_stamp_ns: int | None = None
-    map_time_ns: int | None = None
-    map_pose: Pose2 | None = None
-    map_covariance: NDArray[np.float64] | None = None
-    # What else happened, each counted on /diagnostics: deskewed_by_odometry,
-    # deskewed_by_velocity, gap, limited (the published step was held to the physical limits
-    # around the odometry's motion), prediction_limited (the constant-velocity prediction
-    # was), reacquire_attempts, reacquired, degenerate, map_pruned, not_inserted.
-    events: tuple[str, ...] = ()
-    # local_map: why a match was kept out of the map ('' when it joined or was not a match).
-    doubt: str = ''
+    events: tuple[ScanEvent, ...] = ()
+    keyframe: KeyframeMatch | None = None
+    local_map: MapPose | None = None
 
     @property
     def publish(self) -> bool:
         """False only for a repeated stamp, which produces no new estimate."""
-        return self.status != 'repeated'
+        return self.status != ScanStatus.REPEATED
 
 
 def with_prediction_error(result: icp.MatchResult, model_error_rms: float, share: float,
@@ -239,13 +285,13 @@ def mount_transform(relative_base: Pose2, laser_pose: Pose2) -> Pose2:
 
 
 def predicted_step(odometry_motion: Pose2 | None, twist: Pose2,
-                   dt_s: float) -> tuple[Pose2, str]:
+                   dt_s: float) -> tuple[Pose2, Prediction]:
     """base_link's predicted motion since the previous scan (its base frame; m, rad) and where
     it came from: the odometry's when it is given and finite, else the constant-velocity
     model's (the matcher's own twist over dt_s)."""
     if odometry_motion is not None and all(math.isfinite(v) for v in odometry_motion):
-        return odometry_motion, 'odometry'
-    return (twist[0] * dt_s, twist[1] * dt_s, twist[2] * dt_s), 'constant_velocity'
+        return odometry_motion, Prediction.ODOMETRY
+    return (twist[0] * dt_s, twist[1] * dt_s, twist[2] * dt_s), Prediction.CONSTANT_VELOCITY
 
 
 def limit_step(step: Pose2, reference: Pose2, dt_s: float, max_speed_m_s: float,
@@ -337,10 +383,10 @@ class KeyframeScanMatcher:
         points = deskewed_by_odometry(points, beam_times_s, sweep_motion, s.laser_pose)
         step = classify_step(self.stamp_ns, stamp_ns, s.max_gap_s)
         if step is StampStep.REPEATED:
-            return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, 'repeated',
-                            'same stamp as the previous scan: skipped')
+            return ScanStep(stamp_ns, self.pose, self.covariance, self.twist,
+                            ScanStatus.REPEATED, 'same stamp as the previous scan: skipped')
         if step in (StampStep.FIRST, StampStep.BACKWARDS):
-            status = 'first' if step is StampStep.FIRST else 'reset_backwards'
+            status = ScanStatus.FIRST if step is StampStep.FIRST else ScanStatus.RESET_BACKWARDS
             self.reset()
             self.stamp_ns = stamp_ns
             self._set_keyframe(points, stamp_ns)
@@ -352,7 +398,7 @@ class KeyframeScanMatcher:
             self.stamp_ns = stamp_ns
             self.twist = (0.0, 0.0, 0.0)
             self._set_keyframe(points, stamp_ns)
-            return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, 'gap',
+            return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, ScanStatus.GAP,
                             f'{gap_s:.2f} s since the previous scan: keyframe restarted here',
                             new_keyframe=True)
 
@@ -377,13 +423,13 @@ class KeyframeScanMatcher:
 
         reason = self._rejection(result, guess_laser)
         previous = self.pose
-        keyframe_stamp, relative, rel_cov = self.keyframe_stamp_ns, None, None
+        match = None
         if reason:
             fallback_cov = np.diag([s.fallback_std_m ** 2, s.fallback_std_m ** 2,
                                     s.fallback_std_rad ** 2])
             self.pose, self.covariance = compose_with_covariance(
                 self.pose, self.covariance, predicted_motion, fallback_cov)
-            status = 'fallback'
+            status = ScanStatus.FALLBACK
             # Restart the keyframe here (the old one did not fit), unless this scan is too
             # sparse to match against: then the old keyframe stays, at its own pose.
             new_keyframe = points_usable
@@ -393,23 +439,20 @@ class KeyframeScanMatcher:
             relative, rel_cov = unmount_transform(result.pose, result.covariance, s.laser_pose)
             self.pose, self.covariance = compose_with_covariance(
                 self.keyframe_pose, self.keyframe_covariance, relative, rel_cov)
-            status = 'matched'
+            status = ScanStatus.MATCHED
+            match = KeyframeMatch(self.keyframe_stamp_ns, relative, rel_cov)
             motion_cov = rel_cov      # the keyframe's own uncertainty is common to both poses
             new_keyframe = (math.hypot(relative[0], relative[1]) > s.keyframe_distance_m
                             or abs(relative[2]) > s.keyframe_angle_rad)
         if new_keyframe:
             self._set_keyframe(points, stamp_ns)
-        if status != 'matched':
-            keyframe_stamp = None
         motion = between(previous, self.pose)
         if dt >= MIN_VELOCITY_INTERVAL_S:
             self.twist = (motion[0] / dt, motion[1] / dt, motion[2] / dt)
         self.stamp_ns = stamp_ns
         return ScanStep(stamp_ns, self.pose, self.covariance.copy(), self.twist, status, reason,
                         new_keyframe=new_keyframe, prediction=source, result=result,
-                        twist_covariance=motion_cov / (dt * dt),
-                        keyframe_stamp_ns=keyframe_stamp, relative=relative,
-                        relative_covariance=rel_cov)
+                        twist_covariance=motion_cov / (dt * dt), keyframe=match)
 
     def _rejection(self, result: icp.MatchResult, guess: Pose2) -> str:
         """Why a match must not be used ('' when it is fine)."""
@@ -465,7 +508,7 @@ class LocalMapScanMatcher:
     search re-acquires the pose in the map. The published pose never deviates from the
     odometry's motion (without odometry: never steps) beyond the physical limits, unless they
     are off (rate_limits). Matches are also given relative to a long-lived map anchor
-    (keyframe_stamp_ns)."""
+    (ScanStep.keyframe)."""
 
     def __init__(self, settings: ScanMatcherSettings | None = None) -> None:
         self.settings = settings or ScanMatcherSettings()
@@ -514,9 +557,9 @@ class LocalMapScanMatcher:
         s = self.settings
         step = classify_step(self.stamp_ns, stamp_ns, s.max_gap_s)
         if step is StampStep.REPEATED:
-            return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, 'repeated',
-                            'same stamp as the previous scan: skipped')
-        events: list[str] = []
+            return ScanStep(stamp_ns, self.pose, self.covariance, self.twist,
+                            ScanStatus.REPEATED, 'same stamp as the previous scan: skipped')
+        events: list[ScanEvent] = []
         if step in (StampStep.FIRST, StampStep.BACKWARDS):
             self.reset()
             points, half, how, _ = self._sweep(points, beam_times_s, sweep_motion)
@@ -524,25 +567,26 @@ class LocalMapScanMatcher:
             self.mid_pose = self._matched_at = half
             self._insert(points, compose(half, s.laser_pose))
             self.anchor_stamp_ns = self.map_stamp_ns = stamp_ns
-            status = 'first' if step is StampStep.FIRST else 'reset_backwards'
+            status = ScanStatus.FIRST if step is StampStep.FIRST else ScanStatus.RESET_BACKWARDS
             reason = '' if step is StampStep.FIRST else \
                 'stamp went backwards: map cleared, restarted at origin'
             return ScanStep(stamp_ns, self.pose, self.covariance, self.twist, status, reason,
                             new_keyframe=True, events=(how,) if how else (),
-                            map_stamp_ns=stamp_ns, map_time_ns=stamp_ns)
+                            local_map=MapPose(stamp_ns, stamp_ns, origin=True))
         if step is StampStep.GAP:
             # The map stays (it is in the odom frame); the velocity across the gap is unknown.
             self.twist = (0.0, 0.0, 0.0)
-            events.append('gap')
+            events.append(ScanEvent.GAP)
         return self._register(stamp_ns, points, predicted_motion, beam_times_s, sweep_motion,
                               events)
 
     def _sweep(self, points: NDArray[np.float64], beam_times_s: NDArray[np.float64] | None,
-               sweep_motion: Pose2 | None) -> tuple[NDArray[np.float64], Pose2, str, float]:
+               sweep_motion: Pose2 | None
+               ) -> tuple[NDArray[np.float64], Pose2, ScanEvent | None, float]:
         """A swept scan deskewed to the middle of its sweep, base_link's motion from the stamp
         to that middle, how (by the odometry's motion over the sweep or the matcher's own
-        twist) and the middle's time after the stamp (s); unchanged, no motion, '' and 0 when
-        the beams carry no times.
+        twist) and the middle's time after the stamp (s); unchanged, no motion, None and 0
+        when the beams carry no times.
 
         The middle, not the stamp: a constant-twist error then shears the scan symmetrically
         and barely moves its registration, so the twist the registrations give is not fed back
@@ -550,13 +594,13 @@ class LocalMapScanMatcher:
         times half the sweep, which made the next twist's error as large and of opposite sign:
         without odometry the simulated route ran away to 1.4 m)."""
         if beam_times_s is None or points.shape[0] == 0 or not np.any(beam_times_s):
-            return points, ZERO, '', 0.0
+            return points, ZERO, None, 0.0
         duration = float(beam_times_s.max())
-        twist, how = self.twist, 'deskewed_by_velocity'
+        twist, how = self.twist, ScanEvent.DESKEWED_BY_VELOCITY
         if sweep_motion is not None:
             twist = (sweep_motion[0] / duration, sweep_motion[1] / duration,
                      sweep_motion[2] / duration)
-            how = 'deskewed_by_odometry'
+            how = ScanEvent.DESKEWED_BY_ODOMETRY
         middle = 0.5 * duration
         moved = deskew(points, twist, beam_times_s - middle, self.settings.laser_pose)
         return moved, twist_motion(twist, middle), how, middle
@@ -565,7 +609,7 @@ class LocalMapScanMatcher:
     # re-acquire, limit, insert, anchor), kept in one place so its order is visible.
     def _register(self, stamp_ns: int, points: NDArray[np.float64],
                   predicted_motion: Pose2 | None, beam_times_s: NDArray[np.float64] | None,
-                  sweep_motion: Pose2 | None, events: list[str]) -> ScanStep:
+                  sweep_motion: Pose2 | None, events: list[ScanEvent]) -> ScanStep:
         """process() for a scan after the first. The scan is registered at the middle of its
         sweep (mid_pose); the published pose is base_link's at the stamp."""
         s = self.settings
@@ -573,11 +617,11 @@ class LocalMapScanMatcher:
         predicted_motion, source = predicted_step(predicted_motion, self.twist, dt)
         # The odometry's motion is a measurement, the reference the limits are relative to; the
         # matcher's own extrapolation (constant velocity) is held to them.
-        if s.rate_limits and source == 'constant_velocity':
+        if s.rate_limits and source is Prediction.CONSTANT_VELOCITY:
             predicted_motion, limited = limit_step(predicted_motion, ZERO, dt, s.max_speed_m_s,
                                                    s.max_yaw_rate_rad_s)
             if limited:
-                events.append('prediction_limited')
+                events.append(ScanEvent.PREDICTION_LIMITED)
         points, half, how, middle_s = self._sweep(points, beam_times_s, sweep_motion)
         if how:
             events.append(how)
@@ -590,7 +634,7 @@ class LocalMapScanMatcher:
         lost = self.failures >= s.reacquire_after
         result, reason = self._match(points, guess) if not lost else (None, 'lost')
         if reason and self.failures + 1 >= s.reacquire_after and len(self.map):
-            events.append('reacquire_attempts')
+            events.append(ScanEvent.REACQUIRE_ATTEMPTS)
             found = correlative_search(points, self.map.target(), guess,
                                        s.reacquire_window_m, s.reacquire_window_rad)
             if found is not None:
@@ -599,12 +643,11 @@ class LocalMapScanMatcher:
                 if not second_reason or result is None:
                     result, reason = second, second_reason
                 if not reason:
-                    events.append('reacquired')
+                    events.append(ScanEvent.REACQUIRED)
         if result is None:             # lost, and the wide search found nothing
             result, reason = self._match(points, guess)
         previous_mid, previous_pose = self.mid_pose, self.pose
-        keyframe_stamp = relative = rel_cov = None
-        map_pose = map_cov = None
+        match = map_pose = map_cov = None
         new_anchor = False
         doubt = ''
         if reason:
@@ -613,7 +656,7 @@ class LocalMapScanMatcher:
                                     s.fallback_std_rad ** 2])
             self.map_pose, self.mid_pose = predicted, predicted_mid
             target_pose = compose(self.pose, predicted_motion)
-            status = 'fallback'
+            status = ScanStatus.FALLBACK
             motion_cov = fallback_cov
             _, self.covariance = compose_with_covariance(self.pose, self.covariance,
                                                          predicted_motion, fallback_cov)
@@ -630,19 +673,18 @@ class LocalMapScanMatcher:
             base, base_cov = remove_offset(mid, mid_cov, half)
             self.alignment_errors.add(result.error)
             doubt = self._doubt(predicted_mid, mid, points, events)
-            if 'reacquired' not in events:
+            if ScanEvent.REACQUIRED not in events:
                 self.model_errors.add(prediction_deviation(predicted_mid, mid,
                                                            scan_reach(points)))
             self.map_pose, self.mid_pose = base, mid
             self._matched_at = mid
             target_pose = base
-            status = 'matched'
+            status = ScanStatus.MATCHED
             if result.degenerate:
-                events.append('degenerate')
-            keyframe_stamp = self.anchor_stamp_ns
+                events.append(ScanEvent.DEGENERATE)
             _, j_base = compose_jacobians(inverse(self.anchor_pose), base)
             relative = between(self.anchor_pose, base)
-            if how and 'reacquired' not in events:
+            if how and ScanEvent.REACQUIRED not in events:
                 deviation = between(predicted_mid, mid)
                 self.sweep_errors.add(math.hypot(deviation[0], deviation[1]))
                 self.sweep_yaw_errors.add(abs(deviation[2]))
@@ -655,11 +697,12 @@ class LocalMapScanMatcher:
                                               + [(share * self.sweep_yaw_errors.rms) ** 2])
             rel_cov = j_base @ base_cov @ j_base.T
             rel_cov = 0.5 * (rel_cov + rel_cov.T)
+            match = KeyframeMatch(self.anchor_stamp_ns, relative, rel_cov)
             _, self.covariance = compose_with_covariance(self.anchor_pose,
                                                          self.anchor_covariance, relative, rel_cov)
             motion_cov = 2.0 * rel_cov
             if doubt:
-                events.append('not_inserted')
+                events.append(ScanEvent.NOT_INSERTED)
             else:
                 self._maybe_insert(points, mid, events)
             new_anchor = math.hypot(base[0] - self.anchor_pose[0],
@@ -668,23 +711,25 @@ class LocalMapScanMatcher:
         # motion (without odometry: never further) than the limits.
         step = between(previous_pose, target_pose)
         if s.rate_limits:
-            step, limited = limit_step(step, predicted_motion if source == 'odometry' else ZERO,
+            step, limited = limit_step(step, predicted_motion if source is Prediction.ODOMETRY
+                                       else ZERO,
                                        dt, s.max_speed_m_s, s.max_yaw_rate_rad_s)
             if limited:
-                events.append('limited')
+                events.append(ScanEvent.LIMITED)
         self.pose = compose(previous_pose, step)
         if new_anchor:
             self.anchor_pose, self.anchor_covariance = self.map_pose, self.covariance.copy()
             self.anchor_stamp_ns = stamp_ns
         if dt >= MIN_VELOCITY_INTERVAL_S:
-            if status == 'matched' and 'reacquired' not in events:
+            if status is ScanStatus.MATCHED and ScanEvent.REACQUIRED not in events:
                 # From the registered middles of the sweeps, not the stamps: those carry the
                 # twist itself (half a sweep of it), which would feed back.
                 motion = between(previous_mid, self.mid_pose)
                 self.twist = (motion[0] / dt, motion[1] / dt, motion[2] / dt)
-            elif status == 'matched' or source == 'constant_velocity':
+            elif status is ScanStatus.MATCHED or source is Prediction.CONSTANT_VELOCITY:
                 # Re-acquired (the jump is no velocity) or lost without odometry: decaying.
-                decay = math.exp(-dt / s.velocity_decay_s) if status != 'matched' else 0.0
+                decay = math.exp(-dt / s.velocity_decay_s) \
+                    if status is not ScanStatus.MATCHED else 0.0
                 self.twist = tuple(v * decay for v in self.twist)
             else:
                 self.twist = (predicted_motion[0] / dt, predicted_motion[1] / dt,
@@ -692,12 +737,10 @@ class LocalMapScanMatcher:
         self.stamp_ns = stamp_ns
         return ScanStep(stamp_ns, self.pose, self.covariance.copy(), self.twist, status, reason,
                         new_keyframe=new_anchor, prediction=source, result=result,
-                        twist_covariance=motion_cov / (dt * dt),
-                        keyframe_stamp_ns=keyframe_stamp, relative=relative,
-                        relative_covariance=rel_cov, events=tuple(events),
-                        map_stamp_ns=self.map_stamp_ns,
-                        map_time_ns=stamp_ns + round(middle_s * 1e9), map_pose=map_pose,
-                        map_covariance=map_cov, doubt=doubt)
+                        twist_covariance=motion_cov / (dt * dt), events=tuple(events),
+                        keyframe=match, local_map=MapPose(
+                            self.map_stamp_ns, stamp_ns + round(middle_s * 1e9),
+                            pose=map_pose, covariance=map_cov, doubt=doubt))
 
     def _match(self, points: NDArray[np.float64], guess: Pose2, gate: float | None = None,
                check_jump: bool = True) -> tuple[icp.MatchResult, str]:
@@ -734,7 +777,7 @@ class LocalMapScanMatcher:
         return result, ''
 
     def _doubt(self, predicted: Pose2, matched: Pose2, points: NDArray[np.float64],
-               events: list[str]) -> str:
+               events: list[ScanEvent]) -> str:
         """Why a match should not join the map ('' when it may): a re-acquired match, or one
         further from its prediction than doubt_deviations x the recent RMS model error, waits
         until the next match agrees with it (doubt_streak doubted matches in a row join: the
@@ -742,7 +785,7 @@ class LocalMapScanMatcher:
         reference of the next ones."""
         s = self.settings
         reason = ''
-        if 'reacquired' in events:
+        if ScanEvent.REACQUIRED in events:
             reason = 're-acquired'
         elif self.model_errors and s.doubt_deviations > 0.0:
             deviation = prediction_deviation(predicted, matched, scan_reach(points))
@@ -756,7 +799,7 @@ class LocalMapScanMatcher:
         return reason
 
     def _maybe_insert(self, points: NDArray[np.float64], base: Pose2,
-                      events: list[str]) -> None:
+                      events: list[ScanEvent]) -> None:
         """Insert a matched scan (laser frame) seen from base (odom; at the middle of the
         sweep) when the robot moved or turned enough since the last insertion, and prune the
         map around the robot."""
@@ -770,9 +813,10 @@ class LocalMapScanMatcher:
         self._insert(points, laser)
         self._inserted_at = base
         if self.map.prune((base[0], base[1]), self.map_radius_m):
-            events.append('map_pruned')
+            events.append(ScanEvent.MAP_PRUNED)
 
-    def _restart_map(self, points: NDArray[np.float64], base: Pose2, events: list[str]) -> None:
+    def _restart_map(self, points: NDArray[np.float64], base: Pose2,
+                     events: list[ScanEvent]) -> None:
         """Forget the map and start it again from this scan (laser frame) seen from base (odom;
         the middle of the sweep), in the same frame: matching resumes from the next scan."""
         self.map.clear()
@@ -780,7 +824,7 @@ class LocalMapScanMatcher:
         self._matched_at = base
         self._insert(points, compose(base, self.settings.laser_pose))
         self.failures = 0
-        events.append('map_restarted')
+        events.append(ScanEvent.MAP_RESTARTED)
 
     @property
     def map_radius_m(self) -> float:

@@ -396,8 +396,8 @@ def scan_section(d: Diagnosis) -> None:
         status[step.status] = status.get(step.status, 0) + 1
         poses.append(step.pose)
         # The match's own variance against its keyframe (NaN where nothing was matched).
-        variances.append(np.diag(step.relative_covariance) if step.relative_covariance
-                         is not None else np.full(3, np.nan))
+        variances.append(np.diag(step.keyframe.covariance) if step.keyframe is not None
+                         else np.full(3, np.nan))
     d.scan_track = (scan_t, np.array(poses, dtype=float))
     d.scan_variance = np.array(variances)
     d.pose_tracks['scan matching'] = d.scan_track

@@ -1,6 +1,7 @@
 """icp_matcher: /scan -> /scan_match/odom (base_link pose from point-to-line ICP of each deskewed
 scan against a local map of the recent surroundings, or against one keyframe), with the
-initial guess from an odometry topic or a constant-velocity model."""
+initial guess from an odometry topic or a constant-velocity model; each match also in the map's
+frame or against its keyframe on /scan_match/keyframe_odom, for the fusion."""
 
 from __future__ import annotations
 
@@ -20,15 +21,18 @@ from sensing_nodes.core.geometry.transform import Transform
 from sensing_nodes.core.scan_matching import (
     ZERO,
     OdometryBuffer,
+    ScanEvent,
     ScanMatcherSettings,
+    ScanStatus,
     ScanStep,
     make_scan_matcher,
     odometry_guidance,
 )
 from sensing_nodes.ros.cdr import odometry_cdr, transform_cdr
 from sensing_nodes.ros.conversions import (
-    keyframe_frame_id,
-    map_frame_id,
+    NOT_MATCHED,
+    SCAN_MATCH_KEYFRAME_FRAME,
+    SCAN_MATCH_MAP_FRAME,
     odometry_pose,
     scan_arrays,
     stamp_to_ns,
@@ -47,33 +51,37 @@ from sensing_nodes.topics import SCAN, SCAN_MATCH, SCAN_MATCH_KEYFRAME
 ODOM_START_GRACE_S = 5.0
 
 
+# A match's covariance where the message carries none (ros/conversions.NOT_MATCHED).
+_NOT_MATCHED = np.diag([NOT_MATCHED, 0.0, 0.0])
+
+
 def keyframe_odometry(step: ScanStep, base_frame: str) -> bytes:
     """A scan step as /scan_match/keyframe_odom, the fusion's input, packed into CDR bytes
-    (ros/cdr.py; docs/fusion.md).
+    (ros/cdr.py; docs/fusion.md, "The scan matcher's input").
 
-    local_map mode: stamped at the middle of the scan's sweep (step.map_time_ns), the pose is
-    base_link then in the map, header.frame_id 'map/<ns>' naming the map by its first scan's
-    stamp, with the registration's covariance; 'keyframe/none' when nothing was matched. The
-    scan that starts a map is its origin: stamped at the scan, frame_id and child_frame_id
-    both 'map/<its stamp>', the pose zero.
-    keyframe mode: stamped at the scan, header.frame_id 'keyframe/<stamp ns>' names the keyframe
-    the pose (base_link at the scan, in the keyframe's base_link) is relative to, or is
-    'keyframe/none' when nothing was matched; child_frame_id is 'keyframe/<this stamp>' when
-    this scan becomes the next keyframe, else the base frame."""
-    if step.map_time_ns is not None:
-        if step.map_stamp_ns == step.stamp_ns:
-            origin = map_frame_id(step.map_stamp_ns)
-            return odometry_cdr(step.stamp_ns, origin, origin, ZERO, np.zeros((3, 3)))
-        if step.map_pose is None:
-            return odometry_cdr(step.map_time_ns, keyframe_frame_id(None), base_frame, ZERO,
+    local_map mode: header.frame_id scan_match_map, stamped at the middle of the scan's sweep
+    (MapPose.time_ns), the pose base_link then in the map with the registration's covariance,
+    or zero with covariance[0] = -1 when nothing was matched. The scan that starts a map is its
+    origin: stamped at the scan, child_frame_id scan_match_map too, the pose zero and exact.
+    keyframe mode: header.frame_id scan_match_keyframe, stamped at the scan, the pose base_link
+    at the scan in base_link at the keyframe with the match's covariance (or zero with
+    covariance[0] = -1: no match); child_frame_id scan_match_keyframe when this scan becomes the
+    next keyframe, else the base frame."""
+    in_map = step.local_map
+    if in_map is not None:
+        if in_map.origin:
+            return odometry_cdr(step.stamp_ns, SCAN_MATCH_MAP_FRAME, SCAN_MATCH_MAP_FRAME, ZERO,
                                 np.zeros((3, 3)))
-        return odometry_cdr(step.map_time_ns, map_frame_id(step.map_stamp_ns), base_frame,
-                            step.map_pose, step.map_covariance)
-    matched = step.keyframe_stamp_ns is not None and step.relative is not None
-    frame = keyframe_frame_id(step.keyframe_stamp_ns if matched else None)
-    child = keyframe_frame_id(step.stamp_ns) if step.new_keyframe else base_frame
-    return odometry_cdr(step.stamp_ns, frame, child, step.relative if matched else ZERO,
-                        step.relative_covariance if matched else np.zeros((3, 3)))
+        if in_map.pose is None:
+            return odometry_cdr(in_map.time_ns, SCAN_MATCH_MAP_FRAME, base_frame, ZERO,
+                                _NOT_MATCHED)
+        return odometry_cdr(in_map.time_ns, SCAN_MATCH_MAP_FRAME, base_frame, in_map.pose,
+                            in_map.covariance)
+    child = SCAN_MATCH_KEYFRAME_FRAME if step.new_keyframe else base_frame
+    if step.keyframe is None:
+        return odometry_cdr(step.stamp_ns, SCAN_MATCH_KEYFRAME_FRAME, child, ZERO, _NOT_MATCHED)
+    return odometry_cdr(step.stamp_ns, SCAN_MATCH_KEYFRAME_FRAME, child, step.keyframe.pose,
+                        step.keyframe.covariance)
 
 
 class IcpMatcherNode(ProcessingNode):
@@ -155,8 +163,9 @@ class IcpMatcherProcessor:
              if self._odom_topic else [])
 
     def outputs(self) -> list[Output]:
-        # Each match relative to its keyframe, the keyframe named by its stamp, for a fusion
-        # that keeps its state at keyframe stamps (docs/fusion.md, "The scan matcher's input").
+        # Each match in its local map or relative to its keyframe, for a fusion that keeps the
+        # map's origin or the keyframe's pose in its state
+        # (docs/fusion.md, "The scan matcher's input").
         return [Output(SCAN_MATCH_KEYFRAME, Odometry, ESTIMATE_QOS),
                 Output(SCAN_MATCH, Odometry, ESTIMATE_QOS)] + \
             ([Output(TF_TOPIC, TFMessage, TF_QOS)] if self._publish_tf else [])
@@ -265,11 +274,11 @@ class IcpMatcherProcessor:
                 else:
                     self._odom_not_heard(stamp)
         step = self._matcher.process(stamp, points, prediction, beam_times, sweep)
-        if 'gap' in step.events:
+        if ScanEvent.GAP in step.events:
             self._warnings.warn('gap', f'scan at {stamp * 1e-9:.3f} s: '
                                 f'{(stamp - self._last_scan_ns) * 1e-9:.2f} s since the previous '
                                 'scan: the velocity restarts at zero, the map stays')
-        if step.status != 'repeated':
+        if step.status is not ScanStatus.REPEATED:
             self._last_scan_ns = stamp
         diag.count(step.status)
         for event in step.events:
@@ -278,13 +287,13 @@ class IcpMatcherProcessor:
             diag.count(f'predicted_by_{step.prediction}')
         if step.new_keyframe:
             diag.count('keyframes')
-        if step.status == 'fallback':
+        if step.status is ScanStatus.FALLBACK:
             diag.values['last_fallback'] = step.reason
             self._warnings.warn('fallback', f'scan at {stamp * 1e-9:.3f} s: match failed '
                                 f'({step.reason}); using the {step.prediction} prediction')
-        elif step.status in ('repeated', 'reset_backwards', 'gap'):
+        elif step.status in (ScanStatus.REPEATED, ScanStatus.RESET_BACKWARDS, ScanStatus.GAP):
             self._warnings.warn(step.status, f'scan at {stamp * 1e-9:.3f} s: {step.reason}')
-        if step.result is not None and step.status == 'matched':
+        if step.result is not None and step.status is ScanStatus.MATCHED:
             self._match_quality(step)
         if self._settings.mode == 'local_map':
             diag.values['map_cells'] = str(len(self._matcher.map))
@@ -292,14 +301,15 @@ class IcpMatcherProcessor:
             matched = diag.counts['matched']
             diag.values['not_inserted_share'] = \
                 f"{diag.counts['not_inserted'] / matched if matched else 0.0:.3f}"
-            if step.doubt:
-                diag.values['last_not_inserted'] = f'{stamp * 1e-9:.3f} s: {step.doubt}'
+            doubt = step.local_map.doubt if step.local_map is not None else ''
+            if doubt:
+                diag.values['last_not_inserted'] = f'{stamp * 1e-9:.3f} s: {doubt}'
                 self._warnings.warn('not_inserted', f'scan at {stamp * 1e-9:.3f} s: matched but '
-                                    f'kept out of the map ({step.doubt})')
+                                    f'kept out of the map ({doubt})')
         if not step.publish:
             return []
-        # The keyframe-relative message first: a consumer waiting for /scan_match/odom (a lockstep
-        # replay) then knows the fusion's input for this scan is already on its way.
+        # The fusion's input first: a consumer waiting for /scan_match/odom (a lockstep replay)
+        # then knows the fusion's input for this scan is already on its way.
         out: Outputs = [
             (SCAN_MATCH_KEYFRAME, keyframe_odometry(step, self._base_frame)),
             (SCAN_MATCH, odometry_cdr(
@@ -312,9 +322,10 @@ class IcpMatcherProcessor:
         diag.last_stamp_ns = max(diag.last_stamp_ns, stamp)
         diag.values['pose'] = '%.4f %.4f %.4f' % step.pose
         failures = diag.counts['fallback']
-        diag.level = DiagnosticStatus.WARN if step.status == 'fallback' else DiagnosticStatus.OK
+        failed = step.status is ScanStatus.FALLBACK
+        diag.level = DiagnosticStatus.WARN if failed else DiagnosticStatus.OK
         diag.message = (f'last match failed ({failures} in all): {step.reason}'
-                        if step.status == 'fallback' else f'ok ({failures} failed matches)')
+                        if failed else f'ok ({failures} failed matches)')
         return out
 
 

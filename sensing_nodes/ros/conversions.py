@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import array
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -120,42 +121,88 @@ def scan_arrays(msg) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return ranges, beam_angles(msg.angle_min, msg.angle_increment, ranges.size)
 
 
-# Keyframe-relative scan matches (/scan_match/keyframe_odom, docs/fusion.md): frame ids name a
-# keyframe by its scan's stamp in ns, 'keyframe/<ns>'; 'keyframe/none' means no keyframe.
-KEYFRAME_PREFIX = 'keyframe/'
-NO_KEYFRAME = KEYFRAME_PREFIX + 'none'
+# icp_matcher's matches for the fusion (/scan_match/keyframe_odom;
+# docs/fusion.md, "The scan matcher's input"): base_link's pose in a reference frame with a
+# stable name, the local map (local_map mode) or base_link at the keyframe's scan (keyframe
+# mode). A message whose child_frame_id is that frame starts the next reference at its stamp
+# (a new map, its pose zero: base_link there is the map's origin; or the next keyframe, this
+# scan); every other message is in the reference the latest such message started, in the
+# order they were published.
+SCAN_MATCH_MAP_FRAME = 'scan_match_map'
+SCAN_MATCH_KEYFRAME_FRAME = 'scan_match_keyframe'
+SCAN_MATCH_FRAMES = (SCAN_MATCH_MAP_FRAME, SCAN_MATCH_KEYFRAME_FRAME)
+# pose.covariance[0] of a message that carries no match ("not provided", as REP 145 marks an
+# Imu field): the scan was not matched, or only starts a keyframe.
+NOT_MATCHED = -1.0
 
 
-def keyframe_frame_id(stamp_ns: int | None) -> str:
-    """The frame id naming the keyframe taken at stamp_ns (None: no keyframe)."""
-    return NO_KEYFRAME if stamp_ns is None else f'{KEYFRAME_PREFIX}{int(stamp_ns)}'
+@dataclass(frozen=True)
+class ScanMatchReference:
+    """What one /scan_match/keyframe_odom message is relative to: a local map (`in_map`) or a
+    keyframe, named by the stamp (ns) of its first scan (`reference_ns`; None: it started before
+    the stream was heard); whether the message starts the next one at its stamp (`starts`) and
+    carries a match (`matched`: its pose in the reference, with a covariance)."""
+
+    in_map: bool
+    reference_ns: int | None
+    starts: bool
+    matched: bool
 
 
-def _named_stamp(frame_id: str, prefix: str) -> int | None:
-    """The stamp (ns) a frame id '<prefix><ns>' names; None for anything else."""
+class ScanMatchReferences:
+    """Reads /scan_match/keyframe_odom in the order published and names the map or keyframe
+    each message is relative to: the stamp of the latest message that started one (a message
+    that starts one counts even where its match is refused). Messages of the encoding before the
+    stable frames (bags recorded then: the stamp inside the frame ids) are read too."""
+
+    def __init__(self) -> None:
+        self._current: tuple[bool, int] | None = None     # (in a map, its stamp ns)
+
+    def read(self, msg) -> tuple[ScanMatchReference | None, str]:
+        """The reference of one message (nav_msgs/Odometry), or (None, why not)."""
+        frame, child = msg.header.frame_id, msg.child_frame_id
+        stamp = stamp_to_ns(msg.header.stamp)
+        if frame.startswith(_OLD_PREFIXES):
+            return _old_reference(frame, child, stamp)
+        if frame not in SCAN_MATCH_FRAMES:
+            return None, (f"frame_id '{frame}' is neither {SCAN_MATCH_MAP_FRAME} nor "
+                          f'{SCAN_MATCH_KEYFRAME_FRAME}')
+        in_map, starts = frame == SCAN_MATCH_MAP_FRAME, child == frame
+        current = self._current
+        reference = current[1] if current is not None and current[0] == in_map else None
+        if starts:
+            self._current = (in_map, stamp)
+        if in_map and starts:       # a new map: base_link here is its origin
+            return ScanMatchReference(True, stamp, True, False), ''
+        return ScanMatchReference(in_map, reference, starts,
+                                  float(msg.pose.covariance[0]) != NOT_MATCHED), ''
+
+
+# The encoding before the stable frames: 'map/<stamp ns>', 'keyframe/<stamp ns>' (the reference
+# named in frame_id; a child_frame_id naming the message's own stamp starts it) and
+# 'keyframe/none' (no match).
+_OLD_MAP, _OLD_KEYFRAME = 'map/', 'keyframe/'
+_OLD_PREFIXES = (_OLD_MAP, _OLD_KEYFRAME)
+
+
+def _old_stamp(frame_id: str, prefix: str) -> int | None:
+    """The stamp (ns) a frame id '<prefix><ns>' of the old encoding names; None for anything
+    else."""
     digits = frame_id[len(prefix):] if frame_id.startswith(prefix) else ''
     return int(digits) if digits.isdigit() else None
 
 
-def keyframe_stamp(frame_id: str) -> int | None:
-    """The keyframe stamp (ns) a frame id 'keyframe/<ns>' names; None for anything else
-    ('keyframe/none' included)."""
-    return _named_stamp(frame_id, KEYFRAME_PREFIX)
-
-
-# icp_matcher's local map (/scan_match/keyframe_odom in local_map mode, docs/fusion.md): the
-# pose is base_link in the map's frame, 'map/<ns>', the map named by the stamp of its first scan.
-MAP_PREFIX = 'map/'
-
-
-def map_frame_id(stamp_ns: int) -> str:
-    """The frame id naming the local map started at stamp_ns."""
-    return f'{MAP_PREFIX}{int(stamp_ns)}'
-
-
-def map_stamp(frame_id: str) -> int | None:
-    """The map stamp (ns) a frame id 'map/<ns>' names; None for anything else."""
-    return _named_stamp(frame_id, MAP_PREFIX)
+def _old_reference(frame: str, child: str, stamp: int) -> tuple[ScanMatchReference | None, str]:
+    """The reference of a message of the old encoding, or (None, why not)."""
+    local_map, keyframe = _old_stamp(frame, _OLD_MAP), _old_stamp(frame, _OLD_KEYFRAME)
+    if local_map is not None:
+        starts = child == frame
+        return ScanMatchReference(True, local_map, starts, not starts), ''
+    if keyframe is None and frame != _OLD_KEYFRAME + 'none':
+        return None, (f"frame_id '{frame}' names no keyframe or map ('keyframe/<stamp ns>', "
+                      "'map/<stamp ns>' or 'keyframe/none')")
+    return ScanMatchReference(False, keyframe, _old_stamp(child, _OLD_KEYFRAME) == stamp,
+                              keyframe is not None), ''
 
 
 def make_transform_stamped(stamp_ns: int, parent: str, child: str,

@@ -3,8 +3,8 @@ tools that run the fusion core over a bag (one conversion, one set of acceptance
 
 Inputs: 'wheel_odom' (nav_msgs/Odometry), 'imu' (sensor_msgs/Imu: gyro_integrator's heading,
 the IMU's own orientation, or its raw rate, with the IMU mount rotation), 'scan_match'
-(nav_msgs/Odometry: keyframe-relative matches for the EKF, cumulative poses for the
-complementary filter). Poses in m and rad, stamps in ns. An EKF input's delay_s retimes its
+(nav_msgs/Odometry: matches in a local map or against a keyframe for the EKF, cumulative poses
+for the complementary filter). Poses in m and rad, stamps in ns. An EKF input's delay_s retimes its
 messages here, in one place: a message stamped t describes the robot at t - delay_s
 (`ReadingConverter.stamp_ns`, and the keyframes a match names).
 """
@@ -23,9 +23,7 @@ from sensing_nodes.core.fusion.timeline import InputRecord
 from sensing_nodes.core.fusion.validation import covariance_problem, pose_problem
 from sensing_nodes.core.geometry.imu_mount import base_orientation, mount_rotation, to_base
 from sensing_nodes.ros.conversions import (
-    NO_KEYFRAME,
-    keyframe_stamp,
-    map_stamp,
+    ScanMatchReferences,
     odometry_pose,
     odometry_twist,
     quaternion_to_yaw,
@@ -48,6 +46,11 @@ def unit_quaternion(q) -> bool:
     return math.isfinite(norm2) and abs(norm2 - 1.0) <= 0.02
 
 
+# The key of a map or keyframe that started before the matcher's messages were first heard (no
+# stamp has it): the EKF places it from its first fused match, as any it has not seen start.
+UNHEARD = -1
+
+
 @dataclass
 class ReadingConverter:
     """Converts and validates input messages for one fusion method ('ekf' or
@@ -64,6 +67,10 @@ class ReadingConverter:
     tilt: NDArray[np.float64] = field(default_factory=lambda: np.eye(3))
     _identity_mount: bool | None = field(default=None, init=False, repr=False)
     _delay_ns: dict[str, int] = field(default_factory=dict, init=False, repr=False)
+    # The map or keyframe each match is in, from the order of the matcher's messages: the
+    # matcher's state, kept when the fusion starts again (reset).
+    _references: ScanMatchReferences = field(default_factory=ScanMatchReferences, init=False,
+                                             repr=False)
 
     @classmethod
     def for_config(cls, config: SessionConfig) -> ReadingConverter:
@@ -106,10 +113,10 @@ class ReadingConverter:
         (None, why not)."""
         if source == IMU:
             return self._imu(msg, stamp, record)
+        if source == SCAN and self.method == 'ekf':
+            return self._match(msg, stamp)
         if not unit_quaternion(msg.pose.pose.orientation):
             return None, 'orientation is not a unit quaternion'
-        if source == SCAN and self.method == 'ekf':
-            return self._keyframe(msg, stamp)
         pose, cov = odometry_pose(msg)
         twist, twist_cov = odometry_twist(msg)
         cfg = self.configs.get(source)
@@ -186,32 +193,32 @@ class ReadingConverter:
         return Reading(stamp, (0.0, 0.0, yaw), _yaw_only(var), twist,
                        _yaw_only(max(rate_var, 0.0))), ''
 
-    def _keyframe(self, msg, stamp: int) -> tuple[Reading | None, str]:
-        """icp_matcher's match (docs/fusion.md): in a local map's frame ('map/<stamp ns>'), or
-        relative to a keyframe ('keyframe/<stamp ns>'), the keyframes' stamps retimed as the
-        message's; 'keyframe/none': nothing matched."""
-        delay = self._delay_ns.get(SCAN, 0)
-        child = keyframe_stamp(msg.child_frame_id)
-        new_keyframe = child is not None and child - delay == stamp
-        keyframe = keyframe_stamp(msg.header.frame_id)
-        local_map = map_stamp(msg.header.frame_id)
-        if msg.header.frame_id != NO_KEYFRAME and keyframe is None and local_map is None:
-            return None, (f"frame_id '{msg.header.frame_id}' names no keyframe or map "
-                          f"('keyframe/<stamp ns>', 'map/<stamp ns>' or '{NO_KEYFRAME}')")
-        if keyframe is not None:
-            keyframe -= delay
-        if local_map is not None and msg.child_frame_id == msg.header.frame_id:
+    def _match(self, msg, stamp: int) -> tuple[Reading | None, str]:
+        """icp_matcher's match (docs/fusion.md): base_link in a local map's frame or relative to a
+        keyframe, the map or keyframe named by the stamp of the message that started it (a
+        keyframe's retimed as the message's; UNHEARD: started before the stream was heard)."""
+        # Read first: a message that starts a map or keyframe does so even where it is refused.
+        reference, problem = self._references.read(msg)
+        if not unit_quaternion(msg.pose.pose.orientation):
+            return None, 'orientation is not a unit quaternion'
+        if reference is None:
+            return None, problem
+        key = UNHEARD if reference.reference_ns is None else reference.reference_ns
+        if reference.in_map and reference.starts:
             # The scan that starts the map: base_link at this stamp is the map's origin.
-            return Reading(stamp, new_keyframe=True, map_ns=local_map), ''
-        if keyframe is None and local_map is None:
-            return Reading(stamp, new_keyframe=new_keyframe), ''
+            return Reading(stamp, new_keyframe=True, map_ns=key), ''
+        if not reference.matched:
+            return Reading(stamp, new_keyframe=reference.starts), ''
         pose, cov = odometry_pose(msg)
         problem = pose_problem(pose, cov, None, False) or (
             '' if np.all(np.diag(cov) > 0.0) else 'a match must have a covariance')
         if problem:
             return None, problem
-        return Reading(stamp, pose, cov, keyframe_ns=keyframe, new_keyframe=new_keyframe,
-                       map_ns=local_map), ''
+        if reference.in_map:
+            return Reading(stamp, pose, cov, map_ns=key), ''
+        if key != UNHEARD:
+            key -= self._delay_ns.get(SCAN, 0)
+        return Reading(stamp, pose, cov, keyframe_ns=key, new_keyframe=reference.starts), ''
 
     def _scan_increment_covariance(self, twist_cov, stamp: int):
         """Covariance of the motion since the matcher's previous output, from its twist

@@ -185,17 +185,17 @@ def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
             st.append(stamp)
             sp.append(step.pose)
             sc.append(step.covariance)
-            skt.append(-1 if step.keyframe_stamp_ns is None else step.keyframe_stamp_ns)
-            srel.append(step.relative or (0.0, 0.0, 0.0))
-            src.append(step.relative_covariance if step.relative_covariance is not None
-                       else np.zeros((3, 3)))
+            match, in_map = step.keyframe, step.local_map
+            skt.append(-1 if match is None else match.keyframe_stamp_ns)
+            srel.append((0.0, 0.0, 0.0) if match is None else match.pose)
+            src.append(np.zeros((3, 3)) if match is None else match.covariance)
             snew.append(step.new_keyframe)
-            matched = step.map_pose is not None
-            origin = step.map_stamp_ns is not None and step.map_stamp_ns == step.stamp_ns
-            smt.append(-1 if step.map_time_ns is None else step.map_time_ns)
-            smi.append(step.map_stamp_ns if matched or origin else -1)
-            smp.append(step.map_pose if matched else (0.0, 0.0, 0.0))
-            smc.append(step.map_covariance if matched else np.zeros((3, 3)))
+            matched = in_map is not None and in_map.pose is not None
+            smt.append(-1 if in_map is None else in_map.time_ns)
+            smi.append(in_map.map_stamp_ns if matched or (in_map is not None and in_map.origin)
+                       else -1)
+            smp.append(in_map.pose if matched else (0.0, 0.0, 0.0))
+            smc.append(in_map.covariance if matched else np.zeros((3, 3)))
     return FusionInputs(
         truth_t=run.truth_t, truth_pose=run.truth_pose,
         wheel_t=np.array(wt, dtype=np.int64), wheel_pose=np.array(wp), wheel_cov=np.array(wc),
