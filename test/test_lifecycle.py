@@ -198,6 +198,21 @@ def test_every_transition_over_lifecycle_services(probe):
                        for name in PROCESSING_NODES if name != 'complementary_fusion'}
             assert all(n > 0 for n in dropped.values()), dropped
 
+            # the fusion alone inactive: its inputs, handed over in the process by the active
+            # nodes, are dropped and counted, and it publishes nothing until active again
+            fusion = managers['complementary_fusion']
+            assert fusion.change(Transition.TRANSITION_DEACTIVATE)
+            spin_until(probe, lambda: False, 0.5)
+            outputs.clear()
+            spin_until(probe, lambda: False, 1.5)
+            assert outputs.received[WHEEL_ODOM] and outputs.received[IMU], outputs.counts()
+            assert not outputs.received[FUSED] and 'complementary_fusion' not in outputs.statuses
+            before = outputs.counts()[WHEEL_ODOM]
+            assert fusion.change(Transition.TRANSITION_ACTIVATE)
+            assert spin_until(probe, lambda: 'complementary_fusion' in outputs.statuses, 10.0)
+            assert int(outputs.statuses['complementary_fusion'][0].get(
+                'dropped_inactive', 0)) >= before, outputs.statuses['complementary_fusion'][0]
+
             # deactivate: nothing more is published while the inputs keep flowing (what was in
             # flight when the answers came is let through first)
             assert _transition(managers, Transition.TRANSITION_DEACTIVATE) == dict.fromkeys(

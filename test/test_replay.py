@@ -6,6 +6,7 @@ bad input is refused with the file and topic named and nothing left behind."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -138,6 +139,17 @@ def test_strong_errors_bag_reproduced_under_two_blas_kernels(tmp_path, kernels, 
         assert result.stdout.count('reproduced:') == len(OUTPUTS) + 1 \
             and 'DIFFERS' not in result.stdout
         assert [p.name for p in Path(logs, 'logs').iterdir()] == ['sensing_graph.log']
+        # ... with its in-process edges: the fusion and the matcher took /wheel/odom, /imu/data
+        # and the matches from the nodes beside them without DDS; what the replay (outside)
+        # records went on DDS too, the matches in the local map's frame (not recorded) did not.
+        graph_log = Path(logs, 'logs', 'sensing_graph.log').read_text()
+        for topic, on_dds in (('/wheel/odom', True), ('/imu/data', True),
+                              ('/scan_match/keyframe_odom', False)):
+            handed, published = re.search(
+                rf'sensing_graph: {topic}: (\d+) handed over in-process, (\d+) published on DDS',
+                graph_log).groups()
+            assert int(handed) > 0 and (int(published) == int(handed) if on_dds
+                                        else int(published) == 0), (topic, graph_log[-2000:])
     else:
         result = run_to_exit('sensing_pipeline', [str(BAGS / 'strong_errors'), str(out),
                                                   '--no-progress'], timeout=150.0,

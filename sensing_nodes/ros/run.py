@@ -32,14 +32,21 @@ _PARAMETER_ERRORS = (
 EXECUTORS = ('events', 'single', 'multi')
 
 
+def executor_kind(kind: str | None = None) -> str:
+    """The executor make_executor(kind) makes: kind, else the environment's
+    SENSING_NODES_EXECUTOR, else 'events'."""
+    kind = kind or os.environ.get('SENSING_NODES_EXECUTOR', 'events')
+    if kind not in EXECUTORS:
+        raise ValueError(f'executor {kind!r}: one of {", ".join(EXECUTORS)}')
+    return kind
+
+
 def make_executor(kind: str | None = None, threads: int | None = None):
     """rclpy's C++-backed EventsExecutor (several times the message throughput of the Python
     SingleThreadedExecutor, which matters at 1 kHz IMU input); kind (default: the environment's
     SENSING_NODES_EXECUTOR) 'single' selects the classic one, 'multi' a MultiThreadedExecutor
     with `threads` workers (rclpy's default: the CPU count)."""
-    kind = kind or os.environ.get('SENSING_NODES_EXECUTOR', 'events')
-    if kind not in EXECUTORS:
-        raise ValueError(f'executor {kind!r}: one of {", ".join(EXECUTORS)}')
+    kind = executor_kind(kind)
     if kind == 'single':
         return SingleThreadedExecutor()
     if kind == 'multi':
