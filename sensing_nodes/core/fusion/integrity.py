@@ -14,7 +14,9 @@ from collections import deque
 from dataclasses import dataclass, field
 from functools import lru_cache
 
-from scipy.stats import chi2
+# scipy.special's chi-square functions, not scipy.stats': the same values, and the fusion node
+# (every process that fuses) no longer pays scipy.stats' import, 34 MB of RSS and 0.35 s.
+from scipy.special import chdtrc, chdtri
 
 # How long (s of stamp time) an input stays reported as distrusted after its last refused or
 # blamed reading.
@@ -27,13 +29,13 @@ RECENT_READINGS = 200
 def gate_threshold(probability: float, dof: int) -> float:
     """Squared Mahalanobis distance below which a Gaussian innovation of dof dimensions falls
     with the given probability (the chi-square quantile)."""
-    return float(chi2.ppf(probability, dof))
+    return float(chdtri(dof, 1.0 - probability))
 
 
 def tail_probability(distance2: float, dof: int) -> float:
     """Probability that a consistent innovation of dof dimensions lies further than
     distance2 (squared Mahalanobis distance)."""
-    return float(chi2.sf(distance2, dof))
+    return float(chdtrc(dof, distance2))
 
 
 @dataclass
