@@ -13,6 +13,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 
 import pytest
 from harness import BIN, REPO, Collector, spin_until
@@ -42,18 +43,35 @@ def _get(probe, node: str, names: list[str]) -> dict:
         probe.destroy_client(client)
 
 
+@contextmanager
+def _graph(args: list[str], log):
+    """sensing_graph with `args` as a child process logging to `log`; killed on the way out
+    if the test did not stop it."""
+    proc = subprocess.Popen([*GRAPH, *args], stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _terminate(proc) -> None:
+    """SIGTERM, as a service manager stops the graph: it must end cleanly."""
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(20) == 0
+
+
 def _subscriber_nodes(probe, topic: str) -> set[str]:
     return {i.node_name for i in probe.get_subscriptions_info_by_topic(topic)}
 
 
 def test_each_node_keeps_its_name_parameters_and_remappings(probe):
     log = tempfile.TemporaryFile('w+')
-    proc = subprocess.Popen(
-        [*GRAPH, '--param', 'wheel_odometry:odom_frame:=odom_wheels',
-         '--param', 'icp_matcher:keyframe_distance_m:=0.25',
-         '--remap', 'line_extractor:/scan:=/scan_front'],
-        stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
+    with _graph(['--param', 'wheel_odometry:odom_frame:=odom_wheels',
+                 '--param', 'icp_matcher:keyframe_distance_m:=0.25',
+                 '--remap', 'line_extractor:/scan:=/scan_front'], log) as proc:
         assert spin_until(probe, lambda: set(PROCESSING_NODES) <= set(probe.get_node_names())
                           and _subscriber_nodes(probe, '/scan_front'), 60.0), \
             probe.get_node_names()
@@ -70,12 +88,7 @@ def test_each_node_keeps_its_name_parameters_and_remappings(probe):
         assert _get(probe, 'line_extractor', ['lifecycle']) == {'lifecycle': False}
         assert not [name for name, _ in probe.get_service_names_and_types()
                     if name.endswith('/change_state')]
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(20) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        _terminate(proc)
     log.seek(0)
     text = log.read()
     assert 'Traceback' not in text, text
@@ -128,31 +141,25 @@ def test_internal_topics_on_dds_only_while_a_subscriber_outside_listens(probe, o
                   for t in (JOINT_STATES, IMU_RAW)}
     fused = Collector(probe, Odometry, FUSED, ESTIMATE_QOS)
     log = tempfile.TemporaryFile('w+')
-    proc = subprocess.Popen(
-        [*GRAPH, '--nodes', 'wheel_odometry,gyro_integrator,complementary_fusion',
-         *(['--over-dds'] if over_dds else [])],
-        stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     wheel = []
     try:
-        assert spin_until(probe, lambda: fused.matched() and all(
-            p.get_subscription_count() for p in publishers.values()), 60.0)
-        spin_until(probe, lambda: False, 0.5)   # the graph's writers match the probe too
-        _publish_at(probe, publishers, inputs[:half], 2.0)
-        assert spin_until(probe, lambda: fused.messages, 10.0), 'the fusion never answered'
-        subscription = probe.create_subscription(Odometry, WHEEL_ODOM, wheel.append,
-                                                 ESTIMATE_QOS, raw=True)
-        assert spin_until(probe, lambda: subscription.get_publisher_count() > 0, 20.0)
-        spin_until(probe, lambda: False, 1.0)   # ... and the graph's writer this reader
-        _publish_at(probe, publishers, inputs[half:], 2.0)
-        joints = sum(m[0] == JOINT_STATES for m in inputs[half:])
-        spin_until(probe, lambda: len(wheel) >= joints, 10.0)
-        spin_until(probe, lambda: False, 1.0)   # the graph's last inputs processed: quiet
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(20) == 0
+        with _graph(['--nodes', 'wheel_odometry,gyro_integrator,complementary_fusion',
+                     *(['--over-dds'] if over_dds else [])], log) as proc:
+            assert spin_until(probe, lambda: fused.matched() and all(
+                p.get_subscription_count() for p in publishers.values()), 60.0)
+            spin_until(probe, lambda: False, 0.5)   # the graph's writers match the probe too
+            _publish_at(probe, publishers, inputs[:half], 2.0)
+            assert spin_until(probe, lambda: fused.messages, 10.0), 'the fusion never answered'
+            subscription = probe.create_subscription(Odometry, WHEEL_ODOM, wheel.append,
+                                                     ESTIMATE_QOS, raw=True)
+            assert spin_until(probe, lambda: subscription.get_publisher_count() > 0, 20.0)
+            spin_until(probe, lambda: False, 1.0)   # ... and the graph's writer this reader
+            _publish_at(probe, publishers, inputs[half:], 2.0)
+            joints = sum(m[0] == JOINT_STATES for m in inputs[half:])
+            spin_until(probe, lambda: len(wheel) >= joints, 10.0)
+            spin_until(probe, lambda: False, 1.0)   # the graph's last inputs processed: quiet
+            _terminate(proc)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
         fused.close()
         log.seek(0)
         text = log.read()
