@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+from typing import Callable
 
 import numpy as np
 from nav_msgs.msg import Odometry
@@ -21,7 +22,7 @@ from sensing_nodes.ros.diagnostics import Diagnostics
 from sensing_nodes.ros.logging import ThrottledWarnings
 from sensing_nodes.ros.params import declare_config
 from sensing_nodes.ros.processing_node import ProcessingNode
-from sensing_nodes.ros.processor import Input, Output, Outputs, wire
+from sensing_nodes.ros.processor import Input, Output, Outputs, subscribed, wire
 from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 from sensing_nodes.ros.run import run_node
 from sensing_nodes.ros.tf import ImuMount, imu_mount
@@ -57,7 +58,8 @@ class GyroIntegratorNode(ProcessingNode):
             ThrottledWarnings(self),
             self.get_logger(),
         )
-        wire(self, self.processor.inputs(), self.processor.outputs())
+        self.processor.listened = subscribed(
+            wire(self, self.processor.inputs(), self.processor.outputs()))
         self.create_service(Trigger, '~/calibrate', self._on_calibrate)
         self.get_logger().info(
             f'bias estimation {"on" if config.bias_estimation else "off"}, stillness window '
@@ -86,7 +88,10 @@ class GyroIntegratorNode(ProcessingNode):
 
 class GyroIntegratorProcessor:
     """gyro_integrator's per-message logic (ros/processor.py): /imu/data_raw -> /imu/data
-    (heading about base_link's z, bias-corrected rates in rad/s); /wheel/odom vetoes stillness."""
+    (heading about base_link's z, bias-corrected rates in rad/s); /wheel/odom vetoes stillness.
+    Every reading is integrated; /imu/data is made only while `listened` (topic -> bool) says
+    someone takes it (the node's matched subscriptions; every reading by default, as
+    sensing_pipeline records it): the fusion reads the raw IMU itself."""
 
     def __init__(self, config: GyroConfig, mount: ImuMount, scale_error: float,
                  restart_on_backwards: bool,
@@ -104,6 +109,7 @@ class GyroIntegratorProcessor:
         self._warnings = warnings
         self._logger = logger
         self._was_still = False
+        self.listened: Callable[[str], bool] = lambda topic: True
 
     def inputs(self) -> list[Input]:
         return [Input(IMU_RAW, Imu, SENSOR_QOS, self.on_imu, decoded=True)] + \
@@ -164,6 +170,11 @@ class GyroIntegratorProcessor:
         return self._publish(msg, stamp, accel)
 
     def _publish(self, raw: Imu, stamp: int, accel) -> Outputs:
+        diag = self.diagnostics
+        diag.last_stamp_ns = stamp
+        if not self.listened(IMU):
+            diag.count('unsubscribed')   # integrated, not published: nobody takes /imu/data
+            return []
         gi = self.integrator
         # Packed straight into CDR bytes (ros/cdr.py): filling an rclpy Imu and having rclpy
         # convert and serialise it cost more than the integration.
@@ -175,9 +186,7 @@ class GyroIntegratorProcessor:
             (rate_var, 0.0, 0.0, 0.0, rate_var, 0.0, 0.0, 0.0, rate_var),
             (float(accel[0]), float(accel[1]), float(accel[2])),
             raw.linear_acceleration_covariance.tolist())
-        diag = self.diagnostics
         diag.count('published')
-        diag.last_stamp_ns = stamp
         return [(IMU, out)]
 
 
