@@ -172,6 +172,32 @@ def test_a_stream_heard_mid_way_names_its_map_once_one_starts_and_survives_a_res
     assert _read(converter, match)[0].map_ns == T0 + 3 * S
 
 
+def test_after_a_silence_longer_than_the_input_timeout_a_match_names_a_map_of_its_own():
+    """A matcher restarted under a running fusion (killed, respawned) starts a new map, and the
+    message that starts it can go out before the fusion's subscription matched the new publisher:
+    after the stream was silent longer than input_timeout_s the next match names a map by its
+    own stamp (the EKF places it from that match) instead of the previous map; a shorter pause
+    keeps the map."""
+    converter = ReadingConverter('ekf', {SCAN: input_config(SCAN, {})}, input_timeout_s=2.0)
+    origin = make_odometry(T0, SCAN_MATCH_MAP_FRAME, SCAN_MATCH_MAP_FRAME, (0.0, 0.0, 0.0),
+                           np.zeros((3, 3)))
+    assert _read(converter, origin)[0].map_ns == T0
+
+    def match(t_ns):
+        return _read(converter, make_odometry(t_ns, SCAN_MATCH_MAP_FRAME, 'base_link',
+                                              (0.1, 0.0, 0.0), MATCH_COV))[0]
+
+    assert match(T0 + S // 10).map_ns == T0
+    assert match(T0 + 21 * S // 10).map_ns == T0          # a 2.0 s pause: the same map
+    restarted = T0 + 45 * S // 10                         # 2.4 s silent: its start never came
+    assert match(restarted).map_ns == restarted
+    assert match(restarted + S // 10).map_ns == restarted
+    start = restarted + 2 * S // 10                       # the matcher's next map, heard
+    assert _read(converter, make_odometry(start, SCAN_MATCH_MAP_FRAME, SCAN_MATCH_MAP_FRAME,
+                                          (0.0, 0.0, 0.0), np.zeros((3, 3))))[0].map_ns == start
+    assert match(start + S // 10).map_ns == start
+
+
 @pytest.mark.parametrize('frame, child, why', [
     ('odom', 'base_link', "frame_id 'odom' is neither scan_match_map nor scan_match_keyframe"),
     ('keyframe/abc', 'base_link', "frame_id 'keyframe/abc' names no keyframe or map"),

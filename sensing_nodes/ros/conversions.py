@@ -155,8 +155,14 @@ class ScanMatchReferences:
     that starts one counts even where its match is refused). Messages of the encoding before the
     stable frames (bags recorded then: the stamp inside the frame ids) are read too."""
 
-    def __init__(self) -> None:
+    def __init__(self, silence_s: float = 0.0) -> None:
         self._current: tuple[bool, int] | None = None     # (in a map, its stamp ns)
+        # After the matcher was silent longer than this (the fusion's input_timeout_s; 0: never),
+        # a message that starts nothing names a map or keyframe of its own (its stamp): the
+        # matcher may have been restarted, and the message that started its present map sent
+        # before this subscription had matched the new publisher (never received).
+        self._silence_ns = round(silence_s * 1e9)
+        self._last_ns: int | None = None
 
     def read(self, msg) -> tuple[ScanMatchReference | None, str]:
         """The reference of one message (nav_msgs/Odometry), or (None, why not)."""
@@ -168,6 +174,11 @@ class ScanMatchReferences:
             return None, (f"frame_id '{frame}' is neither {SCAN_MATCH_MAP_FRAME} nor "
                           f'{SCAN_MATCH_KEYFRAME_FRAME}')
         in_map, starts = frame == SCAN_MATCH_MAP_FRAME, child == frame
+        silent = (self._silence_ns > 0 and self._last_ns is not None
+                  and stamp - self._last_ns > self._silence_ns)
+        self._last_ns = stamp
+        if silent and not starts:
+            self._current = (in_map, stamp)
         current = self._current
         reference = current[1] if current is not None and current[0] == in_map else None
         if starts:

@@ -69,17 +69,20 @@ class ReadingConverter:
     _delay_ns: dict[str, int] = field(default_factory=dict, init=False, repr=False)
     # The map or keyframe each match is in, from the order of the matcher's messages: the
     # matcher's state, kept when the fusion starts again (reset).
-    _references: ScanMatchReferences = field(default_factory=ScanMatchReferences, init=False,
-                                             repr=False)
+    # Silent longer than this (s, 0: never), the matcher may have restarted (ScanMatchReferences).
+    input_timeout_s: float = 0.0
+    _references: ScanMatchReferences = field(init=False, repr=False)
 
     @classmethod
     def for_config(cls, config: SessionConfig) -> ReadingConverter:
         """The converter of a fusion configuration (its method, EKF inputs, IMU source and
         mount parameters)."""
         return cls(config.method, config.input_map, config.imu_source,
-                   mount_rotation(*config.imu_mount_rpy), config.level_with_imu_tilt)
+                   mount_rotation(*config.imu_mount_rpy), config.level_with_imu_tilt,
+                   input_timeout_s=config.input_timeout_s)
 
     def __post_init__(self) -> None:
+        self._references = ScanMatchReferences(self.input_timeout_s)
         self._delay_ns = {name: round(cfg.delay_s * 1e9) for name, cfg in self.configs.items()
                           if cfg.delay_s}
         imu = self.configs.get(IMU)
