@@ -67,3 +67,13 @@ def test_planar_round_trip_and_distance():
     assert close(t.planar(), (1.5, -2.0, -3.0), 1e-12)
     d, a = t.distance_to(Transform.from_planar(1.5, -1.0, -3.0 + 0.1))
     assert d == pytest.approx(1.0) and a == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize('rpy', [(0.0, 0.0, 0.0), (math.pi, 0.0, 0.0), (-math.pi / 2, 0.0, 0.3),
+                                 (0.2, -0.4, 2.9), (-1.0, 1.2, -3.0)])
+def test_mount_rpy_is_mount_rotation_inverted(rpy):
+    """The doctor reports a declared mount matrix as roll, pitch, yaw: the angles it was made of
+    (pitch within +-pi/2)."""
+    from sensing_nodes.core.geometry.imu_mount import mount_rotation, mount_rpy
+
+    assert close(mount_rpy(mount_rotation(*rpy)), rpy, tol=1e-12)

@@ -23,7 +23,7 @@ from sensing_nodes.core.diagnosis import tf as tf_checks
 from sensing_nodes.core.diagnosis.check import OK, PROBLEM, SKIPPED, WARNING, Check, graded
 from sensing_nodes.core.evaluation import calibration as cal
 from sensing_nodes.core.geometry import se2
-from sensing_nodes.core.geometry.imu_mount import mount_rotation, quaternion_matrix
+from sensing_nodes.core.geometry.imu_mount import mount_rotation, mount_rpy, quaternion_matrix
 from sensing_nodes.core.geometry.quaternion import to_rpy
 from sensing_nodes.core.gyro import integrate_rate
 from sensing_nodes.core.scan_matching import KeyframeScanMatcher, ScanMatcherSettings
@@ -448,10 +448,7 @@ def _reference_motion(d: Diagnosis) -> tuple[str, np.ndarray, np.ndarray, np.nda
 
 def _declared_mount(d: Diagnosis, note: str) -> imu_checks.MountEstimate:
     """The declared mount as the preset's (not judged: nothing measured replaces it)."""
-    r = d.declared.imu_mount
-    roll, pitch, yaw = (math.atan2(r[2, 1], r[2, 2]), -math.asin(float(np.clip(r[2, 0], -1, 1))),
-                        math.atan2(r[1, 0], r[0, 0]))
-    return imu_checks.MountEstimate(roll, pitch, yaw, 'declared', note)
+    return imu_checks.MountEstimate(*mount_rpy(d.declared.imu_mount), 'declared', note)
 
 
 def _mount_section(d: Diagnosis, t: np.ndarray, accel: np.ndarray, up, up_std, rate_fit, ref

@@ -223,11 +223,7 @@ class InProcessPublisher:
         if not getattr(publisher, 'is_activated', True):   # an inactive lifecycle publisher
             return
         edges = self._edges
-        layout = edges.layout()
-        if self._layout != layout:
-            self._consumers = edges.consumers(self.topic, self._type, self._qos)
-            self._layout = layout
-        consumers = self._consumers
+        consumers = self._current_consumers()
         if consumers:
             if not isinstance(msg, bytes):
                 msg = serialize_message(msg)   # now, as DDS would: the node may reuse msg
@@ -243,12 +239,16 @@ class InProcessPublisher:
     def taken(self) -> bool:
         """Whether a subscription takes the topic now: one of this process's (an in-process
         edge) or one outside it (DDS)."""
-        edges = self._edges
-        layout = edges.layout()
+        return bool(self._current_consumers()) or self._publisher.get_subscription_count() > 0
+
+    def _current_consumers(self) -> list[Subscription]:
+        """This process's subscriptions of the topic, found again only when a node or a
+        subscription came or went (the edges' layout changed)."""
+        layout = self._edges.layout()
         if self._layout != layout:
-            self._consumers = edges.consumers(self.topic, self._type, self._qos)
+            self._consumers = self._edges.consumers(self.topic, self._type, self._qos)
             self._layout = layout
-        return bool(self._consumers) or self._publisher.get_subscription_count() > 0
+        return self._consumers
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._publisher, name)

@@ -151,17 +151,19 @@ class ProcessingNode(LifecycleNode):
         return SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.active = False
-        if self._before is not None:
-            self._undo(self._before)
+        self._release()
         self.get_logger().info('shut down (finalized)')
         return SUCCESS
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return SUCCESS   # back to unconfigured
+
+    def _release(self) -> None:
+        """Inactive, and what configure made destroyed (from any state)."""
         self.active = False
         if self._before is not None:
             self._undo(self._before)
-        return SUCCESS   # back to unconfigured
 
     def _refuse_unavailable_transitions(self) -> None:
         """A transition the current state has not (configure while active) answered with

@@ -966,8 +966,7 @@ class EkfFusion:
     def _drift(self, increment: Pose2, covariance: NDArray[np.float64]) -> None:
         """The pose's uncertainty grown by an increment's drift (its covariance in the frame
         the increment started from, turned into the pose's body frame)."""
-        c, s = math.cos(increment[2]), math.sin(increment[2])
-        turn = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        turn = body_to_odom(increment[2]).T
         self.p[:3, :3] += turn @ covariance @ turn.T
 
     def _after_refusal(self, cfg: InputConfig, outcome: Outcome, span_s: float,

@@ -26,6 +26,14 @@ def mount_rotation(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]
     ])
 
 
+def mount_rpy(rotation: NDArray[np.float64]) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (rad, ZYX) of a 3x3 rotation: mount_rotation's inverse (pitch within
+    [-pi/2, pi/2])."""
+    r = rotation
+    return (math.atan2(r[2, 1], r[2, 2]), -math.asin(max(-1.0, min(1.0, float(r[2, 0])))),
+            math.atan2(r[1, 0], r[0, 0]))
+
+
 def quaternion_matrix(q: ArrayLike) -> NDArray[np.float64]:
     """3x3 rotation of a unit quaternion (x, y, z, w); normalised first."""
     x, y, z, w = (float(v) for v in q)
