@@ -12,8 +12,7 @@ BAG = Path(__file__).resolve().parents[1] / 'bags' / 'nominal'
 
 
 def test_one_pass_takes_the_node_inputs_and_gives_the_pipeline_outputs(tmp_path):
-    messages = [(t, raw) for t, _, raw in load_bag(BAG).messages]
-    cpu_s, inputs, outputs = fusion_pass(messages)
+    cpu_s, inputs, outputs = fusion_pass(load_bag(BAG).messages)
     counts = topic_counts(BAG)
     # The shipped bag holds no keyframe matches: /wheel/odom and /imu/data are the inputs.
     assert inputs == counts['/wheel/odom'][1] + counts['/imu/data'][1] == 1101 + 4401

@@ -3,11 +3,12 @@
 A bag is recorded with `sensor_sim --record` (300 s, seed 5; 60 s with --quick) and run through
 `sensing_pipeline` (all five nodes) for the fusion's inputs (`/wheel/odom`, `/imu/data`,
 `/scan_match/keyframe_odom`). Then a fresh fusion node (default method `ekf`, config/ parameters)
-built as sensing_pipeline builds it takes them in bag order through its processor's handlers
-(ros/processor.py), each decoded beforehand as its subscription decodes it, with the flush at
-the end; three passes, the fastest one's CPU time (this process's) gives the figures. Decoding,
-DDS and writing are not counted: this is the node's per-message logic (reading conversion,
-reorder buffer, EKF, packing the outputs). The load average is reported with the figures.
+built as sensing_pipeline builds it takes them in bag order from sensing_pipeline's driver
+(graph/pipeline.Driver, which hands them to its processor's handlers: ros/processor.py), each
+decoded beforehand as its subscription decodes it, with the flush at the end; three passes, the
+fastest one's CPU time (this process's) gives the figures. Decoding, DDS and writing are not
+counted: this is the node's per-message logic (reading conversion, reorder buffer, EKF, packing
+the outputs) and the driver's keeping of them. The load average is reported with the figures.
 """
 
 from __future__ import annotations
@@ -24,23 +25,21 @@ from sensing_nodes.bench.pipeline import executable, record_sim_bag
 PASSES = 3
 
 
-def fusion_pass(messages: list[tuple[str, bytes]]) -> tuple[float, int, int]:
-    """One fresh fusion node over (topic, CDR bytes) in order: (CPU s, inputs, outputs)."""
-    from sensing_nodes.graph.pipeline import build_nodes, close
-    from sensing_nodes.ros.cdr import cdr_decoder
+def fusion_pass(rows: list[tuple[str, int, bytes]]) -> tuple[float, int, int]:
+    """One fresh fusion node over (topic, bag time, CDR bytes) rows in order, driven as
+    sensing_pipeline drives it (graph/pipeline.Driver), its inputs decoded beforehand:
+    (CPU s, inputs, outputs)."""
+    from sensing_nodes.graph.pipeline import close, node_driver
 
-    built = build_nodes(('complementary_fusion',), [], {})
+    built, driver = node_driver('complementary_fusion')
     try:
-        processor = built['complementary_fusion'].processor
-        handlers = {i.topic: (i.handler, cdr_decoder(i.msg_type)) for i in processor.inputs()}
-        decoded = [(handlers[t][0], handlers[t][1](raw)) for t, raw in messages
-                   if t in handlers]
-        outputs = 0
+        inputs = driver.decoded(rows)
         start = time.process_time()
-        for handler, msg in decoded:
-            outputs += len(handler(msg))
-        outputs += len(processor.flush())
-        return time.process_time() - start, len(decoded), outputs
+        for topic, stamp_ns, msg in inputs:
+            driver.take(topic, msg, stamp_ns)
+        driver.finish(inputs[-1][1] if inputs else 0)
+        cpu_s = time.process_time() - start
+        return cpu_s, len(inputs), sum(len(out) for out in driver.result.outputs.values())
     finally:
         close(built)
 
@@ -55,9 +54,9 @@ def run(quick: bool = False) -> dict:
         record_sim_bag(bag, duration_s)
         subprocess.run([executable('sensing_pipeline'), str(bag), str(inputs), '--no-progress'],
                        check=True, capture_output=True)
-        messages = [(t, raw) for t, _, raw in load_bag(inputs).messages]
+        rows = load_bag(inputs).messages
     load_start = os.getloadavg()[0]
-    passes = [fusion_pass(messages) for _ in range(PASSES)]
+    passes = [fusion_pass(rows) for _ in range(PASSES)]
     cpu, count, outputs = min(passes)
     return {
         'fusion_bag_seconds': duration_s,

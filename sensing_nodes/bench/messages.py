@@ -5,21 +5,23 @@ processors (what their nodes run per message, without DDS).
 A bag is recorded with `sensor_sim --record` (60 s, seed 5; 20 s with --quick). Decoding: every
 message of each input type of the bag, decoded in turn by cdr_decoder (the nodes' decoder) and
 by rosbags' own generated decoder. Processors: each node is built as sensing_pipeline builds it
-(config/ parameters), its inputs decoded beforehand (the gyro's /wheel/odom from the wheel
-processor's outputs, in bag order), and the handlers timed with what publishing their outputs
-converts (an rclpy message is serialised by rclpy's publish; packed bytes go as they are). CPU
+(config/ parameters) and driven as sensing_pipeline drives it (graph/pipeline.Driver), its
+inputs decoded beforehand (the gyro's /wheel/odom from the wheel processor's outputs, in the one
+event order: core/events.py), and the handlers timed with the driver's keeping of their outputs
+(each node packs its outputs into CDR bytes itself: ros/cdr.py). CPU
 time of this process (time.process_time), the best of 3 passes; warm caches, so a running node
 costs several times this per message (docs/performance.md). Compare figures of one run only.
 """
 
 from __future__ import annotations
 
-import heapq
 import os
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from sensing_nodes.core.events import time_ordered
 
 PASSES = 3
 
@@ -60,46 +62,31 @@ def decoding(bag) -> dict:
     return out
 
 
-def _handlers(node: str):
-    """The node built as sensing_pipeline builds it, and its (topic -> (handler, decode))."""
-    from rclpy.serialization import deserialize_message
-
-    from sensing_nodes.graph.pipeline import build_nodes
-    from sensing_nodes.ros.cdr import cdr_decoder
-
-    built = build_nodes((node,), [], {})
-    handlers = {}
-    for i in built[node].processor.inputs():
-        decode = cdr_decoder(i.msg_type) if i.decoded else \
-            (lambda raw, cls=i.msg_type: deserialize_message(raw, cls))
-        handlers[i.topic] = (i.handler, decode)
-    return built, handlers
-
-
 def _time_node(node: str, rows) -> tuple[float, int, list]:
-    """Best-of-PASSES CPU seconds of the node's handlers over rows (topic, bag time, bytes) it
-    takes, the number of messages, and its outputs of the last pass as such rows."""
-    from rclpy.serialization import serialize_message
-
-    from sensing_nodes.graph.pipeline import close
+    """Best-of-PASSES CPU seconds of the node driven as sensing_pipeline drives it
+    (graph/pipeline.Driver) over rows (topic, bag time, bytes) it takes, decoded beforehand, the
+    number of messages, and its outputs of the last pass as such rows (in bag time)."""
+    from sensing_nodes.graph.pipeline import close, node_driver
 
     best, outputs = float('inf'), []
     for _ in range(PASSES):
-        built, handlers = _handlers(node)
-        messages = [(s, handlers[t][0], handlers[t][1](raw)) for t, s, raw in rows
-                    if t in handlers]
-        produced = []
+        built, driver = node_driver(node)
+        messages = driver.decoded(rows)
         started = time.process_time()
-        for s, handler, msg in messages:
-            outs = handler(msg)
-            for _, out in outs:   # what publishing converts: rclpy messages are serialised
-                if not isinstance(out, bytes):
-                    serialize_message(out)
-            produced.append((s, outs))
+        for topic, stamp_ns, msg in messages:
+            driver.take(topic, msg, stamp_ns)
         best = min(best, time.process_time() - started)
         close(built)
-        outputs = [(topic, s, out) for s, outs in produced for topic, out in outs]
+        outputs = sorted(((topic, s, raw) for topic, recorded in driver.result.outputs.items()
+                          for s, raw in recorded), key=lambda row: row[1])
     return best, len(messages), outputs
+
+
+def merged_rows(*streams: list[tuple]) -> list[tuple]:
+    """(topic, bag time, ...) rows of several streams as one, in the one event order
+    (core/events.py: bag time, then the streams' order)."""
+    return [streams[int(e.source)][e.index] for e in time_ordered(
+        {str(k): [row[1] for row in stream] for k, stream in enumerate(streams)})]
 
 
 def processors(bag) -> dict:
@@ -110,9 +97,8 @@ def processors(bag) -> dict:
     rows = [(t, s, raw) for t, s, raw in bag.messages]
     wheel_odom: list = []
     for node in ('wheel_odometry', 'gyro_integrator', 'line_extractor'):
-        fed = rows if node != 'gyro_integrator' else list(heapq.merge(
-            [row for row in rows if row[0] != '/wheel/odom'], wheel_odom,
-            key=lambda row: row[1]))   # the wheel processor's, not a recorded /wheel/odom
+        fed = rows if node != 'gyro_integrator' else merged_rows(
+            [row for row in rows if row[0] != '/wheel/odom'], wheel_odom)
         seconds, count, outputs = _time_node(node, fed)
         if node == 'wheel_odometry':
             wheel_odom = [row for row in outputs if row[0] == '/wheel/odom']

@@ -126,7 +126,7 @@ class Progress:
             print(file=sys.stderr, flush=True)
 
 
-class _Wiring:
+class Wiring:
     """The nodes' processors as the pipeline drives them: topic -> handlers (in node order)
     with the decoding each expects, and the outputs they publish."""
 
@@ -185,11 +185,12 @@ class _Wiring:
         return feeds
 
 
-class _Driver:
-    """Hands each input to its handlers and every output at once to the handlers of its topic
-    (depth first), recording the outputs: (bag time, CDR bytes) per topic."""
+class Driver:
+    """The one driver of the nodes' processors without DDS (sensing_pipeline's, and the
+    benchmarks'): hands each input to its handlers and every output at once to the handlers of
+    its topic (depth first), recording the outputs: (bag time, CDR bytes) per topic."""
 
-    def __init__(self, wiring: _Wiring) -> None:
+    def __init__(self, wiring: Wiring) -> None:
         from sensing_nodes.bags.input_bag import PassResult
 
         self.wiring = wiring
@@ -208,6 +209,29 @@ class _Driver:
             if msg is None:
                 msg = decoded[kind] = self.wiring.decoders[topic, kind](raw)
             self.deliver(handler(msg), stamp_ns)
+
+    def decoded(self, rows) -> list[tuple[str, int, Any]]:
+        """(topic, bag time, CDR bytes) rows of the topics the nodes take, each decoded as its
+        handlers take it (one kind of decoding per topic): a benchmark's inputs, decoded
+        beforehand and handed over by take()."""
+        decoders = {}
+        for topic, handlers in self.wiring.handlers.items():
+            kinds = {kind for _, kind in handlers}
+            assert len(kinds) == 1, f'{topic}: its handlers decode it {len(kinds)} ways'
+            decoders[topic] = self.wiring.decoders[topic, kinds.pop()]
+        return [(topic, stamp_ns, decoders[topic](raw)) for topic, stamp_ns, raw in rows
+                if topic in decoders]
+
+    def take(self, topic: str, msg, stamp_ns: int) -> None:
+        """A message decoded as decoded() decodes it to each of the topic's handlers."""
+        for handler, _ in self.wiring.handlers[topic]:
+            self.deliver(handler(msg), stamp_ns)
+
+    def finish(self, last_ns: int) -> None:
+        """The end of the input: what the nodes hold (the fusion's reorder buffer), delivered
+        at the last input's bag time."""
+        for flush in self.wiring.flushes:
+            self.deliver(flush(), last_ns)
 
     def deliver(self, produced, stamp_ns: int) -> None:
         """Depth first: an output reaches its consumers before the next output, as a lockstep
@@ -238,15 +262,21 @@ class _Driver:
             self.result.inputs_published += 1
             bar.update(stamp_ns)
         last_ns = inputs[-1][1] if inputs else 0
-        for flush in self.wiring.flushes:   # the end of the bag: the fusion's reorder buffer
-            self.deliver(flush(), last_ns)
+        self.finish(last_ns)
         bar.finish(last_ns)
         for rows in self.result.outputs.values():
             rows.sort(key=lambda row: row[0])
         return self.result
 
 
-def _write(out: Path, bag, result, wiring: _Wiring, compress: bool) -> None:
+def node_driver(name: str) -> tuple[dict[str, Any], Driver]:
+    """The node built as sensing_pipeline builds it (config/<node>.yaml) and its Driver; close()
+    the first when done."""
+    built = build_nodes((name,), [], {})
+    return built, Driver(Wiring(built, (name,)))
+
+
+def _write(out: Path, bag, result, wiring: Wiring, compress: bool) -> None:
     """The output bag, complete or not at all: the bag's topics with the nodes' outputs in place
     of earlier copies. /diagnostics is published by every node on a wall-clock timer, not
     produced here (docs/pipeline.md); the input bag's copy is dropped (it describes another
@@ -284,9 +314,9 @@ def run(bag_path: str | Path, out: str | Path, nodes: tuple[str, ...], *,
         raise PipelineError(str(exc)) from None
     built = build_nodes(nodes, list(params_files or []), dict(node_params or {}))
     try:
-        wiring = _Wiring(built, nodes)
+        wiring = Wiring(built, nodes)
         feeds = wiring.feeds(bag, dict(remaps or {}))
-        result = _Driver(wiring).run(bag, feeds, progress)
+        result = Driver(wiring).run(bag, feeds, progress)
         _write(out, bag, result, wiring, compress)
         return {t: len(v) for t, v in sorted(result.outputs.items())}
     finally:

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensing_nodes.core.evaluation.metrics import express_in_reference_frame, interpolate_poses
+from sensing_nodes.core.events import time_ordered
 from sensing_nodes.core.fusion.config import SessionConfig, default_config
 from sensing_nodes.core.fusion.ekf import EkfFusion, Outcome
 from sensing_nodes.core.fusion.filter import FusedState
@@ -39,28 +40,25 @@ def _yaw_only(variance: float) -> NDArray[np.float64]:
 
 
 def input_readings(inputs: FusionInputs, config: SessionConfig) -> list[tuple[str, Reading]]:
-    """The simulated streams as the fusion's readings of its enabled inputs, in stamp order
-    (ties: wheel, IMU, scan match), as the node reads the messages: wheel odometry poses, the
-    gyro's integrated heading with its rate (imu.source rate: the IMU's raw rate and those
-    summed, as ros/fusion_readings.py sums them), and scan matches as /scan_match/keyframe_odom
-    carries them (EKF: in the local map's frame at the sweep's middle, or keyframe-relative) or
-    cumulative with the increment covariance (complementary filter)."""
+    """The simulated streams as the fusion's readings of its enabled inputs, in the one event
+    order (core/events.py; ties: wheel, IMU, scan match), as the node reads the messages: wheel
+    odometry poses, the gyro's integrated heading with its rate (imu.source rate: the IMU's raw
+    rate and those summed, as ros/fusion_readings.py sums them), and scan matches as
+    /scan_match/keyframe_odom carries them (EKF: in the local map's frame at the sweep's
+    middle, or keyframe-relative) or cumulative with the increment covariance (complementary
+    filter)."""
     raw_rate = config.method == 'ekf' and config.imu_source == 'rate'
     imu = config.input_map.get(IMU)
     delta_angles = DeltaAngles(imu.max_gap_s if imu is not None else 0.5)
-    events = []
-    if config.enabled[WHEEL]:
-        events += [(int(t), RANK[WHEEL], i, WHEEL) for i, t in enumerate(inputs.wheel_t)]
-    if config.enabled[IMU]:
-        events += [(int(t), RANK[IMU], i, IMU) for i, t in enumerate(inputs.gyro_t)]
-    if config.enabled[SCAN]:
-        # The EKF's matches in a local map's frame are stamped at their sweep's middle.
-        in_map = config.method == 'ekf' and inputs.scan_map_t.size and inputs.scan_map_t[0] >= 0
-        scan_t = inputs.scan_map_t if in_map else inputs.scan_t
-        events += [(int(t), RANK[SCAN], i, SCAN) for i, t in enumerate(scan_t)]
+    # The EKF's matches in a local map's frame are stamped at their sweep's middle.
+    in_map = config.method == 'ekf' and inputs.scan_map_t.size and inputs.scan_map_t[0] >= 0
+    stamps = {WHEEL: inputs.wheel_t, IMU: inputs.gyro_t,
+              SCAN: inputs.scan_map_t if in_map else inputs.scan_t}
     readings = []
     previous_scan = None
-    for stamp, _, i, name in sorted(events):
+    for event in time_ordered({name: stamps[name] for name in sorted(RANK, key=RANK.get)
+                               if config.enabled[name]}):
+        stamp, name, i = event.stamp_ns, event.source, event.index
         if name == WHEEL:
             reading = Reading(stamp, tuple(inputs.wheel_pose[i]), inputs.wheel_cov[i],
                               tuple(inputs.wheel_twist[i]), None)

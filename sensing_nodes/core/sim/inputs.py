@@ -10,10 +10,12 @@ stream is the IMU's z rate (rad/s). Stamps are int64 ns.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
+from sensing_nodes.core.events import time_ordered
 from sensing_nodes.core.geometry.scan import scan_to_points
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
 from sensing_nodes.core.scan_matching import (
@@ -29,6 +31,49 @@ from sensing_nodes.core.wheel_odometry import WheelOdometry, WheelOdometryConfig
 from sensing_nodes.paths import config_file
 
 JOINTS = ('left_wheel_joint', 'right_wheel_joint')
+
+
+class WheelSample(NamedTuple):
+    """One /wheel/odom output: stamp (ns), pose (x, y, yaw) and its 3x3 covariance in odom,
+    twist (vx, vy, wz) in base_link."""
+
+    t: int
+    pose: tuple
+    covariance: NDArray[np.float64]
+    twist: tuple
+
+
+class GyroSample(NamedTuple):
+    """One gyro_integrator output (stamp ns): heading (rad) and its variance, bias-corrected z
+    rate (rad/s), the IMU's raw z rate, the z bias estimate and its variance, stillness."""
+
+    t: int
+    yaw: float
+    yaw_variance: float
+    rate: float
+    raw_rate: float
+    bias: float
+    bias_variance: float
+    still: bool
+
+
+class ScanSample(NamedTuple):
+    """One published scan match (stamp ns): the cumulative pose and covariance; the keyframe
+    match (keyframe stamp, -1: none; relative pose and covariance; whether this scan is the
+    next keyframe); the local-map pose (its time, -1: keyframe mode; the map's id, -1: no
+    match; pose and covariance)."""
+
+    t: int
+    pose: tuple
+    covariance: NDArray[np.float64]
+    keyframe_t: int
+    relative: tuple
+    relative_covariance: NDArray[np.float64]
+    new_keyframe: bool
+    map_t: int
+    map_id: int
+    map_pose: tuple
+    map_covariance: NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -65,6 +110,36 @@ class FusionInputs:
     scan_map_cov: NDArray[np.float64]
     raw_rate_variance: float = 0.0           # of each raw rate sample (rad^2/s^2)
 
+    @classmethod
+    def from_samples(cls, run: SimRun, wheels: list[WheelSample], gyros: list[GyroSample],
+                     scans: list[ScanSample]) -> FusionInputs:
+        """The run's truth and its streams' samples, each field stacked into a column."""
+        def column(samples, field, dtype=np.float64, shape=()):
+            return np.array([getattr(s, field) for s in samples],
+                            dtype=dtype).reshape((-1, *shape))
+
+        int64, pose, covariance = np.int64, (3,), (3, 3)
+        return cls(
+            truth_t=run.truth_t, truth_pose=run.truth_pose,
+            wheel_t=column(wheels, 't', int64), wheel_pose=column(wheels, 'pose', shape=pose),
+            wheel_cov=column(wheels, 'covariance', shape=covariance),
+            wheel_twist=column(wheels, 'twist', shape=pose),
+            gyro_t=column(gyros, 't', int64), gyro_yaw=column(gyros, 'yaw'),
+            gyro_yaw_var=column(gyros, 'yaw_variance'), gyro_rate=column(gyros, 'rate'),
+            raw_rate=column(gyros, 'raw_rate'), gyro_bias=column(gyros, 'bias'),
+            gyro_bias_var=column(gyros, 'bias_variance'),
+            gyro_still=column(gyros, 'still', bool),
+            scan_t=column(scans, 't', int64), scan_pose=column(scans, 'pose', shape=pose),
+            scan_cov=column(scans, 'covariance', shape=covariance),
+            scan_keyframe_t=column(scans, 'keyframe_t', int64),
+            scan_relative=column(scans, 'relative', shape=pose),
+            scan_relative_cov=column(scans, 'relative_covariance', shape=covariance),
+            scan_new_keyframe=column(scans, 'new_keyframe', bool),
+            scan_map_t=column(scans, 'map_t', int64), scan_map_id=column(scans, 'map_id', int64),
+            scan_map_pose=column(scans, 'map_pose', shape=pose),
+            scan_map_cov=column(scans, 'map_covariance', shape=covariance),
+            raw_rate_variance=run.params.gyro_noise_std_rad_s ** 2)
+
 
 def wheel_config(params: SimParams) -> WheelOdometryConfig:
     """Wheel odometry as config/wheel_odometry.yaml sets it for the simulated robot."""
@@ -89,26 +164,84 @@ def scan_points(run: SimRun, i: int) -> tuple[NDArray[np.float64], NDArray[np.fl
     return points, times
 
 
+class _RunCores:
+    """The dead-reckoning cores over one simulated run as the nodes run them, sample by sample in
+    the one event order (core/events.py): wheel odometry (whose poses predict and deskew the
+    scans) and, given its config, the gyro integrator with the wheels' stillness veto."""
+
+    def __init__(self, run: SimRun, wheel: WheelOdometryConfig,
+                 gyro: GyroConfig | None = None) -> None:
+        self.run = run
+        self.odometry = WheelOdometry(wheel)
+        self.integrator = GyroIntegrator(gyro) if gyro is not None else None
+        self.buffer = OdometryBuffer(max_age_s=10.0, max_extrapolation_s=0.1)
+        self.last_scan: int | None = None    # stamp of the last scan the matcher published
+
+    def streams(self, imu: bool) -> dict[str, NDArray[np.int64]]:
+        """The run's samples by when they are published (a scan after its sweep), ranked."""
+        run = self.run
+        return {'joints': run.joint_t, **({'imu': run.imu_t} if imu else {}),
+                'scan': run.scan_publish_t}
+
+    def joints(self, i: int) -> WheelSample | None:
+        """Joint state i into the wheel odometry: its output, if it publishes one."""
+        run, odometry = self.run, self.odometry
+        stamp = int(run.joint_t[i])
+        if not odometry.update(stamp, list(JOINTS), run.joint_position[i], run.joint_velocity[i],
+                               JOINTS).publish:
+            return None
+        self.buffer.add(stamp, odometry.pose)
+        if self.integrator is not None:
+            self.integrator.observe_wheels(stamp, odometry.twist[0], odometry.twist[2])
+        return WheelSample(stamp, odometry.pose, odometry.covariance.copy(), odometry.twist)
+
+    def imu(self, i: int) -> GyroSample | None:
+        """IMU sample i into the gyro integrator: its output, if it publishes one."""
+        run, integrator = self.run, self.integrator
+        stamp = int(run.imu_t[i])
+        if not integrator.update(stamp, run.imu_gyro[i], run.imu_accel[i]).publish:
+            return None
+        return GyroSample(stamp, integrator.heading, integrator.heading_variance,
+                          float(integrator.rate[2]), float(run.imu_gyro[i][2]),
+                          float(integrator.bias[2]), integrator.p_bias, integrator.still)
+
+    def scan(self, i: int) -> tuple:
+        """Scan i as the matcher's process() arguments: stamp, points, the wheel odometry's
+        motion since the last published scan, beam times and its motion over the sweep."""
+        stamp = int(self.run.scan_t[i])
+        points, times = scan_points(self.run, i)
+        predicted, sweep = odometry_guidance(self.buffer, self.last_scan, stamp, times)
+        return stamp, points, predicted, times, sweep
+
+
+def _scan_sample(stamp: int, step: ScanStep) -> ScanSample:
+    """A published step as the fusion's scan-match streams hold it."""
+    match, in_map = step.keyframe, step.local_map
+    matched = in_map is not None and in_map.pose is not None
+    return ScanSample(
+        stamp, step.pose, step.covariance,
+        -1 if match is None else match.keyframe_stamp_ns,
+        (0.0, 0.0, 0.0) if match is None else match.pose,
+        np.zeros((3, 3)) if match is None else match.covariance,
+        step.new_keyframe,
+        -1 if in_map is None else in_map.time_ns,
+        in_map.map_stamp_ns if matched or (in_map is not None and in_map.origin) else -1,
+        in_map.pose if matched else (0.0, 0.0, 0.0),
+        in_map.covariance if matched else np.zeros((3, 3)))
+
+
 def scan_inputs(run: SimRun) -> list[tuple]:
     """What the node's matcher is given for each scan of a run, as process() arguments: stamp,
     points, the wheel odometry's motion since the previous scan, beam times and the odometry's
     motion over the sweep (each scan taken when it is published)."""
-    wheels = WheelOdometry(wheel_config(run.params))
-    buffer = OdometryBuffer(max_age_s=10.0, max_extrapolation_s=0.1)
-    events = sorted([(int(t), 0, i) for i, t in enumerate(run.joint_t)]
-                    + [(int(t), 2, i) for i, t in enumerate(run.scan_publish_t)])
-    out, last_scan = [], None
-    for stamp, kind, i in events:
-        if kind == 0:
-            if wheels.update(stamp, list(JOINTS), run.joint_position[i], run.joint_velocity[i],
-                             JOINTS).publish:
-                buffer.add(stamp, wheels.pose)
+    cores = _RunCores(run, wheel_config(run.params))
+    out = []
+    for event in time_ordered(cores.streams(imu=False)):
+        if event.source == 'joints':
+            cores.joints(event.index)
             continue
-        scan_stamp = int(run.scan_t[i])
-        points, times = scan_points(run, i)
-        predicted, sweep = odometry_guidance(buffer, last_scan, scan_stamp, times)
-        out.append((scan_stamp, points, predicted, times, sweep))
-        last_scan = scan_stamp
+        out.append(cores.scan(event.index))
+        cores.last_scan = out[-1][0]
     return out
 
 
@@ -130,86 +263,33 @@ def match_scans(run: SimRun, settings: ScanMatcherSettings | None = None,
     return np.array(stamps, dtype=np.int64), steps
 
 
-# long: one loop over the events in publishing order, a branch per sensor, as the graph runs
-# them.
 def inputs_from_run(run: SimRun, wheel: WheelOdometryConfig | None = None,
                     gyro: GyroConfig | None = None,
                     matcher: ScanMatcherSettings | None = None) -> FusionInputs:
     """Run wheel odometry, the gyro integrator (with the wheel stillness veto) and the scan
     matcher (config/icp_matcher.yaml's: predicted and deskewed by the wheel odometry) over a
-    simulated run, each sample when it is published (a scan after its sweep)."""
-    params = run.params
-    odometry = WheelOdometry(wheel or wheel_config(params))
-    integrator = GyroIntegrator(gyro or GyroConfig())
-    scan_matcher = make_scan_matcher(matcher or matcher_settings(params))
-    buffer = OdometryBuffer(max_age_s=10.0, max_extrapolation_s=0.1)
-    wt, wp, wc, wtw = [], [], [], []
-    gt, gy, gv, gr, raw, gb, gbv, gs = [], [], [], [], [], [], [], []
-    st, sp, sc, skt, srel, src, snew = [], [], [], [], [], [], []
-    smt, smi, smp, smc = [], [], [], []
-    # Same-time order as the graph delivers it closely enough: joints, IMU, then scans.
-    events = sorted([(int(t), 0, i) for i, t in enumerate(run.joint_t)]
-                    + [(int(t), 1, i) for i, t in enumerate(run.imu_t)]
-                    + [(int(t), 2, i) for i, t in enumerate(run.scan_publish_t)])
-    last_scan = None
-    for stamp, kind, i in events:
-        if kind == 0:
-            result = odometry.update(stamp, list(JOINTS), run.joint_position[i],
-                                     run.joint_velocity[i], JOINTS)
-            if result.publish:
-                wt.append(stamp)
-                wp.append(odometry.pose)
-                wc.append(odometry.covariance.copy())
-                wtw.append(odometry.twist)
-                buffer.add(stamp, odometry.pose)
-                integrator.observe_wheels(stamp, odometry.twist[0], odometry.twist[2])
-        elif kind == 1:
-            result = integrator.update(stamp, run.imu_gyro[i], run.imu_accel[i])
-            if result.publish:
-                gt.append(stamp)
-                gy.append(integrator.heading)
-                gv.append(integrator.heading_variance)
-                gr.append(float(integrator.rate[2]))
-                raw.append(float(run.imu_gyro[i][2]))
-                gb.append(float(integrator.bias[2]))
-                gbv.append(integrator.p_bias)
-                gs.append(integrator.still)
+    simulated run, each sample when it is published (a scan after its sweep), in the one event
+    order."""
+    cores = _RunCores(run, wheel or wheel_config(run.params), gyro or GyroConfig())
+    scan_matcher = make_scan_matcher(matcher or matcher_settings(run.params))
+    wheels: list[WheelSample] = []
+    gyros: list[GyroSample] = []
+    scans: list[ScanSample] = []
+    for event in time_ordered(cores.streams(imu=True)):
+        if event.source == 'joints':
+            sample = cores.joints(event.index)
+            if sample is not None:
+                wheels.append(sample)
+        elif event.source == 'imu':
+            sample = cores.imu(event.index)
+            if sample is not None:
+                gyros.append(sample)
         else:
-            stamp = int(run.scan_t[i])
-            points, times = scan_points(run, i)
-            predicted, sweep = odometry_guidance(buffer, last_scan, stamp, times)
-            step = scan_matcher.process(stamp, points, predicted, times, sweep)
-            if not step.publish:
-                continue
-            last_scan = stamp
-            st.append(stamp)
-            sp.append(step.pose)
-            sc.append(step.covariance)
-            match, in_map = step.keyframe, step.local_map
-            skt.append(-1 if match is None else match.keyframe_stamp_ns)
-            srel.append((0.0, 0.0, 0.0) if match is None else match.pose)
-            src.append(np.zeros((3, 3)) if match is None else match.covariance)
-            snew.append(step.new_keyframe)
-            matched = in_map is not None and in_map.pose is not None
-            smt.append(-1 if in_map is None else in_map.time_ns)
-            smi.append(in_map.map_stamp_ns if matched or (in_map is not None and in_map.origin)
-                       else -1)
-            smp.append(in_map.pose if matched else (0.0, 0.0, 0.0))
-            smc.append(in_map.covariance if matched else np.zeros((3, 3)))
-    return FusionInputs(
-        truth_t=run.truth_t, truth_pose=run.truth_pose,
-        wheel_t=np.array(wt, dtype=np.int64), wheel_pose=np.array(wp), wheel_cov=np.array(wc),
-        wheel_twist=np.array(wtw),
-        gyro_t=np.array(gt, dtype=np.int64), gyro_yaw=np.array(gy), gyro_yaw_var=np.array(gv),
-        gyro_rate=np.array(gr), raw_rate=np.array(raw), gyro_bias=np.array(gb),
-        gyro_bias_var=np.array(gbv), gyro_still=np.array(gs, dtype=bool),
-        scan_t=np.array(st, dtype=np.int64), scan_pose=np.array(sp), scan_cov=np.array(sc),
-        scan_keyframe_t=np.array(skt, dtype=np.int64), scan_relative=np.array(srel),
-        scan_relative_cov=np.array(src).reshape(-1, 3, 3),
-        scan_new_keyframe=np.array(snew, dtype=bool),
-        scan_map_t=np.array(smt, dtype=np.int64), scan_map_id=np.array(smi, dtype=np.int64),
-        scan_map_pose=np.array(smp).reshape(-1, 3), scan_map_cov=np.array(smc).reshape(-1, 3, 3),
-        raw_rate_variance=params.gyro_noise_std_rad_s ** 2)
+            step = scan_matcher.process(*cores.scan(event.index))
+            if step.publish:
+                cores.last_scan = int(run.scan_t[event.index])
+                scans.append(_scan_sample(cores.last_scan, step))
+    return FusionInputs.from_samples(run, wheels, gyros, scans)
 
 
 def simulated_inputs(seed: int = 0, params: SimParams | None = None, laps: float = 1.0,
