@@ -26,19 +26,19 @@ from sensing_nodes.bench import (
     doctor,
     fusion,
     graph_cpu,
-    icp,
-    icp_fast_lidar,
-    icp_kiss,
     lines,
     messages,
     pipeline,
     sim,
 )
+from sensing_nodes.bench.icp import accuracy as icp_accuracy
+from sensing_nodes.bench.icp import speed as icp_speed
 
 # Each area's figures, in the order they run (the graph's, from sensing_demo, last).
 AREA_RUNS = {
-    'sim': sim.run, 'dead_reckoning': dead_reckoning.run, 'lines': lines.run, 'icp': icp.run,
-    'icp_kiss': icp_kiss.run, 'icp_fast_lidar': icp_fast_lidar.run, 'allan': allan.run,
+    'sim': sim.run, 'dead_reckoning': dead_reckoning.run, 'lines': lines.run,
+    'icp': icp_speed.run, 'icp_kiss': icp_accuracy.run_kiss_area,
+    'icp_fast_lidar': icp_speed.run_fast_lidar, 'allan': allan.run,
     'graph_cpu': graph_cpu.run,
     'pipeline': pipeline.run, 'fusion': fusion.run, 'bags': bags.run, 'messages': messages.run,
     'doctor': doctor.run,
