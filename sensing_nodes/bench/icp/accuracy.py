@@ -14,10 +14,16 @@ import numpy as np
 
 from sensing_nodes.bench.icp import comparators as cmp
 from sensing_nodes.bench.icp import datasets, scoring
-from sensing_nodes.core.evaluation.fusion import track_errors
+from sensing_nodes.core.evaluation.fusion import run_ekf, track_errors
+from sensing_nodes.core.evaluation.metrics import express_in_reference_frame, interpolate_poses
 from sensing_nodes.core.geometry.se2 import between, wrap_angle
 from sensing_nodes.core.scan_matching import ScanEvent, ScanMatcherSettings, ScanStatus
-from sensing_nodes.core.sim.inputs import match_scans, matcher_settings, scan_inputs
+from sensing_nodes.core.sim.inputs import (
+    inputs_from_run,
+    match_scans,
+    matcher_settings,
+    scan_inputs,
+)
 from sensing_nodes.core.sim.simulator import SimParams, SimRun
 
 # --- carmen-pairs -----------------------------------------------------------------------------
@@ -109,9 +115,7 @@ def seeds_table(seeds: int = 8) -> dict:
         for seed in range(seeds):
             run = datasets.simulated_run(seed)
             rows.append(route_errors(run, matcher_settings(run.params, mode=mode)))
-        out[mode] = {'seeds': rows,
-                     'pooled_rms_heading_deg': scoring.pooled(rows, 'rms_heading_deg'),
-                     'pooled_rms_position_m': scoring.pooled(rows, 'rms_position_m')}
+        out[mode] = {'seeds': rows, **scoring.pooled_rms(rows)}
     return out
 
 
@@ -128,8 +132,7 @@ def deskew_table(seeds: int = 2) -> dict:
                 rows.append(route_errors(run, matcher_settings(params),
                                          odometry=guide == 'odometry', deskew=deskew))
             name = f"{guide}_{'deskewed' if deskew else 'not_deskewed'}"
-            out[name] = {'pooled_rms_heading_deg': scoring.pooled(rows, 'rms_heading_deg'),
-                         'pooled_rms_position_m': scoring.pooled(rows, 'rms_position_m'),
+            out[name] = {**scoring.pooled_rms(rows),
                          'fallback': sum(row['fallback'] for row in rows)}
         out[f'{guide}_ratio'] = (out[f'{guide}_deskewed']['pooled_rms_heading_deg']
                                  / out[f'{guide}_not_deskewed']['pooled_rms_heading_deg'])
@@ -142,13 +145,6 @@ def corridor_table(seeds: int = 4) -> dict:
     matcher (predicted by the wheels) and today's EKF over them (core.evaluation.fusion), the
     smallest along / across variance ratio of the matcher's relative covariances, and how many
     matches were degenerate."""
-    from sensing_nodes.core.evaluation.fusion import run_ekf
-    from sensing_nodes.core.evaluation.metrics import (
-        express_in_reference_frame,
-        interpolate_poses,
-    )
-    from sensing_nodes.core.sim.inputs import inputs_from_run
-
     def errors(inputs, t, poses):
         reference = interpolate_poses(inputs.truth_t, inputs.truth_pose, t)
         keep = np.all(np.isfinite(reference), axis=1)
@@ -177,33 +173,22 @@ def corridor_table(seeds: int = 4) -> dict:
 
 
 def sim(quick: bool = False) -> dict:
-    """The simulated route's figures, flat."""
-    out = {f'alone_{k}': v for k, v in route_drift(laps=1.0).items()}
-    for mode, figures in seeds_table(2 if quick else 8).items():
-        out[f'{mode}_pooled_rms_heading_deg'] = figures['pooled_rms_heading_deg']
-        out[f'{mode}_pooled_rms_position_m'] = figures['pooled_rms_position_m']
-    out.update(scoring.flatten(deskew_table(1 if quick else 2), prefix='fast_turns_', sep='_'))
-    for row in corridor_table(1 if quick else 4)['seeds']:
-        for source in ('wheels', 'matcher', 'fused'):
-            for key, value in row[source].items():
-                out[f"corridor_seed{row['seed']}_{source}_{key}"] = value
-        out[f"corridor_seed{row['seed']}_min_variance_ratio"] = \
-            row['min_along_over_across_variance']
-    return out
+    """The simulated route's tables: the matcher alone, each mode, deskewing, the corridor."""
+    return {'alone': route_drift(laps=1.0), 'modes': seeds_table(2 if quick else 8),
+            'fast_turns': deskew_table(1 if quick else 2),
+            'corridor': corridor_table(1 if quick else 4)}
 
 
 # --- the local map beside KISS-ICP ------------------------------------------------------------
 
-def kiss_log_figures(name: str, out: Path,
-                     settings: ScanMatcherSettings = datasets.CARMEN_SETTINGS,
+def kiss_log_figures(bag: Path | None, settings: ScanMatcherSettings = datasets.CARMEN_SETTINGS,
                      voxels: tuple[float, ...] = cmp.KISS_VOXELS_M) -> dict:
-    """{estimator: figures} of one CARMEN log (converted as carmen-logs converts it, scored at
-    the reference's stamps), or {'error': why}."""
+    """{estimator: figures} of one CARMEN log's bag (datasets.carmen_bag), scored at the
+    reference's stamps, or {'error': why}."""
     from sensing_nodes.tools.eval import load_trajectories
 
-    bag = datasets.carmen_bag(name, out)
     if bag is None:
-        return {'error': 'carmen_to_bag could not convert it'}
+        return dict(datasets.NOT_CONVERTED)
     tracks = load_trajectories(bag, ['/ground_truth/odom', '/odom'])
     ref_t, ref_poses = tracks['/ground_truth/odom']
     inputs = datasets.bag_inputs(datasets.bag_messages(bag), settings)
@@ -268,7 +253,7 @@ def run_kiss_area(quick: bool = False) -> dict:
 
     logs = datasets.CARMEN_LOGS[:2] if quick else datasets.CARMEN_LOGS
     with tempfile.TemporaryDirectory() as out:
-        results = {name: kiss_log_figures(name, Path(out)) for name in logs}
+        results = {name: kiss_log_figures(datasets.carmen_bag(name, Path(out))) for name in logs}
     results['sim'] = kiss_sim_figures(1 if quick else 2)
     for world in ('hall', 'outdoor'):
         results[f'sim_{world}'] = kiss_sim_figures(1 if quick else 2, world)

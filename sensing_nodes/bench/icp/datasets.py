@@ -152,6 +152,9 @@ CARMEN_SETTINGS = ScanMatcherSettings(
 HOKUYO_DEMO = 'scan_tools-laser_scan_matcher-demo.bag'
 
 
+NOT_CONVERTED = {'error': 'carmen_to_bag could not convert it'}
+
+
 def carmen_bag(name: str, out: Path) -> Path | None:
     """A shared CARMEN log converted by carmen_to_bag to out/<name> (None: it cannot be)."""
     from sensing_nodes.tools import carmen_to_bag

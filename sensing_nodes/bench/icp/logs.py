@@ -60,16 +60,15 @@ FAR_M, FAR_RAD = 1.0, math.radians(30.0)
 MATCHES, ODOMETRY, REFERENCE = '/scan_match/keyframe_odom', '/odom', '/ground_truth/odom'
 
 
-def log_figures(name: str, out: Path, modes: tuple[str, ...] = MODES) -> dict:
-    """{mode: {topic: figures}} of one log, or {'error': why}."""
-    bag = datasets.carmen_bag(name, out)
+def log_figures(bag: Path | None, modes: tuple[str, ...] = MODES) -> dict:
+    """{mode: {topic: figures}} of one log's bag (datasets.carmen_bag), or {'error': why}."""
     if bag is None:
-        return {'error': 'carmen_to_bag could not convert it'}
+        return dict(datasets.NOT_CONVERTED)
     assumed = ASSUMED_TIME_ARGUMENTS \
         if carmen_to_bag.TIME_BASE_KEY in BagReader(bag).custom_data else ()
     figures: dict = {}
     for mode in modes:
-        processed = out / f'{name}-{mode}'
+        processed = bag.parent / f'{bag.name}-{mode}'
         shutil.rmtree(processed, ignore_errors=True)
         if pipeline.main([str(bag), str(processed), *PIPELINE_ARGUMENTS, *assumed,
                           '--param', f'icp_matcher:mode:={mode}']) != 0:

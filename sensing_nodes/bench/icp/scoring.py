@@ -18,7 +18,6 @@ from sensing_nodes.core.evaluation.metrics import (
     relative_pose_errors,
 )
 from sensing_nodes.core.geometry.se2 import wrap_angle
-from sensing_nodes.core.scan_matching import ScanMatcherSettings, make_scan_matcher
 
 FAIL_TRANSLATION_M = 0.10
 FAIL_ROTATION_RAD = math.radians(2.0)
@@ -75,17 +74,9 @@ def pooled(rows: list[dict], key: str) -> float:
     return math.sqrt(float(np.mean([row[key] ** 2 for row in rows])))
 
 
-def matcher_cpu_s(settings: ScanMatcherSettings, inputs: list[tuple], repeats: int = 1) -> float:
-    """CPU seconds of a fresh matcher over `inputs` (process() arguments), best of `repeats`
-    passes."""
-    best = math.inf
-    for _ in range(repeats):
-        matcher = make_scan_matcher(settings)
-        start = time.process_time()
-        for args in inputs:
-            matcher.process(*args)
-        best = min(best, time.process_time() - start)
-    return best
+def pooled_rms(rows: list[dict]) -> dict:
+    """The pooled RMS heading (deg) and position (m) errors of runs of equal length."""
+    return {f'pooled_{key}': pooled(rows, key) for key in ('rms_heading_deg', 'rms_position_m')}
 
 
 def pair_rates(methods: dict[str, Callable], pairs, guesses, repeats: int) -> dict[str, float]:

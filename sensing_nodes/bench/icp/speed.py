@@ -103,7 +103,7 @@ def carmen_pairs(quick: bool = False) -> dict:
               for k, scan in enumerate(points)]
     settings = ScanMatcherSettings(laser_pose=(0.0, 0.0, 0.0), max_gap_s=10.0)
     out['streaming_local_map_matches_per_s'] = (
-        (len(points) - 1) / scoring.matcher_cpu_s(settings, stream, repeats))
+        1e3 * (len(points) - 1) / (cmp.local_map_ms(settings, stream, repeats) * len(stream)))
     out['streaming_ratio_local_map_vs_keyframe'] = (out['streaming_local_map_matches_per_s']
                                                     / out['streaming_ours_matches_per_s'])
     # The same with neighbours from a k-d tree (the same neighbours, found more slowly:
@@ -125,7 +125,7 @@ def sim(seconds: float = 60.0, repeats: int = 3) -> dict:
     best = {'local_map': math.inf, 'keyframe': math.inf, 'small_gicp_gicp': math.inf}
     for _ in range(repeats):
         for mode in ('local_map', 'keyframe'):
-            best[mode] = min(best[mode], scoring.matcher_cpu_s(
+            best[mode] = min(best[mode], 1e-3 * len(inputs) * cmp.local_map_ms(
                 matcher_settings(run.params, mode=mode), inputs))
         start = time.process_time()
         previous = None
@@ -144,7 +144,7 @@ def _stream_figures(name: str, inputs: list, convert_s: float, rate_hz: float,
                     settings: ScanMatcherSettings, repeats: int) -> dict:
     """Points per scan, CPU ms per scan of the matcher and of the scans' conversion, and the %
     of a core at 1x, of one stream."""
-    ms = 1e3 * scoring.matcher_cpu_s(settings, inputs, repeats) / len(inputs)
+    ms = cmp.local_map_ms(settings, inputs, repeats)
     return {f'{name}_scans': len(inputs), f'{name}_rate_hz': rate_hz,
             f'{name}_points_mean': sum(len(i[1]) for i in inputs) / len(inputs),
             f'{name}_match_ms_per_scan': ms,
