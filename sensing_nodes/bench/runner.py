@@ -2,7 +2,8 @@
 
 Each area's module in sensing_nodes.bench (imported here by name, so the import graph shows
 every benchmark `make bench` runs) has run(quick) -> dict of figures measured in that run
-(rates and the ratios between implementations measured side by side). The graph's real-time
+(rates and the ratios between implementations measured side by side); the ICP areas are
+bench/icp's speed.run, accuracy.run_kiss_area and speed.run_fast_lidar. The graph's real-time
 factor and latency come from a sensing_demo run. Nothing here asserts a time: the machines are
 shared and noisy, so only ratios measured in one run mean much.
 """
