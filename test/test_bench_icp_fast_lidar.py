@@ -6,11 +6,11 @@ import math
 
 import pytest
 
-from sensing_nodes.bench import icp_fast_lidar
+from sensing_nodes.bench.icp import datasets, speed
 
 
 def test_synthetic_stream_is_a_utm_30lx_class_scanner_at_40_hz():
-    figures = icp_fast_lidar.synthetic(seconds=2.0, repeats=1)
+    figures = speed.synthetic(seconds=2.0, repeats=1)
     assert figures['fast_lidar_beams'] == 1081 and figures['fast_lidar_rate_hz'] == 40.0
     assert figures['fast_lidar_scans'] == 80            # 2 s at 40 Hz
     assert figures['fast_lidar_points_mean'] == 1081.0  # walls within 30 m all round
@@ -18,10 +18,10 @@ def test_synthetic_stream_is_a_utm_30lx_class_scanner_at_40_hz():
         figures['fast_lidar_match_ms_per_scan'] * 40.0 / 10.0)
 
 
-@pytest.mark.skipif(not (icp_fast_lidar.ros_datasets() / icp_fast_lidar.HOKUYO_DEMO).is_file(),
+@pytest.mark.skipif(not (datasets.shared_dir('ros') / datasets.HOKUYO_DEMO).is_file(),
                     reason='the shared Hokuyo demo bag is absent')
 def test_hokuyo_demo_bag_is_681_beams_at_10_hz():
-    figures = icp_fast_lidar.hokuyo_demo(repeats=1)
+    figures = speed.hokuyo_demo(repeats=1)
     assert figures['hokuyo_demo_beams'] == 681 and figures['hokuyo_demo_scans'] == 360
     assert math.isclose(figures['hokuyo_demo_rate_hz'], 10.0, rel_tol=0.01)
     assert 500 < figures['hokuyo_demo_points_mean'] <= 681

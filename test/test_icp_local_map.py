@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from sensing_nodes.bench.icp_sim import FAST_TURNS_ROUTE, route_errors, simulated_run
+from sensing_nodes.bench.icp.accuracy import route_errors
+from sensing_nodes.bench.icp.datasets import FAST_TURNS_ROUTE, simulated_run
 from sensing_nodes.core import icp
 from sensing_nodes.core.correlative import correlative_search
 from sensing_nodes.core.deskew import deskew, twist_motion, twist_motions

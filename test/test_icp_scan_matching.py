@@ -155,7 +155,7 @@ def test_keyframe_matching_alone_drifts_under_1_percent_on_the_simulated_route()
     # keyframe mode does not deskew a sweep).
     import dataclasses
 
-    from sensing_nodes.bench.icp_sim import route_drift
+    from sensing_nodes.bench.icp.accuracy import route_drift
     from sensing_nodes.core.sim.inputs import matcher_settings
     from sensing_nodes.core.sim.simulator import SimParams
 

@@ -1,5 +1,5 @@
 """The local-map matcher in open spaces, without ROS: a large hall and an outdoor-like place
-(config/hall_world.yaml, config/outdoor_world.yaml; the scenarios in bench/icp_sim.WORLDS: a
+(config/hall_world.yaml, config/outdoor_world.yaml; the scenarios in bench/icp/datasets.WORLDS: a
 40 m laser, a loop at 1 m/s, the wheel odometry's guess), and the map's scale from the scans
 (docs/nodes/icp_matcher.md, "How the map's scale is chosen").
 
@@ -16,7 +16,8 @@ import math
 import numpy as np
 import pytest
 
-from sensing_nodes.bench.icp_sim import route_errors, world_run
+from sensing_nodes.bench.icp.accuracy import route_errors
+from sensing_nodes.bench.icp.datasets import world_run
 from sensing_nodes.core.geometry.se2 import compose
 from sensing_nodes.core.local_map import LocalMapSettings
 from sensing_nodes.core.scan_matching import LocalMapScanMatcher

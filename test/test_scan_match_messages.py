@@ -15,7 +15,7 @@ import pytest
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message
 
-from sensing_nodes.bench.icp_sim import simulated_run
+from sensing_nodes.bench.icp.datasets import simulated_run
 from sensing_nodes.core.fusion.ekf import EkfFusion
 from sensing_nodes.core.fusion.inputs import SCAN, InputConfig, input_config
 from sensing_nodes.core.fusion.timeline import InputRecord

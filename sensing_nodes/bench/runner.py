@@ -2,7 +2,8 @@
 
 Each area's module in sensing_nodes.bench (imported here by name, so the import graph shows
 every benchmark `make bench` runs) has run(quick) -> dict of figures measured in that run
-(rates and the ratios between implementations measured side by side). The graph's real-time
+(rates and the ratios between implementations measured side by side); the ICP areas are
+bench/icp's speed.run, accuracy.run_kiss_area and speed.run_fast_lidar. The graph's real-time
 factor and latency come from a sensing_demo run. Nothing here asserts a time: the machines are
 shared and noisy, so only ratios measured in one run mean much.
 """
@@ -26,19 +27,19 @@ from sensing_nodes.bench import (
     doctor,
     fusion,
     graph_cpu,
-    icp,
-    icp_fast_lidar,
-    icp_kiss,
     lines,
     messages,
     pipeline,
     sim,
 )
+from sensing_nodes.bench.icp import accuracy as icp_accuracy
+from sensing_nodes.bench.icp import speed as icp_speed
 
 # Each area's figures, in the order they run (the graph's, from sensing_demo, last).
 AREA_RUNS = {
-    'sim': sim.run, 'dead_reckoning': dead_reckoning.run, 'lines': lines.run, 'icp': icp.run,
-    'icp_kiss': icp_kiss.run, 'icp_fast_lidar': icp_fast_lidar.run, 'allan': allan.run,
+    'sim': sim.run, 'dead_reckoning': dead_reckoning.run, 'lines': lines.run,
+    'icp': icp_speed.run, 'icp_kiss': icp_accuracy.run_kiss_area,
+    'icp_fast_lidar': icp_speed.run_fast_lidar, 'allan': allan.run,
     'graph_cpu': graph_cpu.run,
     'pipeline': pipeline.run, 'fusion': fusion.run, 'bags': bags.run, 'messages': messages.run,
     'doctor': doctor.run,
