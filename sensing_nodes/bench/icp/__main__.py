@@ -67,7 +67,9 @@ def main(argv: list[str] | None = None) -> int:
               'fast_lidar': lambda: speed.run_fast_lidar(args.quick)}
     if against - {'small_gicp', 'kiss'}:
         parser.error(f'unknown comparators in {sorted(against)}')
-    if args.dataset not in speeds if args.measure == 'speed' else args.dataset == 'fast_lidar':
+    unsupported = args.dataset not in speeds if args.measure == 'speed' \
+        else args.dataset == 'fast_lidar'     # fast_lidar: speed only
+    if unsupported:
         parser.error(f'no {args.measure} run for {args.dataset}')
     if args.measure == 'accuracy' and args.dataset == 'carmen-logs' and args.out is None:
         parser.error('carmen-logs needs --out, a folder for the converted and processed bags')
