@@ -1,6 +1,7 @@
 """The shared ROS layer: conversions, parameters and bag round trips with real message types."""
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -73,3 +74,22 @@ def test_pid_domains_of_tools_benches_and_tests_never_meet():
     for i, a in enumerate(kinds):
         for b in kinds[i + 1:]:
             assert not taken[a] & taken[b], (a, b)
+
+
+def test_a_benchmark_environment_is_this_machine_on_a_benchmark_domain(monkeypatch):
+    """A tool's graph keeps a discovery range the user set, a benchmark's is forced to this
+    machine; each takes its domain from its own range, and this process joins it."""
+    from sensing_nodes.graph.processes import DOMAIN_RANGES, isolated_environment
+
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'SUBNET')
+    monkeypatch.setenv('ROS_DOMAIN_ID', '0')
+    tools = isolated_environment(None)
+    assert tools['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SUBNET'
+    low, high = DOMAIN_RANGES['tools']
+    assert low <= int(tools['ROS_DOMAIN_ID']) <= high
+    bench = isolated_environment(None, 2, kind='bench', localhost=True)
+    assert bench['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
+    low, high = DOMAIN_RANGES['bench']
+    assert low <= int(bench['ROS_DOMAIN_ID']) <= high
+    assert {k: os.environ[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')} == {
+        k: bench[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')}

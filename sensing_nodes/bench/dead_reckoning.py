@@ -10,15 +10,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import subprocess
 import sys
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
+from sensing_nodes.bench.probe import DdsProbe
 from sensing_nodes.core.gyro import GyroConfig, GyroIntegrator
 from sensing_nodes.core.sim.simulator import SimParams, simulate
 from sensing_nodes.core.sim.world import load_world
@@ -28,7 +25,7 @@ from sensing_nodes.core.wheel_odometry import (
     integrate_path,
     wheel_increments,
 )
-from sensing_nodes.graph.processes import pid_domain_id
+from sensing_nodes.graph.processes import executable
 from sensing_nodes.paths import config_file
 
 JOINTS = ('left_wheel_joint', 'right_wheel_joint')
@@ -87,93 +84,58 @@ def _gyro_rates(run, quick: bool) -> dict:
     return {'gyro_per_message_samples_per_s': _best_rate(len(samples), per_message, 2)}
 
 
-# long: a self-contained DDS probe (its rclpy imports, publisher, subscriber and pacing loop),
-# run once per bench area; split, its pieces would only be called from here.
-def _dds_check(executable: str, seconds: float, rate_hz: float) -> dict:
+def _dds_check(name: str, seconds: float, rate_hz: float) -> dict:
     """Run the node as a process, publish rate_hz input paced by wall time, count outputs.
 
     Returns the numbers sent and received (by stamp); a node that keeps up answers every one.
     """
-    import rclpy
     from nav_msgs.msg import Odometry
-    from rclpy.node import Node
     from sensor_msgs.msg import Imu, JointState
 
     from sensing_nodes.ros.conversions import ns_to_stamp, stamp_to_ns
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
-    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
-    env.setdefault('ROS_DOMAIN_ID', str(pid_domain_id('bench', 2)))
-    os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
-    exe = Path(sys.executable).parent / executable
-    log = tempfile.NamedTemporaryFile('w+', suffix='.log')
-    proc = subprocess.Popen([str(exe), '--ros-args', '-p', 'max_gap_s:=0.5'], stdout=log,
-                            stderr=subprocess.STDOUT, env=env, start_new_session=True)
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = Node('dead_reckoning_bench', context=context)
+    def joint_state(k, t):
+        msg = JointState()
+        msg.header.stamp = ns_to_stamp(t)
+        msg.name = list(JOINTS)
+        msg.position = [0.01 * k, 0.011 * k]
+        return msg
+
+    def imu(k, t):
+        msg = Imu()
+        msg.header.stamp = ns_to_stamp(t)
+        msg.angular_velocity.z = 0.1
+        msg.linear_acceleration.z = 9.81
+        return msg
+
+    # The input each node takes, its output, and how to make input message k stamped t.
+    (in_type, in_topic), (out_type, out_topic), message = {
+        'wheel_odometry': ((JointState, '/joint_states'), (Odometry, '/wheel/odom'), joint_state),
+        'gyro_integrator': ((Imu, '/imu/data_raw'), (Imu, '/imu/data'), imu)}[name]
+    command = [executable(name), '--ros-args', '-p', 'max_gap_s:=0.5']
     received: set[int] = set()
-    try:
-        if executable == 'wheel_odometry':
-            pub = node.create_publisher(JointState, '/joint_states', SENSOR_QOS)
-            node.create_subscription(Odometry, '/wheel/odom', lambda m: received.add(
-                stamp_to_ns(m.header.stamp)), ESTIMATE_QOS)
-
-            def message(k, t):
-                msg = JointState()
-                msg.header.stamp = ns_to_stamp(t)
-                msg.name = list(JOINTS)
-                msg.position = [0.01 * k, 0.011 * k]
-                return msg
-        else:
-            pub = node.create_publisher(Imu, '/imu/data_raw', SENSOR_QOS)
-            node.create_subscription(Imu, '/imu/data', lambda m: received.add(
-                stamp_to_ns(m.header.stamp)), ESTIMATE_QOS)
-
-            def message(k, t):
-                msg = Imu()
-                msg.header.stamp = ns_to_stamp(t)
-                msg.angular_velocity.z = 0.1
-                msg.linear_acceleration.z = 9.81
-                return msg
-
-        from rclpy.executors import SingleThreadedExecutor
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and not (pub.get_subscription_count() > 0 and received):
-            pub.publish(message(0, 1_000_000_000))
-            executor.spin_once(timeout_sec=0.1)
-        if not received:
-            tail = Path(log.name).read_text()[-500:]
-            return {'sent': 0, 'received': 0, 'error': 'node never answered: ' + tail}
+    with DdsProbe(name, command, 2, 'dead_reckoning_bench') as probe:
+        pub = probe.node.create_publisher(in_type, in_topic, SENSOR_QOS)
+        probe.node.create_subscription(out_type, out_topic, lambda m: received.add(
+            stamp_to_ns(m.header.stamp)), ESTIMATE_QOS)
+        if not probe.publish_until_answered(lambda: pub.publish(message(0, 1_000_000_000)),
+                                            lambda: bool(received), 30.0):
+            return {'sent': 0, 'received': 0, 'error': 'node never answered: '
+                    + probe.log_tail()}
         received.clear()
         count = int(seconds * rate_hz)
         period_ns = int(1e9 / rate_hz)
-        t_start = time.monotonic()
-        stamps = []
-        for k in range(1, count + 1):
-            target = t_start + k / rate_hz
-            while time.monotonic() < target:
-                executor.spin_once(timeout_sec=max(0.0, min(target - time.monotonic(), 0.0005)))
+        stamps = set()
+        for k, elapsed in probe.paced(rate_hz, spin_s=0.0005):
             stamp = 1_000_000_000 + k * period_ns
             pub.publish(message(k, stamp))
-            stamps.append(stamp)
-        achieved = count / (time.monotonic() - t_start)
-        end = time.monotonic() + 5
-        while time.monotonic() < end and len(received & set(stamps)) < count:
-            executor.spin_once(timeout_sec=0.05)
-        got = len(received & set(stamps))
-        return {'sent': count, 'received': got, 'send_rate_hz': achieved}
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+            stamps.add(stamp)
+            if k >= count:
+                break
+        probe.spin_until(lambda: len(received & stamps) >= count, 5.0)
+        return {'sent': count, 'received': len(received & stamps),
+                'send_rate_hz': count / elapsed}
 
 
 def run(quick: bool = False, dds: bool = True) -> dict:

@@ -10,7 +10,7 @@ factor. Messages per simulated second come from config/sensor_sim.yaml (what eac
 in); per-message figures are CPU time over those messages (whatever else the process does,
 timers and /diagnostics included). The load average is reported with the figures: on a shared
 machine, compare figures from one run only. With one_process the nodes run in one sensing_graph
-process instead (ros/graph.py); each process's resident memory (RSS, and its peak) is read from
+process instead (tools/graph.py); each process's resident memory (RSS, and its peak) is read from
 /proc at the end of the window.
 """
 
@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from sensing_nodes.graph.processes import ONE_PROCESS, pid_domain_id
+from sensing_nodes.bench.probe import DdsProbe
+from sensing_nodes.graph.processes import ONE_PROCESS, Graph, isolated_environment
 from sensing_nodes.parameters import load_parameters
 from sensing_nodes.paths import config_file
 from sensing_nodes.topics import PROCESSING_NODES
@@ -73,20 +72,6 @@ def _memory_mb(pid: int) -> dict[str, float] | None:
             'pss_mb': round(kb['Pss'] * 1.024e-3, 1)}
 
 
-def stop_processes(processes) -> None:
-    """SIGINT to every live process (the nodes shut down cleanly), then wait; kill what hangs."""
-    processes = list(processes)
-    for proc in processes:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-    for proc in processes:
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
 def _load_average() -> float:
     return float(Path('/proc/loadavg').read_text().split()[0])
 
@@ -107,42 +92,32 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
     'peak_rss_mb'}}, 'total...'}.
     """
 
-    bin_dir = Path(sys.executable).parent
-    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
-           'ROS_DOMAIN_ID': str(pid_domain_id('bench'))}
+    env = isolated_environment(None, kind='bench', localhost=True)
     scan_consumers = sum(n in nodes for n in ('line_extractor', 'icp_matcher')) if with_sim else 0
     sim_args = ['-p', f'real_time_factor:={rate}', '-p', 'duration_s:=3600.0',
                 '-p', f'wait_for_scan_subscribers:={scan_consumers}']
     for name, value in sim_overrides.items():
         sim_args += ['-p', f'{name}:={value}']
-    procs: dict[str, subprocess.Popen] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        logs = {}
+        graph = Graph(Path(tmp), env)
+        procs = graph.processes
         try:
-            extra = [a for f in params_files for a in ('--params-file', str(f))]
-            commands = {name: [str(bin_dir / name), '--ros-args', '--params-file',
-                               str(config_file(f'{name}.yaml')), *extra] for name in nodes}
             if one_process:
-                commands = {ONE_PROCESS: [sys.executable, '-m', 'sensing_nodes.tools.graph',
-                                          '--nodes', ','.join(nodes), *extra,
-                                          *(['--executor', executor] if executor else [])]}
+                graph.start_one_process(nodes, {}, executor, params_files)
+            else:
+                for name in nodes:
+                    graph.start(name, [], params_files)
             if with_sim:
-                commands['sensor_sim'] = [str(bin_dir / 'sensor_sim'), '--ros-args',
-                                          '--params-file', str(config_file('sensor_sim.yaml')),
-                                          *sim_args]
-            for name, command in commands.items():
-                logs[name] = Path(tmp) / f'{name}.log'
-                procs[name] = subprocess.Popen(
-                    command, stdout=logs[name].open('w'), stderr=subprocess.STDOUT, env=env,
-                    start_new_session=True)
+                graph.start('sensor_sim', sim_args)
             # Started: the simulator says so (it waits for the scan consumers), or, with none to
             # wait for, every node has logged its start-up line.
             deadline = time.monotonic() + start_timeout_s
             while time.monotonic() < deadline:
                 failed = [n for n, p in procs.items() if p.poll() is not None]
                 if failed:
-                    raise RuntimeError(f'{failed} exited: ' + logs[failed[0]].read_text()[-400:])
-                text = {n: log.read_text() for n, log in logs.items()}
+                    raise RuntimeError(f'{failed} exited: '
+                                       + graph.log(failed[0]).read_text()[-400:])
+                text = {n: graph.log(n).read_text() for n in procs}
                 if (scan_consumers and 'starting' in text['sensor_sim']) or (
                         not scan_consumers and all(text.values())):
                     break
@@ -160,7 +135,7 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
             memory = {n: _memory_mb(p.pid) for n, p in procs.items()}
             load_after = _load_average()
         finally:
-            stop_processes(procs.values())
+            graph.stop()
     rates = input_rates(sim_overrides)
     rates[ONE_PROCESS] = sum(rates[n] for n in nodes)
     out: dict = {'window_s': round(wall, 1), 'rate': rate,
@@ -187,92 +162,62 @@ def measure(nodes: tuple[str, ...], sim_overrides: dict[str, float], window_s: f
     return out
 
 
-class _RelayNode:
+def _relay_node(every: int):
     """A node that takes each Imu on /bench/relay_in (raw) and publishes the same bytes on
     /bench/relay_out: one message in, one out, no work, through run_node's executor. With
-    RELAY_ANSWER_EVERY=N in the environment it answers the first message and every N-th only
-    (a sink: what taking a message costs without answering it)."""
+    every=N it answers the first message and every N-th only (a sink: what taking a message
+    costs without answering it)."""
+    from rclpy.node import Node
+    from sensor_msgs.msg import Imu
 
-    def __new__(cls):
-        from rclpy.node import Node
-        from sensor_msgs.msg import Imu
+    from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
-        from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
+    node = Node('bench_relay')
+    publisher = node.create_publisher(Imu, '/bench/relay_out', ESTIMATE_QOS)
+    taken = [0]
 
-        node = Node('bench_relay')
-        publisher = node.create_publisher(Imu, '/bench/relay_out', ESTIMATE_QOS)
-        every = int(os.environ.get('RELAY_ANSWER_EVERY', '1'))
-        taken = [0]
+    def on_message(raw: bytes) -> None:
+        if taken[0] % every == 0:
+            publisher.publish(raw)
+        taken[0] += 1
 
-        def on_message(raw: bytes) -> None:
-            if taken[0] % every == 0:
-                publisher.publish(raw)
-            taken[0] += 1
-
-        node.create_subscription(Imu, '/bench/relay_in', on_message, SENSOR_QOS, raw=True)
-        return node
+    node.create_subscription(Imu, '/bench/relay_in', on_message, SENSOR_QOS, raw=True)
+    return node
 
 
-# long: a self-contained DDS probe (its rclpy imports, relay node, pacing and CPU sampling).
 def relay_floor(rate_hz: float, window_s: float, answer_every: int = 1) -> dict:
-    """CPU per message of a relay process (_RelayNode): what DDS, rclpy and the executor cost
+    """CPU per message of a relay process (_relay_node): what DDS, rclpy and the executor cost
     for one message in and one out, the floor under any node that answers every input; with
     answer_every=N, one answer per N messages taken."""
-    import rclpy
-    from rclpy.node import Node
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Imu
 
     from sensing_nodes.ros.qos import ESTIMATE_QOS, SENSOR_QOS
 
-    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
-           'ROS_DOMAIN_ID': str(pid_domain_id('bench', 1)),
-           'RELAY_ANSWER_EVERY': str(answer_every)}
-    os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
-    proc = subprocess.Popen([sys.executable, '-m', 'sensing_nodes.bench.graph_cpu', '--relay'],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
-                            start_new_session=True)
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = Node('bench_relay_driver', context=context)
-    try:
-        publisher = node.create_publisher(Imu, '/bench/relay_in', SENSOR_QOS)
+    relay = [sys.executable, '-m', 'sensing_nodes.bench.graph_cpu', '--relay',
+             '--answer-every', str(answer_every)]
+    with DdsProbe('bench_relay', relay, 1, 'bench_relay_driver') as probe:
+        publisher = probe.node.create_publisher(Imu, '/bench/relay_in', SENSOR_QOS)
         received = [0]
-        node.create_subscription(Imu, '/bench/relay_out',
-                                 lambda raw: received.__setitem__(0, received[0] + 1),
-                                 ESTIMATE_QOS, raw=True)
-        from rclpy.executors import SingleThreadedExecutor
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
+        probe.node.create_subscription(Imu, '/bench/relay_out',
+                                       lambda raw: received.__setitem__(0, received[0] + 1),
+                                       ESTIMATE_QOS, raw=True)
         msg = Imu()
         msg.header.frame_id = 'imu_link'
         raw = serialize_message(msg)
-        deadline = time.monotonic() + 60.0
-        while not received[0] and time.monotonic() < deadline:
-            publisher.publish(raw)
-            executor.spin_once(timeout_sec=0.05)
-        if not received[0]:
-            raise RuntimeError('the relay never answered')
-        sent, start = 0, time.monotonic()
-        before = load_before = None
-        while True:
-            now = time.monotonic()
-            if before is None and now - start >= 2.0:       # warmed up: start measuring
-                before, t0, sent0 = _cpu_seconds(proc.pid), now, sent
+        if not probe.publish_until_answered(lambda: publisher.publish(raw),
+                                            lambda: received[0] > 0, 60.0):
+            raise RuntimeError('the relay never answered: ' + probe.log_tail())
+        before = None
+        # Message k goes out k / rate_hz s after the first: k - 1 sent before it.
+        for k, elapsed in probe.paced(rate_hz, spin_s=0.01):
+            if before is None and elapsed >= 2.0:       # warmed up: start measuring
+                before, t0, k0 = _cpu_seconds(probe.process.pid), elapsed, k
                 load_before = _load_average()
-            if before is not None and now - t0 >= window_s:
-                after, wall, count = _cpu_seconds(proc.pid), now - t0, sent - sent0
+            elif before is not None and elapsed - t0 >= window_s:
+                after, wall, count = _cpu_seconds(probe.process.pid), elapsed - t0, k - k0
                 break
-            due = start + sent / rate_hz
-            if now < due:
-                executor.spin_once(timeout_sec=min(due - now, 0.01))
-                continue
             publisher.publish(raw)
-            sent += 1
-    finally:
-        stop_processes([proc])
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
     cpu = after - before
     return {'rate_hz': round(count / wall, 1), 'core_percent': round(100.0 * cpu / wall, 2),
             'cpu_us_per_message': round(1e6 * cpu / count, 1), 'load_average_1min': load_before}
@@ -363,7 +308,7 @@ if __name__ == '__main__':
         parser.error(f'--answer-every {args.answer_every}: one answer per N >= 1 messages')
     if args.relay:
         from sensing_nodes.ros.run import run_node
-        sys.exit(run_node(_RelayNode, []))
+        sys.exit(run_node(lambda: _relay_node(args.answer_every), []))
     if args.floor is not None:
         result = relay_floor(args.floor, args.window, args.answer_every)
     elif args.imu_rate is None:

@@ -8,6 +8,7 @@ import shutil
 import signal
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from sensing_nodes.graph.cli import GraphArgumentError, node_arguments
@@ -17,13 +18,16 @@ ONE_PROCESS = 'sensing_graph'
 
 
 def executable(name: str) -> str:
-    """Path of a sibling executable: venv bin/ or a colcon install's lib/sensing_nodes/."""
-    here = Path(sys.argv[0]).resolve().parent / name
-    if here.is_file():
-        return str(here)
+    """Path of a sibling executable: next to the running command (venv bin/ or a colcon
+    install's lib/sensing_nodes/), next to the interpreter (a venv's bin/, for `python -m`),
+    else on PATH."""
+    for folder in (Path(sys.argv[0]).resolve().parent, Path(sys.executable).parent):
+        if (folder / name).is_file():
+            return str(folder / name)
     found = shutil.which(name)
     if found is None:
-        raise SystemExit(f'executable {name!r} not found next to {sys.argv[0]} or on PATH')
+        raise SystemExit(f'executable {name!r} not found next to {sys.argv[0]}, next to '
+                         f'{sys.executable} or on PATH')
     return found
 
 
@@ -40,43 +44,57 @@ def pid_domain_id(kind: str, offset: int = 0) -> int:
     return low + (os.getpid() + offset) % (high - low + 1)
 
 
-def isolated_environment(domain_id: int | None, offset: int = 0) -> dict[str, str]:
-    """This process's environment for a graph of its own: this machine only, and the given
-    ROS_DOMAIN_ID or one derived from the pid (offset keeps two tools started together apart);
-    also applied to os.environ, so rclpy in this process joins the same domain."""
+def isolated_environment(domain_id: int | None, offset: int = 0, kind: str = 'tools',
+                         localhost: bool = False) -> dict[str, str]:
+    """This process's environment for a graph of its own: this machine only (the environment's
+    ROS_AUTOMATIC_DISCOVERY_RANGE where set, unless localhost forces it), and the given
+    ROS_DOMAIN_ID or one derived from the pid within kind's DOMAIN_RANGES (offset keeps two
+    graphs started together apart); also applied to os.environ, so rclpy in this process joins
+    the same domain."""
     env = dict(os.environ)
+    if localhost:
+        env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     env['ROS_DOMAIN_ID'] = str(domain_id if domain_id is not None
-                               else pid_domain_id('tools', offset))
+                               else pid_domain_id(kind, offset))
     os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
     return env
 
 
 class Graph:
-    """The node processes, started with their parameter files (then params_file, a robot preset
-    overriding them), stopped with SIGINT."""
+    """A graph's processes, each in a session of its own with env, its output in
+    log_dir/<name>.log; stopped with SIGINT (the nodes shut down cleanly), killed if they hang."""
 
-    def __init__(self, out: Path, env: dict[str, str],
-                 params_file: Path | None = None) -> None:
-        self.out, self.env, self.params_file = out, env, params_file
+    def __init__(self, log_dir: Path, env: dict[str, str]) -> None:
+        self.log_dir, self.env = log_dir, env
+        log_dir.mkdir(parents=True, exist_ok=True)
         self.processes: dict[str, subprocess.Popen] = {}
         self._logs = {}
 
-    def start(self, name: str, extra: list[str]) -> None:
-        log = open(self.out / 'logs' / f'{name}.log', 'w')
-        self._logs[name] = log
-        cmd = [executable(name), *node_arguments(
-            name, [self.params_file] if self.params_file else [], extra)]
+    def log(self, name: str) -> Path:
+        return self.log_dir / f'{name}.log'
+
+    def start_command(self, name: str, command: list[str]) -> subprocess.Popen:
+        """Start a command as the process `name` (a node's: start(), start_one_process())."""
+        log = self._logs[name] = open(self.log(name), 'w')
         self.processes[name] = subprocess.Popen(
-            cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
+            command, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
+        return self.processes[name]
+
+    def start(self, name: str, extra: list[str], params_files: Sequence[Path] = ()) -> None:
+        """A node's executable with its config/<name>.yaml, then params_files (a robot preset
+        overriding them), then extra (its own -p/-r)."""
+        self.start_command(name, [executable(name),
+                                  *node_arguments(name, list(params_files), extra)])
 
     def start_one_process(self, names: tuple[str, ...], extras: dict[str, list[str]],
-                          executor_kind: str | None = None) -> None:
+                          executor_kind: str | None = None,
+                          params_files: Sequence[Path] = ()) -> None:
         """The named processing nodes in one sensing_graph process (self.processes[ONE_PROCESS]),
         each with the arguments start() would give it; extras: node -> ['-p'|'-r', 'A:=B', ...]."""
         cmd = [sys.executable, '-m', 'sensing_nodes.tools.graph', '--nodes', ','.join(names)]
-        if self.params_file:
-            cmd += ['--params-file', str(self.params_file)]
+        for params_file in params_files:
+            cmd += ['--params-file', str(params_file)]
         if executor_kind:
             cmd += ['--executor', executor_kind]
         options = {'-p': '--param', '-r': '--remap'}
@@ -87,15 +105,14 @@ class Graph:
                                          f'{extra}')
             for flag, value in zip(extra[::2], extra[1::2]):
                 cmd += [options[flag], f'{name}:{value}']
-        log = open(self.out / 'logs' / f'{ONE_PROCESS}.log', 'w')
-        self._logs[ONE_PROCESS] = log
-        self.processes[ONE_PROCESS] = subprocess.Popen(
-            cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
+        self.start_command(ONE_PROCESS, cmd)
 
     def failed(self) -> list[str]:
         return [n for n, p in self.processes.items() if p.poll() not in (None, 0)]
 
     def stop(self, timeout: float = 10.0) -> dict[str, int]:
+        """SIGINT to every live process, then wait up to timeout s each; kill what hangs. The
+        exit codes by name."""
         for proc in self.processes.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)

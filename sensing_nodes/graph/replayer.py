@@ -431,7 +431,6 @@ def _launch(options: ReplayOptions, params_file: Path | None, log_dir: Path
             ) -> tuple[Graph, PassSettings]:
     """Start the processing nodes; the pass settings with the fusion's end of pass when it is
     launched in lockstep."""
-    (log_dir / 'logs').mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     lockstep = options.passes.mode == 'lockstep'
     if lockstep:
@@ -439,7 +438,8 @@ def _launch(options: ReplayOptions, params_file: Path | None, log_dir: Path
         # the replay has received is already on its way to the other subscribers (asynchronous
         # publishing sends from a separate thread, later).
         env.setdefault('RMW_FASTRTPS_PUBLICATION_MODE', 'SYNCHRONOUS')
-    graph = Graph(log_dir, env, params_file)
+    graph = Graph(log_dir / 'logs', env)
+    params_files = [params_file] if params_file else []
     settings = options.passes
     extras = {}
     for name in options.nodes:
@@ -454,10 +454,10 @@ def _launch(options: ReplayOptions, params_file: Path | None, log_dir: Path
             settings = replace(settings, flush=FlushWait(FUSED, FUSION_ANSWERED, quiet_s))
         extras[name] = extra
     if options.one_process:
-        graph.start_one_process(options.nodes, extras)
+        graph.start_one_process(options.nodes, extras, params_files=params_files)
     else:
         for name in options.nodes:
-            graph.start(name, extras[name])
+            graph.start(name, extras[name], params_files)
     return graph, settings
 
 

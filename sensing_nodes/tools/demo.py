@@ -226,9 +226,8 @@ def run_graph(args: argparse.Namespace, out: Path) -> tuple[Collected, dict, flo
     from sensing_nodes.ros.run import make_executor, spin_until_quiet
 
     env = isolated_environment(args.domain_id)
-    (out / 'logs').mkdir(parents=True, exist_ok=True)
     collected = Collected()
-    graph = Graph(out, env)
+    graph = Graph(out / 'logs', env)
     rclpy.init()
     node = Node('sensing_demo_recorder')
     executor = make_executor()

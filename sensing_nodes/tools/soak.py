@@ -194,8 +194,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
 
     from sensing_nodes.ros.run import make_executor, spin_until_quiet
 
-    (out / 'logs').mkdir(parents=True, exist_ok=True)
-    graph = Graph(out, env)
+    graph = Graph(out / 'logs', env)
     rclpy.init()
     node = Node('sensing_soak')
     executor = make_executor()
