@@ -189,8 +189,9 @@ def test_carmen_log_outputs_equal_the_lockstep_replay(tmp_path):
             '/scan=/scan_match/odom',
             # The fusion answers every /odom stamp, later (its reorder window): the replay keeps
             # at most 50 answers outstanding, so the fusion's queue (reliable, keep last 100)
-            # cannot overrun on a loaded machine (a 2-worker run once lost one of 472 with
-            # /odom unanswered and 20 ms between messages), and checks every stamp came.
+            # cannot overrun on a loaded machine (with /odom unanswered and 20 ms between
+            # messages, a 2-worker run once had one fused output fewer than the pipeline), and
+            # checks every stamp came.
             '--expect',
             '/odom=/odometry/filtered',
             '--remap',
