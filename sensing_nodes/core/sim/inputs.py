@@ -4,7 +4,9 @@ fusion's input streams, as the nodes would publish them, for accuracy checks of 
 Frames and units as the topics: wheel odometry and scan matching are base_link poses in their
 own odom frames (m, rad) with 3x3 covariances over (x, y, yaw); the gyro stream is
 gyro_integrator's heading (rad, its variance rad^2) and bias-corrected yaw rate (rad/s); the raw
-stream is the IMU's z rate (rad/s). Stamps are int64 ns.
+stream is the IMU's z rate (rad/s). Stamps are int64 ns. The run's samples reach the cores in
+the one event order (core/events.py), each at the time it is published; each output is a record
+of its stream (WheelSample, GyroSample, ScanSample), stacked into FusionInputs' columns.
 """
 
 from __future__ import annotations
