@@ -30,7 +30,12 @@ from sensing_nodes.bags.input_bag import (
     warm_up_bag,
     write_output_bag,
 )
-from sensing_nodes.bags.stamps import SEQUENCE_OF_STAMPED, first_element_stamp_ns, leading_stamp_ns
+from sensing_nodes.bags.stamps import (
+    SEQUENCE_OF_STAMPED,
+    first_element_stamp_ns,
+    leading_stamp_ns,
+    stamp_reader,
+)
 from sensing_nodes.graph.cli import GraphArgumentError, params_file_path
 from sensing_nodes.graph.processes import Graph
 from sensing_nodes.topics import (
@@ -73,6 +78,9 @@ LOCKSTEP_FUSION_FLUSH_S = 2.0
 # its idle flush answers everything it holds at once: once the answer to the latest of them is
 # in, no flush is still to come and the end of a pass needs only the ordinary quiet.
 FUSION_ANSWERED = (WHEEL_ODOM, SCAN_MATCH)
+# The warm-up (bag seconds) before a launched graph's pass, unless --warmup-s says otherwise; a
+# graph already running gets one only when asked (its pass starts with time jumping back).
+LAUNCHED_WARMUP_S = 2.0
 # Outputs that are not 1:1 with an input: recorded as they come.
 DEFAULT_EXTRA_OUTPUTS = (FUSED, DIAGNOSTICS, TF)
 
@@ -269,7 +277,7 @@ class ReplayOptions:
     one_process: bool = False
     loops: int = 1
     startup_timeout_s: float = 60.0
-    warmup_s: float = 2.0
+    warmup_s: float | None = None   # None: LAUNCHED_WARMUP_S with launch, else none
     progress: bool = True
     logs: Path | None = None
     compress: bool = False
@@ -396,6 +404,21 @@ def play_pass(replayer: Replayer, bag: InputBag, inputs: set[str], settings: Pas
             replayer.executor.spin_once(timeout_sec=0.0)
         run.housekeeping(i + 1, stamp)
     return run.finish()
+
+
+def _stamp_span(bag: InputBag) -> tuple[int, int]:
+    """The earliest and latest stamp (ns) the bag's messages carry (header, else bag time)."""
+    readers = {topic: stamp_reader(kind) for topic, kind in bag.types.items()}
+    stamps = [readers[topic](raw, stamp) for topic, stamp, raw in bag.messages]
+    return min(stamps), max(stamps)
+
+
+def _drop_stamped_within(result: PassResult, first_ns: int, last_ns: int) -> None:
+    """Remove the pass's answers to inputs (every output but the timer-driven /diagnostics,
+    stamped by a node's clock) stamped within [first_ns, last_ns]."""
+    for topic, rows in result.outputs.items():
+        if topic not in WALL_PERIODIC_TOPICS:
+            rows[:] = [row for row in rows if not first_ns <= row[0] <= last_ns]
 
 
 @dataclass(frozen=True)
@@ -561,23 +584,29 @@ def _wait_for_graph(replayer: Replayer, bag: InputBag, plan: _Plan, options: Rep
 
 def _play(replayer: Replayer, bag: InputBag, plan: _Plan, options: ReplayOptions,
           settings: PassSettings, graph: Graph | None, log_dir: Path) -> list[PassResult]:
-    """The warm-up (launched graphs) and options.loops passes."""
+    """The warm-up (a launched graph's, or one asked for) and options.loops passes."""
     inputs = set(plan.expectations)
-    if options.warmup_s > 0 and options.launch:
+    warmup_s = options.warmup_s if options.warmup_s is not None else \
+        LAUNCHED_WARMUP_S if options.launch else 0.0
+    warm_up = warm_up_bag(bag, inputs, warmup_s) if warmup_s > 0 else None
+    if warm_up is not None:
         # Two nodes that have just discovered each other may still be matching: a message sent
         # then is lost. So the first warmup_s of the bag, and at least one message of every
         # input topic (a keyframe log may hold seconds between two scans), goes through first
         # and is discarded. Its stamps are moved after the bag's end, so the pass proper starts
         # with time jumping backwards on every input, which resets every node (the same path
         # every later loop takes), even an input whose first message the warm-up played.
-        play_pass(replayer, warm_up_bag(bag, inputs, options.warmup_s), inputs,
-                  replace(settings, mode='lockstep'),
+        play_pass(replayer, warm_up, inputs, replace(settings, mode='lockstep'),
                   'warm-up: ' if options.progress else None)
     results = []
     for k in range(options.loops):
         label = f'pass {k + 1}/{options.loops}: ' if options.loops > 1 else ''
         results.append(play_pass(replayer, bag, inputs, settings,
                                  label if options.progress else None))
+        if warm_up is not None:
+            # What a node held at the warm-up's end (the fusion's reorder buffer) comes out as
+            # the pass starts, stamped in the warm-up's moved span: the warm-up's, not the pass's.
+            _drop_stamped_within(results[-1], *_stamp_span(warm_up))
         if graph is not None and graph.failed():
             raise ReplayError(f'node(s) exited during the replay: {", ".join(graph.failed())}; '
                               f'logs in {log_dir / "logs"}')

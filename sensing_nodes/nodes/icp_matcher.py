@@ -319,7 +319,10 @@ class IcpMatcherProcessor:
             out.append((TF_TOPIC, transform_cdr(stamp, self._odom_frame, self._base_frame,
                                                 Transform.from_planar(*step.pose))))
         diag.count('published')
-        diag.last_stamp_ns = max(diag.last_stamp_ns, stamp)
+        # The newest scan stamp, until time goes back (a looping bag, a replay's warm-up): a
+        # kept maximum stamped every later status with the old timeline's time.
+        diag.last_stamp_ns = stamp if step.status is ScanStatus.RESET_BACKWARDS \
+            else max(diag.last_stamp_ns, stamp)
         diag.values['pose'] = '%.4f %.4f %.4f' % step.pose
         failures = diag.counts['fallback']
         failed = step.status is ScanStatus.FALLBACK

@@ -155,10 +155,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         + ' '.join(f'{t}={1e3 * v:g}' for t, v in DEFAULT_SETTLE_BEFORE.items())
         + '); TOPIC=0 turns one off',
     )
-    parser.add_argument('--warmup-s', type=float, default=2.0,
-                        help='with --launch: first play this much of the bag (bag seconds) and '
-                             'discard the outputs, so every link of the graph is matched before '
-                             'the pass that counts (0: no warm-up)')
+    parser.add_argument('--warmup-s', type=float, default=None,
+                        help='first play this much of the bag (bag seconds) and discard the '
+                             'outputs, so every link of the graph is matched before the pass '
+                             'that counts, which starts with time jumping back (every node of '
+                             "the package resets); default 2 with --launch, none into a graph "
+                             "already running (0: no warm-up)")
     parser.add_argument(
         '--logs', type=Path, default=None, help='with --launch: keep node logs here'
     )
