@@ -104,18 +104,25 @@ class Lifecycle:
         self._get = probe.create_client(GetState, f'/{node}/get_state')
         self._set = probe.create_client(SetParameters, f'/{node}/set_parameters')
 
-    def _call(self, client, request):
+    def _call(self, client, request, attempts: int = 1):
+        """The service's answer within 30 s. A query (attempts > 1) is asked again after
+        30 / attempts s: wait_for_service sees the request side only, and an answer sent before
+        the client's response reader has matched the server is lost (one 2-worker make test
+        waited 30 s for a get_state)."""
         assert client.wait_for_service(timeout_sec=30.0), (self.node, client.srv_name)
-        future = client.call_async(request)
-        assert spin_until(self.probe, future.done, 30.0), (self.node, client.srv_name)
-        return future.result()
+        for _ in range(attempts):
+            future = client.call_async(request)
+            if spin_until(self.probe, future.done, 30.0 / attempts):
+                return future.result()
+            client.remove_pending_request(future)
+        raise AssertionError(f'{self.node}: no answer on {client.srv_name} within 30 s')
 
     def change(self, transition: int) -> bool:
         return self._call(self._change, ChangeState.Request(
             transition=Transition(id=transition))).success
 
     def state(self) -> int:
-        return self._call(self._get, GetState.Request()).current_state.id
+        return self._call(self._get, GetState.Request(), attempts=3).current_state.id
 
     def set(self, name: str, value) -> tuple[bool, str]:
         result = self._call(self._set, SetParameters.Request(
@@ -138,6 +145,9 @@ def _transition(managers, transition: int) -> dict[str, bool]:
 
 def _quiet_while_inputs_flow(probe, outputs: Outputs, seconds: float) -> dict[str, int]:
     """Listen for `seconds` while the simulator's scans keep arriving: what was published."""
+    # Its scans reach the probe first: a simulator just started may still be matching it (one
+    # 2-worker make test had none within the 1 s window).
+    assert spin_until(probe, lambda: outputs.scans > 0, 30.0), 'no scan from the simulator'
     scans = outputs.scans
     spin_until(probe, lambda: False, seconds)
     assert outputs.scans >= scans + 5, 'the simulator stopped: the silence would prove nothing'
