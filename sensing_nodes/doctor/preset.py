@@ -13,6 +13,7 @@ from sensing_nodes.core.diagnosis import covariance as cov_checks
 from sensing_nodes.core.diagnosis import imu as imu_checks
 from sensing_nodes.core.diagnosis import timing
 from sensing_nodes.core.diagnosis.check import PROBLEM, SKIPPED, Check
+from sensing_nodes.core.fusion.config import NODE_NAME
 from sensing_nodes.core.fusion.ekf import EkfSettings
 from sensing_nodes.doctor.diagnosis import (
     PROG,
@@ -21,6 +22,7 @@ from sensing_nodes.doctor.diagnosis import (
     orientation_track,
     scan_gap_s,
 )
+from sensing_nodes.parameters import load_parameters
 from sensing_nodes.paths import config_file
 from sensing_nodes.topics import FUSED, IMU, IMU_RAW, JOINT_STATES, SCAN
 
@@ -61,7 +63,7 @@ def _imu_fusion_preset(d: Diagnosis, integrated: bool) -> dict[str, Any]:
     angles = {f'mount_{a}_rad': round(float(v), 6) for a, v in
               zip(('roll', 'pitch', 'yaw'), (mount.roll, mount.pitch, mount.yaw or 0.0))}
     if integrated:
-        out = {**_integrated_route()['imu'], 'topic': IMU, 'source': 'integrated',
+        out = {**_integrated_route('imu'), 'topic': IMU, 'source': 'integrated',
                'mask': ['yaw'], 'covariance': 'model', 'heading_delay_s': 0.0,
                'delay_s': _delay(d, d.imu.topic)}
         if 'gyro_yaw_variance_per_s' in d.noise:
@@ -74,10 +76,12 @@ def _imu_fusion_preset(d: Diagnosis, integrated: bool) -> dict[str, Any]:
             **angles}
 
 
-def _integrated_route() -> dict[str, Any]:
-    """complementary_fusion's parameters (nested) in INTEGRATED_ROUTE."""
-    with open(config_file(INTEGRATED_ROUTE)) as f:
-        return yaml.safe_load(f)['complementary_fusion']['ros__parameters']
+def _integrated_route(block: str) -> dict[str, Any]:
+    """complementary_fusion's parameters of one block ('imu', 'ekf') in INTEGRATED_ROUTE, by
+    their names in the block."""
+    params = load_parameters(NODE_NAME, config_file(INTEGRATED_ROUTE))
+    return {name[len(block) + 1:]: value for name, value in params.items()
+            if name.startswith(f'{block}.')}
 
 
 def _odom_fusion_preset(d: Diagnosis) -> dict[str, Any]:
@@ -156,7 +160,7 @@ def _fusion_preset(d: Diagnosis, orientation_only: bool) -> dict[str, Any]:
         if orientation_only and (d.imu_tilt_deg or 0.0) > 2.0:
             fusion['level_with_imu_tilt'] = True
         elif not orientation_only:
-            fusion['ekf'] = dict(_integrated_route().get('ekf', {}))
+            fusion['ekf'] = _integrated_route('ekf')
     slowest = max([float(np.median(np.diff(d.survey.times[t].header_ns))) * 1e-9 for t in
                    {s.topic for s in (d.joints, d.scan, d.imu) if s is not None} |
                    {o.topic for o in d.odoms}] or [0.0])

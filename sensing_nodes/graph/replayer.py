@@ -590,6 +590,7 @@ def _play(replayer: Replayer, bag: InputBag, plan: _Plan, options: ReplayOptions
         LAUNCHED_WARMUP_S if options.launch else 0.0
     warm_up = warm_up_bag(bag, inputs, warmup_s) if warmup_s > 0 else None
     if warm_up is not None:
+        warm_up_span = _stamp_span(warm_up)
         # Two nodes that have just discovered each other may still be matching: a message sent
         # then is lost. So the first warmup_s of the bag, and at least one message of every
         # input topic (a keyframe log may hold seconds between two scans), goes through first
@@ -606,7 +607,7 @@ def _play(replayer: Replayer, bag: InputBag, plan: _Plan, options: ReplayOptions
         if warm_up is not None:
             # What a node held at the warm-up's end (the fusion's reorder buffer) comes out as
             # the pass starts, stamped in the warm-up's moved span: the warm-up's, not the pass's.
-            _drop_stamped_within(results[-1], *_stamp_span(warm_up))
+            _drop_stamped_within(results[-1], *warm_up_span)
         if graph is not None and graph.failed():
             raise ReplayError(f'node(s) exited during the replay: {", ".join(graph.failed())}; '
                               f'logs in {log_dir / "logs"}')

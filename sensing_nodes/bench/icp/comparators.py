@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from sensing_nodes.bench.icp.datasets import ScanInput
 from sensing_nodes.core import icp
-from sensing_nodes.core.geometry.se2 import Pose2, compose, inverse
+from sensing_nodes.core.geometry.se2 import Pose2, compose, inverse, rotation
 from sensing_nodes.core.scan_matching import (
     ScanMatcherSettings,
     deskewed_by_odometry,
@@ -28,9 +28,8 @@ Estimate = tuple[NDArray[np.int64], NDArray[np.float64], float]
 
 def pose_matrix(pose: Pose2) -> NDArray[np.float64]:
     """A planar pose as a 4x4 homogeneous transform."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
     m = np.eye(4)
-    m[:2, :2] = ((c, -s), (s, c))
+    m[:2, :2] = rotation(pose[2])
     m[:2, 3] = pose[:2]
     return m
 
@@ -110,8 +109,7 @@ def textbook_icp_numpy(source, target, initial=(0.0, 0.0, 0.0), iterations: int 
 
 def _textbook(nearest, source, target, initial, iterations):
     """Fixed iterations of: pair each moved source point with nearest(moved, target), align."""
-    c, s = math.cos(initial[2]), math.sin(initial[2])
-    r = np.array([[c, -s], [s, c]])
+    r = rotation(initial[2])
     t = np.array(initial[:2], dtype=float)
     target = np.asarray(target, dtype=float)
     for _ in range(iterations):
